@@ -1,0 +1,44 @@
+// Algorithm II: Lindstrom's out-of-core uniform-grid vertex clustering with grid quadrics (OoCS),
+// on the DML, with indexed-face input.
+#pragma once
+
+#include "sipmss/algorithms/Common.h"
+
+namespace sipmss::algorithms
+{
+
+// Where a cell's representative vertex goes when the quadric minimizer leaves the cell.
+enum class ClusterFallback : std::uint8_t
+{
+  Mean,         // the mean of the cell's input vertices (default; measured better, see docs)
+  SampledVertex // one of the cell's input vertices, as the paper does (the first one seen)
+};
+
+struct ClusterOptions
+{
+  int maximumGridDimension = 50; // cells along the longest bounding-box axis (the paper's m.g.d.)
+  bool useBounds = false;        // true: `bounds` is the grid's box, no bounds pass is made
+  std::array<double, 6> bounds{}; // xmin xmax ymin ymax zmin zmax
+  ClusterFallback fallback = ClusterFallback::Mean;
+  // Relative threshold for the pseudo-inverse: eigenvalues below this times the largest are
+  // treated as zero (rank-deficient quadrics of flat or linear cells).
+  double singularThreshold = 1e-3;
+  storage::Profile storage; // memory budget, directories, mode policy
+};
+
+// Grid geometry derived from the bounds and the maximum grid dimension.
+struct ClusterGrid
+{
+  std::array<double, 3> origin{};
+  double cellSize = 1;
+  std::array<std::uint32_t, 3> dims{ 1, 1, 1 };
+  static ClusterGrid Make(const std::array<double, 6>& bounds, int maximumGridDimension);
+  std::uint64_t Key(double x, double y, double z) const;
+};
+
+// Runs Algorithm II: `input` is read once (twice when the bounds are not given: a vertices-only
+// bounds pass first) and the clustered mesh is streamed into `output`.
+RunStats Cluster(const MeshSource& input, io::MeshSink& output, const ClusterOptions& options,
+  Progress& progress);
+
+} // namespace sipmss::algorithms

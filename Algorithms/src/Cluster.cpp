@@ -1,0 +1,821 @@
+// Algorithm II (OoCS grid clustering with quadrics) on the DML. See Cluster.h and
+// docs/architecture.md. Every structure that grows with the input lives in DML blocks:
+//   vertices  : per input vertex {x, y, z, cell}            (16 B)
+//   cellHash  : open-addressing map grid key -> dense cell  (16 B per slot, load <= 1/2)
+//   cells     : per cell quadric (10 doubles), vertex sum, count, first vertex
+//   cellAttrs : per cell sums of the point data (normals, colors, texcoords, scalars)
+//   triHash   : open-addressing set of output triangles (dedup), triangles in first-seen order
+#include "sipmss/algorithms/Cluster.h"
+
+#include <Eigen/Dense>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+namespace sipmss::algorithms
+{
+namespace
+{
+using storage::Array;
+using storage::DML;
+
+struct VertexRec
+{
+  float x, y, z;
+  std::uint32_t cell;
+};
+
+struct CellRec
+{
+  double q[10]; // a2 ab ac b2 bc c2 ad bd cd d2 (plane quadric sums)
+  double sum[3];
+  float first[3]; // first vertex seen in the cell (the paper's fallback)
+  std::uint32_t count;
+};
+
+struct KeySlot
+{
+  std::uint64_t key; // grid key + 1; 0 = empty
+  std::uint64_t cell;
+};
+
+struct TriSlot
+{
+  std::uint32_t v[3]; // canonical rotation (smallest first), orientation kept
+  std::uint32_t used; // 0 = empty
+};
+
+inline std::uint64_t Mix(std::uint64_t k)
+{
+  k ^= k >> 33;
+  k *= 0xff51afd7ed558ccdULL;
+  k ^= k >> 33;
+  k *= 0xc4ceb9fe1a85ec53ULL;
+  k ^= k >> 33;
+  return k;
+}
+
+constexpr std::uint32_t kNoCell = std::numeric_limits<std::uint32_t>::max();
+
+// Hash map grid key -> dense cell id in a DML block; doubles when half full.
+class CellMap
+{
+public:
+  explicit CellMap(DML& dml)
+    : dml_(dml)
+    , slots_(dml, 1u << 12)
+  {
+  }
+  // Returns the cell of `key`, inserting it as `next` if absent (then *inserted = true).
+  std::uint32_t FindOrInsert(std::uint64_t key, std::uint32_t next, bool* inserted)
+  {
+    if ((this->size_ + 1) * 2 > this->slots_.Size())
+    {
+      this->Grow();
+    }
+    const std::uint64_t mask = this->slots_.Size() - 1;
+    std::uint64_t i = Mix(key) & mask;
+    for (;;)
+    {
+      KeySlot s = this->slots_.Get(i);
+      if (s.key == 0)
+      {
+        this->slots_.Set(i, KeySlot{ key + 1, next });
+        ++this->size_;
+        *inserted = true;
+        return next;
+      }
+      if (s.key == key + 1)
+      {
+        *inserted = false;
+        return static_cast<std::uint32_t>(s.cell);
+      }
+      i = (i + 1) & mask;
+    }
+  }
+  void Release() { this->slots_.Close(); }
+
+private:
+  void Grow()
+  {
+    Array<KeySlot> bigger(this->dml_, this->slots_.Size() * 2);
+    const std::uint64_t mask = bigger.Size() - 1;
+    const std::uint64_t n = this->slots_.Size();
+    this->slots_.ForEachChunk(0, n, storage::Access::Read,
+      [&](KeySlot* data, std::uint64_t, std::uint64_t count) {
+        for (std::uint64_t j = 0; j < count; ++j)
+        {
+          if (data[j].key == 0)
+          {
+            continue;
+          }
+          std::uint64_t i = Mix(data[j].key - 1) & mask;
+          while (bigger.Get(i).key != 0)
+          {
+            i = (i + 1) & mask;
+          }
+          bigger.Set(i, data[j]);
+        }
+      });
+    this->slots_ = std::move(bigger);
+  }
+
+  DML& dml_;
+  Array<KeySlot> slots_;
+  std::uint64_t size_ = 0;
+};
+
+// Set of output triangles (dedup) plus their first-seen order.
+class TriangleSet
+{
+public:
+  explicit TriangleSet(DML& dml)
+    : dml_(dml)
+    , slots_(dml, 1u << 12)
+    , order_(dml, 1u << 10)
+  {
+  }
+  void Insert(std::uint32_t a, std::uint32_t b, std::uint32_t c)
+  {
+    // canonical rotation keeps the orientation: smallest index first
+    if (b < a && b < c)
+    {
+      std::uint32_t t = a;
+      a = b;
+      b = c;
+      c = t;
+    }
+    else if (c < a && c < b)
+    {
+      std::uint32_t t = c;
+      c = b;
+      b = a;
+      a = t;
+    }
+    if ((this->size_ + 1) * 2 > this->slots_.Size())
+    {
+      this->Grow();
+    }
+    const std::uint64_t mask = this->slots_.Size() - 1;
+    std::uint64_t i = Hash(a, b, c) & mask;
+    for (;;)
+    {
+      TriSlot s = this->slots_.Get(i);
+      if (!s.used)
+      {
+        this->slots_.Set(i, TriSlot{ { a, b, c }, 1 });
+        if (this->size_ == this->order_.Size())
+        {
+          this->order_.Resize(this->order_.Size() * 2);
+        }
+        this->order_.Set(this->size_, TriSlot{ { a, b, c }, 1 });
+        ++this->size_;
+        return;
+      }
+      if (s.v[0] == a && s.v[1] == b && s.v[2] == c)
+      {
+        return;
+      }
+      i = (i + 1) & mask;
+    }
+  }
+  std::uint64_t Size() const { return this->size_; }
+  Array<TriSlot>& Order() { return this->order_; }
+  void ReleaseIndex() { this->slots_.Close(); }
+
+private:
+  static std::uint64_t Hash(std::uint32_t a, std::uint32_t b, std::uint32_t c)
+  {
+    return Mix((static_cast<std::uint64_t>(a) << 32 | b) ^ Mix(c));
+  }
+  void Grow()
+  {
+    Array<TriSlot> bigger(this->dml_, this->slots_.Size() * 2);
+    const std::uint64_t mask = bigger.Size() - 1;
+    // re-insert from the order list: same content, sequential reads
+    this->order_.ForEachChunk(0, this->size_, storage::Access::Read,
+      [&](TriSlot* data, std::uint64_t, std::uint64_t count) {
+        for (std::uint64_t j = 0; j < count; ++j)
+        {
+          std::uint64_t i = Hash(data[j].v[0], data[j].v[1], data[j].v[2]) & mask;
+          while (bigger.Get(i).used)
+          {
+            i = (i + 1) & mask;
+          }
+          bigger.Set(i, data[j]);
+        }
+      });
+    this->slots_ = std::move(bigger);
+  }
+
+  DML& dml_;
+  Array<TriSlot> slots_;
+  Array<TriSlot> order_;
+  std::uint64_t size_ = 0;
+};
+
+// Bounds pass: a vertices-only read.
+class BoundsSink final : public io::MeshSink
+{
+public:
+  explicit BoundsSink(Progress& p)
+    : progress_(p)
+  {
+  }
+  void Begin(const io::MeshHeader& h) override { this->expected_ = h.vertexCount; }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    for (std::size_t i = 0; i < c.count; ++i)
+    {
+      for (int k = 0; k < 3; ++k)
+      {
+        const double v = c.xyz[3 * i + k];
+        this->b[2 * k] = std::min(this->b[2 * k], v);
+        this->b[2 * k + 1] = std::max(this->b[2 * k + 1], v);
+      }
+    }
+    this->seen_ += c.count;
+    this->progress_.Tick(this->expected_ ? double(this->seen_) / double(this->expected_) : 0.0);
+  }
+  void Triangles(const std::uint32_t*, std::size_t) override {}
+  void End(const io::ReadStats&) override {}
+  bool AbortRequested() override { return this->progress_.Aborted(); }
+
+  std::array<double, 6> b{ std::numeric_limits<double>::max(), -std::numeric_limits<double>::max(),
+    std::numeric_limits<double>::max(), -std::numeric_limits<double>::max(),
+    std::numeric_limits<double>::max(), -std::numeric_limits<double>::max() };
+
+private:
+  Progress& progress_;
+  std::uint64_t expected_ = 0, seen_ = 0;
+};
+
+// The clustering pass: vertices to cells, faces to quadrics and output triangles.
+class ClusterSink final : public io::MeshSink
+{
+public:
+  ClusterSink(DML& dml, const ClusterGrid& grid, Progress& progress)
+    : dml_(dml)
+    , grid_(grid)
+    , progress_(progress)
+    , cellMap_(dml)
+    , triangles_(dml)
+  {
+  }
+
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->header_ = h;
+    this->layout_ = h.layout;
+    this->attrStride_ = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 4 : 0) +
+      (h.layout.texcoords ? 2 : 0) + h.layout.scalars.size();
+    this->vertices_ = Array<VertexRec>(this->dml_, std::max<std::uint64_t>(h.vertexCount, 1024));
+    this->cells_ = Array<CellRec>(this->dml_, 1024);
+    if (this->attrStride_)
+    {
+      this->attrBlock_ = this->dml_.OpenBlock(this->attrStride_ * sizeof(float), 1024);
+      this->attrBuf_.assign(this->attrStride_, 0.f);
+    }
+    this->expected_ = h.vertexCount + h.faceCount;
+  }
+
+  void Vertices(const io::VertexChunk& c) override
+  {
+    if (c.first + c.count > this->vertices_.Size())
+    {
+      this->vertices_.Resize(std::max<std::uint64_t>(c.first + c.count, this->vertices_.Size() * 2));
+    }
+    std::uint64_t lastKey = std::numeric_limits<std::uint64_t>::max();
+    std::uint32_t lastCell = kNoCell;
+    for (std::size_t i = 0; i < c.count; ++i)
+    {
+      const float* p = c.xyz + 3 * i;
+      const std::uint64_t key = this->grid_.Key(p[0], p[1], p[2]);
+      std::uint32_t cell = lastCell;
+      if (key != lastKey)
+      {
+        bool inserted = false;
+        cell = this->cellMap_.FindOrInsert(key, this->numCells_, &inserted);
+        if (inserted)
+        {
+          this->AddCell(p);
+        }
+        lastKey = key;
+        lastCell = cell;
+      }
+      this->vertices_.Set(c.first + i, VertexRec{ p[0], p[1], p[2], cell });
+      CellRec rec = this->cells_.Get(cell);
+      rec.sum[0] += p[0];
+      rec.sum[1] += p[1];
+      rec.sum[2] += p[2];
+      ++rec.count;
+      this->cells_.Set(cell, rec);
+      if (this->attrStride_)
+      {
+        this->AccumulateAttributes(c, i, cell);
+      }
+    }
+    this->verticesSeen_ = std::max<std::uint64_t>(this->verticesSeen_, c.first + c.count);
+    this->done_ += c.count;
+    this->Tick();
+  }
+
+  void Triangles(const std::uint32_t* idx, std::size_t count) override
+  {
+    for (std::size_t t = 0; t < count; ++t)
+    {
+      const std::uint32_t* f = idx + 3 * t;
+      if (f[0] >= this->verticesSeen_ || f[1] >= this->verticesSeen_ || f[2] >= this->verticesSeen_)
+      {
+        // faces before their vertices (e.g. a PLY with the face element first): keep for End()
+        this->Defer(f);
+        continue;
+      }
+      this->AddTriangle(f);
+    }
+    this->done_ += count;
+    this->Tick();
+  }
+
+  void End(const io::ReadStats& stats) override
+  {
+    this->readStats_ = stats;
+    if (this->deferredCount_)
+    {
+      for (std::uint64_t i = 0; i < this->deferredCount_; ++i)
+      {
+        TriSlot s = this->deferred_.Get(i);
+        if (s.v[0] >= this->verticesSeen_ || s.v[1] >= this->verticesSeen_ ||
+          s.v[2] >= this->verticesSeen_)
+        {
+          throw io::MeshIOError("a face references vertex " +
+            std::to_string(std::max({ s.v[0], s.v[1], s.v[2] })) + " but the mesh has only " +
+            std::to_string(this->verticesSeen_) + " vertices");
+        }
+        this->AddTriangle(s.v);
+      }
+      this->deferred_.Close();
+    }
+  }
+  bool AbortRequested() override { return this->progress_.Aborted(); }
+
+  // --- after the read
+  void ReleaseInputBlocks()
+  {
+    this->vertices_.Close();
+    this->cellMap_.Release();
+    this->triangles_.ReleaseIndex();
+  }
+
+  void Emit(io::MeshSink& out, const ClusterOptions& options, RunStats& stats)
+  {
+    const std::uint64_t numTris = this->triangles_.Size();
+    // Number the cells used by output triangles, in cell order.
+    Array<std::uint32_t> outIndex(this->dml_, std::max<std::uint64_t>(this->numCells_, 1));
+    {
+      const std::uint32_t unused = kNoCell;
+      this->dml_.Fill(outIndex.Id(), &unused);
+    }
+    auto& order = this->triangles_.Order();
+    order.ForEachChunk(0, numTris, storage::Access::Read,
+      [&](TriSlot* d, std::uint64_t, std::uint64_t n) {
+        for (std::uint64_t j = 0; j < n; ++j)
+        {
+          for (int k = 0; k < 3; ++k)
+          {
+            outIndex.Set(d[j].v[k], 0);
+          }
+        }
+      });
+    std::uint32_t numOut = 0;
+    for (std::uint32_t c = 0; c < this->numCells_; ++c)
+    {
+      if (outIndex.Get(c) != kNoCell)
+      {
+        outIndex.Set(c, numOut++);
+      }
+    }
+    this->dml_.Reconfigure(); // the input-sized blocks are gone: in core from here if it fits
+
+    io::MeshHeader h;
+    h.format = this->header_.format;
+    h.vertexCount = numOut;
+    h.faceCount = numTris;
+    h.layout = this->layout_;
+    out.Begin(h);
+
+    const std::size_t chunk = 1 << 13;
+    std::vector<float> xyz, normals, texcoords, scalars;
+    std::vector<std::uint8_t> rgba;
+    xyz.reserve(3 * chunk);
+    std::vector<float> attr(this->attrStride_);
+    std::uint64_t first = 0;
+    auto flush = [&]() {
+      io::VertexChunk vc;
+      vc.first = first;
+      vc.count = xyz.size() / 3;
+      vc.xyz = xyz.data();
+      vc.normals = this->layout_.normals ? normals.data() : nullptr;
+      vc.rgba = this->layout_.colors ? rgba.data() : nullptr;
+      vc.texcoords = this->layout_.texcoords ? texcoords.data() : nullptr;
+      vc.scalars = this->layout_.scalars.empty() ? nullptr : scalars.data();
+      if (vc.count)
+      {
+        out.Vertices(vc);
+      }
+      first += vc.count;
+      xyz.clear();
+      normals.clear();
+      rgba.clear();
+      texcoords.clear();
+      scalars.clear();
+    };
+    std::uint64_t fallbacks = 0;
+    for (std::uint32_t c = 0; c < this->numCells_; ++c)
+    {
+      if (outIndex.Get(c) == kNoCell)
+      {
+        continue;
+      }
+      const CellRec rec = this->cells_.Get(c);
+      double p[3];
+      if (!this->Representative(rec, c, options, p))
+      {
+        ++fallbacks;
+      }
+      xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
+      if (this->attrStride_)
+      {
+        this->dml_.Read(this->attrBlock_, this->attrStride_ * sizeof(float), c, attr.data());
+        const float inv = rec.count ? 1.0f / float(rec.count) : 0.f;
+        std::size_t k = 0;
+        if (this->layout_.normals)
+        {
+          float n[3] = { attr[0], attr[1], attr[2] };
+          const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+          const float s = len > 0 ? 1.0f / len : 0.f;
+          normals.insert(normals.end(), { n[0] * s, n[1] * s, n[2] * s });
+          k = 3;
+        }
+        if (this->layout_.colors)
+        {
+          for (int j = 0; j < 4; ++j)
+          {
+            const float v = std::round(attr[k + j] * inv);
+            rgba.push_back(static_cast<std::uint8_t>(std::clamp(v, 0.f, 255.f)));
+          }
+          k += 4;
+        }
+        if (this->layout_.texcoords)
+        {
+          texcoords.insert(texcoords.end(), { attr[k] * inv, attr[k + 1] * inv });
+          k += 2;
+        }
+        for (std::size_t j = 0; j < this->layout_.scalars.size(); ++j)
+        {
+          scalars.push_back(attr[k + j] * inv);
+        }
+      }
+      if (xyz.size() / 3 == chunk)
+      {
+        flush();
+        this->progress_.Tick(double(c) / double(this->numCells_));
+      }
+    }
+    flush();
+    this->fallbacks_ = fallbacks;
+
+    std::vector<std::uint32_t> tri;
+    tri.reserve(3 * chunk);
+    order.ForEachChunk(0, numTris, storage::Access::Read,
+      [&](TriSlot* d, std::uint64_t, std::uint64_t n) {
+        for (std::uint64_t j = 0; j < n; ++j)
+        {
+          for (int k = 0; k < 3; ++k)
+          {
+            tri.push_back(outIndex.Get(d[j].v[k]));
+          }
+          if (tri.size() == 3 * chunk)
+          {
+            out.Triangles(tri.data(), chunk);
+            tri.clear();
+          }
+        }
+      });
+    if (!tri.empty())
+    {
+      out.Triangles(tri.data(), tri.size() / 3);
+    }
+    io::ReadStats os;
+    os.vertices = numOut;
+    os.triangles = numTris;
+    os.polygons = numTris;
+    out.End(os);
+    stats.outputVertices = numOut;
+    stats.outputTriangles = numTris;
+  }
+
+  const io::ReadStats& InputStats() const { return this->readStats_; }
+  std::uint64_t Fallbacks() const { return this->fallbacks_; }
+
+private:
+  void Tick()
+  {
+    this->progress_.Tick(this->expected_ ? double(this->done_) / double(this->expected_) : 0.0);
+  }
+
+  void AddCell(const float* p)
+  {
+    if (this->numCells_ == kNoCell - 1)
+    {
+      throw std::runtime_error("more than 4 billion grid cells are occupied");
+    }
+    if (this->numCells_ == this->cells_.Size())
+    {
+      this->cells_.Resize(this->cells_.Size() * 2);
+      if (this->attrStride_)
+      {
+        this->dml_.Resize(this->attrBlock_, this->cells_.Size());
+      }
+    }
+    CellRec rec{};
+    rec.first[0] = p[0];
+    rec.first[1] = p[1];
+    rec.first[2] = p[2];
+    this->cells_.Set(this->numCells_, rec);
+    ++this->numCells_;
+  }
+
+  void AccumulateAttributes(const io::VertexChunk& c, std::size_t i, std::uint32_t cell)
+  {
+    const std::size_t es = this->attrStride_ * sizeof(float);
+    this->dml_.Read(this->attrBlock_, es, cell, this->attrBuf_.data());
+    std::size_t k = 0;
+    if (c.normals)
+    {
+      for (int j = 0; j < 3; ++j)
+      {
+        this->attrBuf_[k + j] += c.normals[3 * i + j];
+      }
+      k += 3;
+    }
+    if (c.rgba)
+    {
+      for (int j = 0; j < 4; ++j)
+      {
+        this->attrBuf_[k + j] += c.rgba[4 * i + j];
+      }
+      k += 4;
+    }
+    if (c.texcoords)
+    {
+      this->attrBuf_[k] += c.texcoords[2 * i];
+      this->attrBuf_[k + 1] += c.texcoords[2 * i + 1];
+      k += 2;
+    }
+    const std::size_t ns = this->layout_.scalars.size();
+    if (c.scalars)
+    {
+      for (std::size_t j = 0; j < ns; ++j)
+      {
+        this->attrBuf_[k + j] += c.scalars[ns * i + j];
+      }
+    }
+    this->dml_.Write(this->attrBlock_, es, cell, this->attrBuf_.data());
+  }
+
+  void Defer(const std::uint32_t* f)
+  {
+    if (!this->deferred_.IsOpen())
+    {
+      this->deferred_ = Array<TriSlot>(this->dml_, 1024);
+    }
+    if (this->deferredCount_ == this->deferred_.Size())
+    {
+      this->deferred_.Resize(this->deferred_.Size() * 2);
+    }
+    this->deferred_.Set(this->deferredCount_++, TriSlot{ { f[0], f[1], f[2] }, 1 });
+  }
+
+  void AddTriangle(const std::uint32_t* f)
+  {
+    const VertexRec a = this->vertices_.Get(f[0]);
+    const VertexRec b = this->vertices_.Get(f[1]);
+    const VertexRec c = this->vertices_.Get(f[2]);
+    // Area-weighted plane quadric of the face (Garland-Heckbert), added to each corner's cell.
+    const double e1[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
+    const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
+    double n[3] = { e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+      e1[0] * e2[1] - e1[1] * e2[0] };
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    if (len > 0)
+    {
+      n[0] /= len;
+      n[1] /= len;
+      n[2] /= len;
+      const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
+      const double w = 0.5 * len; // area
+      const double q[10] = { w * n[0] * n[0], w * n[0] * n[1], w * n[0] * n[2], w * n[1] * n[1],
+        w * n[1] * n[2], w * n[2] * n[2], w * n[0] * d, w * n[1] * d, w * n[2] * d, w * d * d };
+      const std::uint32_t cs[3] = { a.cell, b.cell, c.cell };
+      for (std::uint32_t cell : cs)
+      {
+        CellRec rec = this->cells_.Get(cell);
+        for (int k = 0; k < 10; ++k)
+        {
+          rec.q[k] += q[k];
+        }
+        this->cells_.Set(cell, rec);
+      }
+    }
+    if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
+    {
+      this->triangles_.Insert(a.cell, b.cell, c.cell);
+    }
+  }
+
+  // Minimizes the cell quadric with a pseudo-inverse about the cell's mean (Lindstrom).
+  // Returns false when the minimizer left the cell and the fallback was used.
+  bool Representative(const CellRec& rec, std::uint32_t, const ClusterOptions& options, double p[3])
+  {
+    const double inv = 1.0 / double(std::max<std::uint32_t>(rec.count, 1));
+    const Eigen::Vector3d mean(rec.sum[0] * inv, rec.sum[1] * inv, rec.sum[2] * inv);
+    Eigen::Matrix3d A;
+    A << rec.q[0], rec.q[1], rec.q[2], rec.q[1], rec.q[3], rec.q[4], rec.q[2], rec.q[4], rec.q[5];
+    const Eigen::Vector3d b(rec.q[6], rec.q[7], rec.q[8]);
+    Eigen::Vector3d x = mean;
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(A);
+    const Eigen::Vector3d ev = es.eigenvalues();
+    const double maxEv = ev.cwiseAbs().maxCoeff();
+    if (maxEv > 0)
+    {
+      Eigen::Vector3d inverse = Eigen::Vector3d::Zero();
+      for (int k = 0; k < 3; ++k)
+      {
+        if (std::abs(ev[k]) > options.singularThreshold * maxEv)
+        {
+          inverse[k] = 1.0 / ev[k];
+        }
+      }
+      const Eigen::Matrix3d& V = es.eigenvectors();
+      x = mean + V * inverse.asDiagonal() * V.transpose() * (-b - A * mean);
+    }
+    // inside the cell (with a tolerance for points on its faces)?
+    const std::uint64_t key = this->grid_.Key(mean[0], mean[1], mean[2]);
+    const double eps = 1e-6 * this->grid_.cellSize;
+    bool inside = true;
+    {
+      std::uint64_t k = key;
+      const std::uint32_t iz = k % this->grid_.dims[2];
+      k /= this->grid_.dims[2];
+      const std::uint32_t iy = k % this->grid_.dims[1];
+      const std::uint32_t ix = static_cast<std::uint32_t>(k / this->grid_.dims[1]);
+      const std::uint32_t idx[3] = { ix, iy, iz };
+      for (int d = 0; d < 3; ++d)
+      {
+        const double lo = this->grid_.origin[d] + idx[d] * this->grid_.cellSize;
+        const double hi = lo + this->grid_.cellSize;
+        if (x[d] < lo - eps || x[d] > hi + eps)
+        {
+          inside = false;
+        }
+      }
+    }
+    if (!std::isfinite(x[0]) || !std::isfinite(x[1]) || !std::isfinite(x[2]))
+    {
+      inside = false;
+    }
+    if (inside)
+    {
+      p[0] = x[0];
+      p[1] = x[1];
+      p[2] = x[2];
+      return true;
+    }
+    if (options.fallback == ClusterFallback::SampledVertex)
+    {
+      p[0] = rec.first[0];
+      p[1] = rec.first[1];
+      p[2] = rec.first[2];
+    }
+    else
+    {
+      p[0] = mean[0];
+      p[1] = mean[1];
+      p[2] = mean[2];
+    }
+    return false;
+  }
+
+  DML& dml_;
+  ClusterGrid grid_;
+  Progress& progress_;
+  io::MeshHeader header_;
+  io::VertexLayout layout_;
+  std::size_t attrStride_ = 0;
+  std::vector<float> attrBuf_;
+  Array<VertexRec> vertices_;
+  Array<CellRec> cells_;
+  storage::BlockId attrBlock_ = -1;
+  CellMap cellMap_;
+  TriangleSet triangles_;
+  Array<TriSlot> deferred_;
+  std::uint64_t deferredCount_ = 0;
+  std::uint32_t numCells_ = 0;
+  std::uint64_t verticesSeen_ = 0;
+  std::uint64_t expected_ = 0, done_ = 0;
+  std::uint64_t fallbacks_ = 0;
+  io::ReadStats readStats_;
+};
+
+} // namespace
+
+ClusterGrid ClusterGrid::Make(const std::array<double, 6>& b, int maximumGridDimension)
+{
+  if (maximumGridDimension < 1)
+  {
+    throw std::invalid_argument("the maximum grid dimension must be at least 1");
+  }
+  ClusterGrid g;
+  double longest = 0;
+  for (int d = 0; d < 3; ++d)
+  {
+    if (!(b[2 * d] <= b[2 * d + 1]) || !std::isfinite(b[2 * d]) || !std::isfinite(b[2 * d + 1]))
+    {
+      throw std::invalid_argument("invalid bounds (empty mesh or non-finite coordinates)");
+    }
+    longest = std::max(longest, b[2 * d + 1] - b[2 * d]);
+  }
+  g.cellSize = longest > 0 ? longest / maximumGridDimension : 1.0;
+  for (int d = 0; d < 3; ++d)
+  {
+    g.origin[d] = b[2 * d];
+    const double extent = b[2 * d + 1] - b[2 * d];
+    g.dims[d] = std::max<std::uint32_t>(1,
+      static_cast<std::uint32_t>(std::min<double>(maximumGridDimension, std::ceil(extent / g.cellSize))));
+  }
+  return g;
+}
+
+std::uint64_t ClusterGrid::Key(double x, double y, double z) const
+{
+  const double p[3] = { x, y, z };
+  std::uint64_t idx[3];
+  for (int d = 0; d < 3; ++d)
+  {
+    double f = (p[d] - this->origin[d]) / this->cellSize;
+    std::int64_t i = f > 0 ? static_cast<std::int64_t>(f) : 0;
+    idx[d] = static_cast<std::uint64_t>(std::min<std::int64_t>(i, this->dims[d] - 1));
+  }
+  return (idx[0] * this->dims[1] + idx[1]) * this->dims[2] + idx[2];
+}
+
+RunStats Cluster(const MeshSource& input, io::MeshSink& output, const ClusterOptions& options,
+  Progress& progress)
+{
+  RunStats stats;
+  DML dml;
+  {
+    // The profile: the structures that grow with the input. Counts are not known before the
+    // read, so C is estimated from the grid (cells) and refined by the DML as blocks open.
+    storage::Profile profile = options.storage;
+    dml.Config(profile);
+  }
+
+  std::array<double, 6> bounds = options.bounds;
+  if (!options.useBounds)
+  {
+    progress.BeginPhase("bounds", 0.0, 0.15);
+    PhaseTimer timer(stats, dml, "bounds");
+    BoundsSink bs(progress);
+    io::ReadOptions ro;
+    ro.verticesOnly = true;
+    input(bs, ro);
+    bounds = bs.b;
+  }
+  const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
+
+  ClusterSink sink(dml, grid, progress);
+  {
+    progress.BeginPhase("cluster", options.useBounds ? 0.0 : 0.15, 0.9);
+    PhaseTimer timer(stats, dml, "cluster");
+    io::ReadOptions ro;
+    input(sink, ro);
+    stats.inputVertices = sink.InputStats().vertices;
+    stats.inputTriangles = sink.InputStats().triangles;
+    stats.droppedInputFaces = sink.InputStats().droppedFaces;
+  }
+  sink.ReleaseInputBlocks();
+  {
+    progress.BeginPhase("output", 0.9, 1.0);
+    PhaseTimer timer(stats, dml, "output");
+    sink.Emit(output, options, stats);
+  }
+  progress.BeginPhase("done", 1.0, 1.0);
+  stats.storage = dml.GetStats();
+  return stats;
+}
+
+} // namespace sipmss::algorithms

@@ -1,0 +1,101 @@
+/**
+ * @class   vtkSIPMSSDecimate
+ * @brief   linear-time iterative full edge collapse with quadric error metrics (SIPMSS Algorithm I)
+ *
+ * Each pass collapses a set of independent low-cost edges (no global priority queue, so the run is
+ * linear in the input size) at their quadric-optimal positions, rejecting collapses that flip a
+ * face, break the link condition or create a zero-area face; boundaries are kept by constraint
+ * quadrics (or locked). Each pass yields a level of detail. All per-vertex and per-face state lives
+ * in the SIPMSS data management layer, so a run works in a fixed memory budget (MemoryBudgetMB) and
+ * finishes in core as the mesh shrinks.
+ *
+ * Output port 0: the final mesh. Output port 1: a vtkMultiBlockDataSet with the
+ * NumberOfLevelsOfDetail levels, finest first (the last block equals port 0).
+ */
+#ifndef vtkSIPMSSDecimate_h
+#define vtkSIPMSSDecimate_h
+
+#include "sipmssFiltersModule.h" // for export macro
+#include "vtkSIPMSSFilterBase.h"
+
+class SIPMSSFILTERS_EXPORT vtkSIPMSSDecimate : public vtkSIPMSSFilterBase
+{
+public:
+  static vtkSIPMSSDecimate* New();
+  vtkTypeMacro(vtkSIPMSSDecimate, vtkSIPMSSFilterBase);
+  void PrintSelf(ostream& os, vtkIndent indent) override;
+
+  ///@{
+  /**
+   * Stop at this many triangles. 0 (default): use TargetReduction.
+   */
+  vtkSetClampMacro(TargetNumberOfTriangles, vtkIdType, 0, VTK_ID_MAX);
+  vtkGetMacro(TargetNumberOfTriangles, vtkIdType);
+  ///@}
+
+  ///@{
+  /**
+   * Fraction of the triangles to remove when TargetNumberOfTriangles is 0 (default 0.9).
+   */
+  vtkSetClampMacro(TargetReduction, double, 0.0, 1.0);
+  vtkGetMacro(TargetReduction, double);
+  ///@}
+
+  ///@{
+  /**
+   * Stop early when the cheapest collapse exceeds this quadric error (a squared distance).
+   * Default: no limit.
+   */
+  vtkSetClampMacro(MaximumError, double, 0.0, VTK_DOUBLE_MAX);
+  vtkGetMacro(MaximumError, double);
+  ///@}
+
+  ///@{
+  /**
+   * Number of levels of detail on output port 1 (default 1: only the final mesh).
+   */
+  vtkSetClampMacro(NumberOfLevelsOfDetail, int, 1, 64);
+  vtkGetMacro(NumberOfLevelsOfDetail, int);
+  ///@}
+
+  ///@{
+  /**
+   * Keep boundary vertices where they are (default off: boundaries are kept by weighted
+   * constraint quadrics, BoundaryWeight).
+   */
+  vtkSetMacro(LockBoundary, bool);
+  vtkGetMacro(LockBoundary, bool);
+  vtkBooleanMacro(LockBoundary, bool);
+  vtkSetClampMacro(BoundaryWeight, double, 0.0, VTK_DOUBLE_MAX);
+  vtkGetMacro(BoundaryWeight, double);
+  ///@}
+
+  ///@{
+  /**
+   * Weld input vertices closer than this distance first. Negative (default): no welding.
+   */
+  vtkSetMacro(WeldDistance, double);
+  vtkGetMacro(WeldDistance, double);
+  ///@}
+
+protected:
+  vtkSIPMSSDecimate();
+  ~vtkSIPMSSDecimate() override = default;
+
+  int FillOutputPortInformation(int port, vtkInformation* info) override;
+  int RequestData(vtkInformation*, vtkInformationVector**, vtkInformationVector*) override;
+
+  vtkIdType TargetNumberOfTriangles = 0;
+  double TargetReduction = 0.9;
+  double MaximumError = VTK_DOUBLE_MAX;
+  int NumberOfLevelsOfDetail = 1;
+  bool LockBoundary = false;
+  double BoundaryWeight = 100.0;
+  double WeldDistance = -1.0;
+
+private:
+  vtkSIPMSSDecimate(const vtkSIPMSSDecimate&) = delete;
+  void operator=(const vtkSIPMSSDecimate&) = delete;
+};
+
+#endif

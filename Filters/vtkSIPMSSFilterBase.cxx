@@ -1,0 +1,118 @@
+#include "vtkSIPMSSFilterBase.h"
+
+#include "vtkSIPMSSPolyDataBridge.h"
+
+#include "vtkInformation.h"
+#include "vtkInformationVector.h"
+#include "vtkObjectFactory.h"
+#include "vtkPolyData.h"
+
+vtkSIPMSSFilterBase::vtkSIPMSSFilterBase() = default;
+
+vtkSIPMSSFilterBase::~vtkSIPMSSFilterBase()
+{
+  this->SetFileName(nullptr);
+  this->SetTemporaryDirectories(nullptr);
+}
+
+int vtkSIPMSSFilterBase::FillInputPortInformation(int port, vtkInformation* info)
+{
+  if (!this->Superclass::FillInputPortInformation(port, info))
+  {
+    return 0;
+  }
+  // The input is optional: FileName streams a file instead.
+  info->Set(vtkAlgorithm::INPUT_IS_OPTIONAL(), 1);
+  return 1;
+}
+
+int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyData* output,
+  const CoreRun& run)
+{
+  namespace bridge = vtkSIPMSSPolyDataBridge;
+  this->UsedInCore = this->UsedOutOfCore = false;
+  this->PeakStorageBytes = this->PageHits = this->PageMisses = 0;
+  this->BytesRead = this->BytesWritten = this->Reconfigurations = 0;
+  this->ElapsedSeconds = 0;
+
+  sipmss::algorithms::MeshSource source;
+  bool haveBounds = false;
+  std::array<double, 6> bounds{};
+  std::string what;
+  if (this->FileName && *this->FileName)
+  {
+    source = sipmss::algorithms::FileSource(this->FileName);
+    what = this->FileName;
+  }
+  else
+  {
+    vtkPolyData* input = vtkPolyData::GetData(inputVector[0], 0);
+    if (!input)
+    {
+      vtkErrorMacro("No input: connect a vtkPolyData or set FileName.");
+      return 0;
+    }
+    if (input->GetNumberOfPoints() == 0 || input->GetNumberOfPolys() + input->GetNumberOfStrips() == 0)
+    {
+      vtkWarningMacro("The input has no polygons: the output is empty.");
+      output->Initialize();
+      return 1;
+    }
+    vtkIdType skipped = 0;
+    source = bridge::PolyDataSource(input, &skipped);
+    if (skipped)
+    {
+      vtkWarningMacro("Ignoring " << skipped << " vertex and line cells of the input.");
+    }
+    bounds = bridge::Bounds(input);
+    haveBounds = true;
+    what = "the input";
+  }
+
+  bridge::AlgorithmProgress progress(this);
+  bridge::PolyDataSink sink(output);
+  try
+  {
+    const auto start = std::chrono::steady_clock::now();
+    sipmss::algorithms::RunStats stats =
+      run(source, haveBounds, bounds, sink, bridge::MakeProfile(this), progress);
+    this->ElapsedSeconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    this->UsedInCore = stats.storage.usedInCore;
+    this->UsedOutOfCore = stats.storage.usedOutOfCore;
+    this->PeakStorageBytes = stats.storage.peakBytes;
+    this->PageHits = stats.storage.hits;
+    this->PageMisses = stats.storage.misses;
+    this->BytesRead = stats.storage.bytesRead;
+    this->BytesWritten = stats.storage.bytesWritten;
+    this->Reconfigurations = stats.storage.reconfigurations;
+  }
+  catch (const sipmss::algorithms::AbortedError&)
+  {
+    output->Initialize();
+    return 1; // VTK convention: an aborted filter produces an empty output, no error
+  }
+  catch (const std::exception& e)
+  {
+    output->Initialize();
+    vtkErrorMacro("Cannot simplify " << what << ": " << e.what());
+    return 0;
+  }
+  this->UpdateProgress(1.0);
+  return 1;
+}
+
+void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
+{
+  this->Superclass::PrintSelf(os, indent);
+  os << indent << "FileName: " << (this->FileName ? this->FileName : "(none)") << "\n";
+  os << indent << "MemoryBudgetMB: " << this->MemoryBudgetMB << "\n";
+  os << indent << "TemporaryDirectories: "
+     << (this->TemporaryDirectories ? this->TemporaryDirectories : "(default)") << "\n";
+  os << indent << "OperationMode: " << this->OperationMode << "\n";
+  os << indent << "UsedInCore: " << this->UsedInCore << "\n";
+  os << indent << "UsedOutOfCore: " << this->UsedOutOfCore << "\n";
+  os << indent << "PeakStorageBytes: " << this->PeakStorageBytes << "\n";
+  os << indent << "PageHits: " << this->PageHits << "\n";
+  os << indent << "PageMisses: " << this->PageMisses << "\n";
+}

@@ -1,0 +1,142 @@
+/**
+ * @class   vtkSIPMSSFilterBase
+ * @brief   shared properties of the SIPMSS filters: input file, memory budget, storage statistics
+ *
+ * The SIPMSS filters simplify a triangle mesh under a fixed memory budget through the SIPMSS data
+ * management layer (DML): in core when the data fits MemoryBudgetMB, otherwise out of core with
+ * block files in TemporaryDirectories and a page cache in memory. Input comes from the input port
+ * (a vtkPolyData; polygons are triangulated, strips converted, vertices and lines ignored with a
+ * warning) or, when FileName is set, streamed straight from a PLY, STL or OBJ file (optionally
+ * gzip-compressed) without loading it first.
+ */
+#ifndef vtkSIPMSSFilterBase_h
+#define vtkSIPMSSFilterBase_h
+
+#include "sipmssFiltersModule.h" // for export macro
+#include "vtkPolyDataAlgorithm.h"
+
+class vtkPolyData;
+
+#include <array>      // for std::array
+#include <functional> // for std::function
+
+#ifndef __VTK_WRAP__
+namespace sipmss
+{
+namespace io
+{
+class MeshSink;
+struct ReadStats;
+struct ReadOptions;
+}
+namespace storage
+{
+struct Profile;
+}
+namespace algorithms
+{
+struct RunStats;
+class Progress;
+}
+}
+#endif
+
+class SIPMSSFILTERS_EXPORT vtkSIPMSSFilterBase : public vtkPolyDataAlgorithm
+{
+public:
+  vtkTypeMacro(vtkSIPMSSFilterBase, vtkPolyDataAlgorithm);
+  void PrintSelf(ostream& os, vtkIndent indent) override;
+
+  enum OperationModes
+  {
+    AUTOMATIC = 0, ///< in core when the estimated cost fits the budget, else out of core
+    IN_CORE = 1,
+    OUT_OF_CORE = 2
+  };
+
+  ///@{
+  /**
+   * A PLY/STL/OBJ (.gz) file to stream instead of the input port. Empty (default): use the input.
+   */
+  vtkSetStringMacro(FileName);
+  vtkGetStringMacro(FileName);
+  ///@}
+
+  ///@{
+  /**
+   * Memory budget of the data management layer in MiB. 0 (default) means unbounded (always in
+   * core).
+   */
+  vtkSetClampMacro(MemoryBudgetMB, double, 0.0, VTK_DOUBLE_MAX);
+  vtkGetMacro(MemoryBudgetMB, double);
+  ///@}
+
+  ///@{
+  /**
+   * Directories for the block files of the out-of-core mode, separated by ';'. Empty (default):
+   * $TMPDIR or /tmp. Each run makes a private directory there and removes it when done.
+   */
+  vtkSetStringMacro(TemporaryDirectories);
+  vtkGetStringMacro(TemporaryDirectories);
+  ///@}
+
+  ///@{
+  /**
+   * AUTOMATIC (default), IN_CORE or OUT_OF_CORE.
+   */
+  vtkSetClampMacro(OperationMode, int, AUTOMATIC, OUT_OF_CORE);
+  vtkGetMacro(OperationMode, int);
+  ///@}
+
+  ///@{
+  /**
+   * Statistics of the last run.
+   */
+  vtkGetMacro(UsedInCore, bool);
+  vtkGetMacro(UsedOutOfCore, bool);
+  vtkGetMacro(PeakStorageBytes, vtkTypeUInt64);
+  vtkGetMacro(PageHits, vtkTypeUInt64);
+  vtkGetMacro(PageMisses, vtkTypeUInt64);
+  vtkGetMacro(BytesRead, vtkTypeUInt64);
+  vtkGetMacro(BytesWritten, vtkTypeUInt64);
+  vtkGetMacro(Reconfigurations, vtkTypeUInt64);
+  vtkGetMacro(ElapsedSeconds, double);
+  ///@}
+
+protected:
+  vtkSIPMSSFilterBase();
+  ~vtkSIPMSSFilterBase() override;
+
+  int FillInputPortInformation(int port, vtkInformation* info) override;
+
+#ifndef __VTK_WRAP__
+  // Runs a core on the input port or FileName into output; fills the statistics, reports errors.
+  using Source = std::function<sipmss::io::ReadStats(
+    sipmss::io::MeshSink&, const sipmss::io::ReadOptions&)>; // = algorithms::MeshSource
+  using CoreRun = std::function<sipmss::algorithms::RunStats(const Source&, bool haveBounds,
+    const std::array<double, 6>& bounds, sipmss::io::MeshSink& output,
+    const sipmss::storage::Profile& profile, sipmss::algorithms::Progress& progress)>;
+  int Simplify(vtkInformationVector** inputVector, vtkPolyData* output, const CoreRun& run);
+#endif
+
+  char* FileName = nullptr;
+  double MemoryBudgetMB = 0.0;
+  char* TemporaryDirectories = nullptr;
+  int OperationMode = AUTOMATIC;
+
+  bool UsedInCore = false;
+  bool UsedOutOfCore = false;
+  vtkTypeUInt64 PeakStorageBytes = 0;
+  vtkTypeUInt64 PageHits = 0;
+  vtkTypeUInt64 PageMisses = 0;
+  vtkTypeUInt64 BytesRead = 0;
+  vtkTypeUInt64 BytesWritten = 0;
+  vtkTypeUInt64 Reconfigurations = 0;
+  double ElapsedSeconds = 0.0;
+
+private:
+  vtkSIPMSSFilterBase(const vtkSIPMSSFilterBase&) = delete;
+  void operator=(const vtkSIPMSSFilterBase&) = delete;
+};
+
+#endif

@@ -1,0 +1,429 @@
+#include "vtkSIPMSSPolyDataBridge.h"
+
+#include "vtkSIPMSSFilterBase.h"
+
+#include "vtkAlgorithm.h"
+#include "vtkCellArray.h"
+#include "vtkCellArrayIterator.h"
+#include "vtkDataArray.h"
+#include "vtkFloatArray.h"
+#include "vtkIdTypeArray.h"
+#include "vtkPointData.h"
+#include "vtkPoints.h"
+#include "vtkPolyData.h"
+#include "vtkUnsignedCharArray.h"
+
+#include <algorithm>
+#include <cstring>
+#include <sstream>
+#include <vector>
+
+namespace vtkSIPMSSPolyDataBridge
+{
+namespace io = sipmss::io;
+
+namespace
+{
+// Which point-data arrays become which attributes.
+struct AttributePlan
+{
+  vtkDataArray* normals = nullptr;
+  vtkDataArray* colors = nullptr; // unsigned char, 3 or 4 components
+  vtkDataArray* tcoords = nullptr;
+  std::vector<vtkDataArray*> scalars;
+  io::VertexLayout layout;
+};
+
+AttributePlan Plan(vtkPolyData* pd)
+{
+  AttributePlan plan;
+  vtkPointData* pointData = pd->GetPointData();
+  plan.normals = pointData->GetNormals();
+  if (plan.normals && plan.normals->GetNumberOfComponents() != 3)
+  {
+    plan.normals = nullptr;
+  }
+  plan.tcoords = pointData->GetTCoords();
+  if (plan.tcoords && plan.tcoords->GetNumberOfComponents() != 2)
+  {
+    plan.tcoords = nullptr;
+  }
+  for (int i = 0; i < pointData->GetNumberOfArrays(); ++i)
+  {
+    vtkDataArray* a = pointData->GetArray(i);
+    if (!a || a == plan.normals || a == plan.tcoords)
+    {
+      continue;
+    }
+    const int nc = a->GetNumberOfComponents();
+    if (!plan.colors && a->GetDataType() == VTK_UNSIGNED_CHAR && (nc == 3 || nc == 4))
+    {
+      plan.colors = a;
+    }
+    else if (nc == 1 && a->GetName())
+    {
+      plan.scalars.push_back(a);
+      plan.layout.scalars.emplace_back(a->GetName());
+    }
+  }
+  plan.layout.normals = plan.normals != nullptr;
+  plan.layout.colors = plan.colors != nullptr;
+  plan.layout.texcoords = plan.tcoords != nullptr;
+  return plan;
+}
+}
+
+std::array<double, 6> Bounds(vtkPolyData* input)
+{
+  std::array<double, 6> b;
+  input->GetPoints()->GetBounds(b.data());
+  return b;
+}
+
+sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* skippedCells)
+{
+  *skippedCells = input->GetNumberOfVerts() + input->GetNumberOfLines();
+  return [input](io::MeshSink& sink, const io::ReadOptions& options) {
+    io::ReadStats stats;
+    const vtkIdType np = input->GetNumberOfPoints();
+    if (np > vtkIdType(std::numeric_limits<std::uint32_t>::max()))
+    {
+      throw io::MeshIOError("the input has more points than 32-bit indices can address");
+    }
+    AttributePlan plan = Plan(input);
+    io::MeshHeader header;
+    header.vertexCount = static_cast<std::uint64_t>(np);
+    header.faceCount =
+      static_cast<std::uint64_t>(input->GetNumberOfPolys() + input->GetNumberOfStrips());
+    header.layout = plan.layout;
+    sink.Begin(header);
+
+    const std::size_t chunk = options.chunkElements ? options.chunkElements : 16384;
+    std::vector<float> xyz, normals, tcoords, scalars;
+    std::vector<std::uint8_t> rgba;
+    vtkPoints* points = input->GetPoints();
+    for (vtkIdType first = 0; first < np; first += vtkIdType(chunk))
+    {
+      if (sink.AbortRequested())
+      {
+        throw sipmss::algorithms::AbortedError();
+      }
+      const vtkIdType n = std::min<vtkIdType>(vtkIdType(chunk), np - first);
+      xyz.resize(3 * n);
+      double p[3];
+      for (vtkIdType i = 0; i < n; ++i)
+      {
+        points->GetPoint(first + i, p);
+        xyz[3 * i] = float(p[0]);
+        xyz[3 * i + 1] = float(p[1]);
+        xyz[3 * i + 2] = float(p[2]);
+      }
+      io::VertexChunk c;
+      c.first = std::uint64_t(first);
+      c.count = std::size_t(n);
+      c.xyz = xyz.data();
+      if (plan.normals)
+      {
+        normals.resize(3 * n);
+        for (vtkIdType i = 0; i < n; ++i)
+        {
+          for (int k = 0; k < 3; ++k)
+          {
+            normals[3 * i + k] = float(plan.normals->GetComponent(first + i, k));
+          }
+        }
+        c.normals = normals.data();
+      }
+      if (plan.colors)
+      {
+        rgba.resize(4 * n);
+        const int nc = plan.colors->GetNumberOfComponents();
+        for (vtkIdType i = 0; i < n; ++i)
+        {
+          for (int k = 0; k < 4; ++k)
+          {
+            rgba[4 * i + k] =
+              k < nc ? static_cast<std::uint8_t>(plan.colors->GetComponent(first + i, k)) : 255;
+          }
+        }
+        c.rgba = rgba.data();
+      }
+      if (plan.tcoords)
+      {
+        tcoords.resize(2 * n);
+        for (vtkIdType i = 0; i < n; ++i)
+        {
+          tcoords[2 * i] = float(plan.tcoords->GetComponent(first + i, 0));
+          tcoords[2 * i + 1] = float(plan.tcoords->GetComponent(first + i, 1));
+        }
+        c.texcoords = tcoords.data();
+      }
+      if (!plan.scalars.empty())
+      {
+        const std::size_t ns = plan.scalars.size();
+        scalars.resize(ns * n);
+        for (vtkIdType i = 0; i < n; ++i)
+        {
+          for (std::size_t s = 0; s < ns; ++s)
+          {
+            scalars[ns * i + s] = float(plan.scalars[s]->GetComponent(first + i, 0));
+          }
+        }
+        c.scalars = scalars.data();
+      }
+      sink.Vertices(c);
+    }
+    stats.vertices = std::uint64_t(np);
+    if (options.verticesOnly)
+    {
+      return stats;
+    }
+
+    std::vector<std::uint32_t> tri;
+    tri.reserve(3 * chunk);
+    auto flush = [&]() {
+      if (!tri.empty())
+      {
+        sink.Triangles(tri.data(), tri.size() / 3);
+        stats.triangles += tri.size() / 3;
+        tri.clear();
+      }
+      if (sink.AbortRequested())
+      {
+        throw sipmss::algorithms::AbortedError();
+      }
+    };
+    auto emit = [&](vtkIdType a, vtkIdType b, vtkIdType c) {
+      if (a == b || b == c || a == c)
+      {
+        ++stats.droppedFaces;
+        return;
+      }
+      tri.push_back(std::uint32_t(a));
+      tri.push_back(std::uint32_t(b));
+      tri.push_back(std::uint32_t(c));
+      if (tri.size() >= 3 * chunk)
+      {
+        flush();
+      }
+    };
+    vtkIdType npts;
+    const vtkIdType* ids;
+    auto polys = vtk::TakeSmartPointer(input->GetPolys()->NewIterator());
+    for (polys->GoToFirstCell(); !polys->IsDoneWithTraversal(); polys->GoToNextCell())
+    {
+      polys->GetCurrentCell(npts, ids);
+      ++stats.polygons;
+      if (npts < 3)
+      {
+        ++stats.droppedFaces;
+        continue;
+      }
+      for (vtkIdType k = 1; k + 1 < npts; ++k)
+      {
+        emit(ids[0], ids[k], ids[k + 1]);
+      }
+    }
+    auto strips = vtk::TakeSmartPointer(input->GetStrips()->NewIterator());
+    for (strips->GoToFirstCell(); !strips->IsDoneWithTraversal(); strips->GoToNextCell())
+    {
+      strips->GetCurrentCell(npts, ids);
+      ++stats.polygons;
+      for (vtkIdType k = 0; k + 2 < npts; ++k)
+      {
+        if (k % 2 == 0)
+        {
+          emit(ids[k], ids[k + 1], ids[k + 2]);
+        }
+        else
+        {
+          emit(ids[k + 1], ids[k], ids[k + 2]);
+        }
+      }
+    }
+    flush();
+    sink.End(stats);
+    return stats;
+  };
+}
+
+struct PolyDataSink::Impl
+{
+  vtkPolyData* output;
+  vtkSmartPointer<vtkFloatArray> points;
+  vtkSmartPointer<vtkFloatArray> normals;
+  vtkSmartPointer<vtkUnsignedCharArray> colors;
+  vtkSmartPointer<vtkFloatArray> tcoords;
+  std::vector<vtkSmartPointer<vtkFloatArray>> scalars;
+  vtkSmartPointer<vtkIdTypeArray> connectivity;
+  std::uint64_t vertexCount = 0;
+};
+
+PolyDataSink::PolyDataSink(vtkPolyData* output)
+  : impl_(std::make_shared<Impl>())
+{
+  this->impl_->output = output;
+}
+
+void PolyDataSink::Begin(const io::MeshHeader& h)
+{
+  Impl& m = *this->impl_;
+  m.vertexCount = h.vertexCount;
+  m.points = vtkSmartPointer<vtkFloatArray>::New();
+  m.points->SetNumberOfComponents(3);
+  m.points->SetNumberOfTuples(vtkIdType(h.vertexCount));
+  if (h.layout.normals)
+  {
+    m.normals = vtkSmartPointer<vtkFloatArray>::New();
+    m.normals->SetName("Normals");
+    m.normals->SetNumberOfComponents(3);
+    m.normals->SetNumberOfTuples(vtkIdType(h.vertexCount));
+  }
+  if (h.layout.colors)
+  {
+    m.colors = vtkSmartPointer<vtkUnsignedCharArray>::New();
+    m.colors->SetName("RGBA");
+    m.colors->SetNumberOfComponents(4);
+    m.colors->SetNumberOfTuples(vtkIdType(h.vertexCount));
+  }
+  if (h.layout.texcoords)
+  {
+    m.tcoords = vtkSmartPointer<vtkFloatArray>::New();
+    m.tcoords->SetName("TCoords");
+    m.tcoords->SetNumberOfComponents(2);
+    m.tcoords->SetNumberOfTuples(vtkIdType(h.vertexCount));
+  }
+  for (const std::string& name : h.layout.scalars)
+  {
+    auto a = vtkSmartPointer<vtkFloatArray>::New();
+    a->SetName(name.c_str());
+    a->SetNumberOfTuples(vtkIdType(h.vertexCount));
+    m.scalars.push_back(a);
+  }
+  m.connectivity = vtkSmartPointer<vtkIdTypeArray>::New();
+  m.connectivity->Allocate(vtkIdType(3 * h.faceCount));
+}
+
+void PolyDataSink::Vertices(const io::VertexChunk& c)
+{
+  Impl& m = *this->impl_;
+  if (c.first + c.count > m.vertexCount)
+  {
+    throw io::MeshIOError("the mesh delivered more vertices than it announced");
+  }
+  std::copy_n(c.xyz, 3 * c.count, m.points->GetPointer(vtkIdType(3 * c.first)));
+  if (m.normals && c.normals)
+  {
+    std::copy_n(c.normals, 3 * c.count, m.normals->GetPointer(vtkIdType(3 * c.first)));
+  }
+  if (m.colors && c.rgba)
+  {
+    std::copy_n(c.rgba, 4 * c.count, m.colors->GetPointer(vtkIdType(4 * c.first)));
+  }
+  if (m.tcoords && c.texcoords)
+  {
+    std::copy_n(c.texcoords, 2 * c.count, m.tcoords->GetPointer(vtkIdType(2 * c.first)));
+  }
+  if (c.scalars)
+  {
+    const std::size_t ns = m.scalars.size();
+    for (std::size_t s = 0; s < ns; ++s)
+    {
+      float* dst = m.scalars[s]->GetPointer(vtkIdType(c.first));
+      for (std::size_t i = 0; i < c.count; ++i)
+      {
+        dst[i] = c.scalars[ns * i + s];
+      }
+    }
+  }
+}
+
+void PolyDataSink::Triangles(const std::uint32_t* idx, std::size_t count)
+{
+  Impl& m = *this->impl_;
+  for (std::size_t i = 0; i < 3 * count; ++i)
+  {
+    if (idx[i] >= m.vertexCount)
+    {
+      throw io::MeshIOError("a triangle references a vertex beyond the mesh");
+    }
+    m.connectivity->InsertNextValue(vtkIdType(idx[i]));
+  }
+}
+
+void PolyDataSink::End(const io::ReadStats&)
+{
+  Impl& m = *this->impl_;
+  auto points = vtkSmartPointer<vtkPoints>::New();
+  points->SetData(m.points);
+  auto polys = vtkSmartPointer<vtkCellArray>::New();
+  polys->SetData(3, m.connectivity);
+  m.output->Initialize();
+  m.output->SetPoints(points);
+  m.output->SetPolys(polys);
+  vtkPointData* pd = m.output->GetPointData();
+  if (m.normals)
+  {
+    pd->SetNormals(m.normals);
+  }
+  if (m.colors)
+  {
+    pd->SetScalars(m.colors);
+  }
+  if (m.tcoords)
+  {
+    pd->SetTCoords(m.tcoords);
+  }
+  for (auto& a : m.scalars)
+  {
+    pd->AddArray(a);
+  }
+}
+
+AlgorithmProgress::AlgorithmProgress(vtkAlgorithm* algorithm)
+  : algorithm_(algorithm)
+{
+  this->SetInterval(0.05);
+}
+
+void AlgorithmProgress::Report(double fraction, const char* phase)
+{
+  this->algorithm_->SetProgressText(phase);
+  this->algorithm_->UpdateProgress(fraction);
+}
+
+bool AlgorithmProgress::Aborted()
+{
+  return this->algorithm_->GetAbortExecute() != 0;
+}
+
+sipmss::storage::Profile MakeProfile(vtkSIPMSSFilterBase* f)
+{
+  sipmss::storage::Profile p;
+  p.memoryBudget = static_cast<std::uint64_t>(f->GetMemoryBudgetMB() * 1024.0 * 1024.0);
+  switch (f->GetOperationMode())
+  {
+    case vtkSIPMSSFilterBase::IN_CORE:
+      p.policy = sipmss::storage::ModePolicy::InCore;
+      break;
+    case vtkSIPMSSFilterBase::OUT_OF_CORE:
+      p.policy = sipmss::storage::ModePolicy::OutOfCore;
+      break;
+    default:
+      p.policy = sipmss::storage::ModePolicy::Automatic;
+  }
+  if (const char* dirs = f->GetTemporaryDirectories())
+  {
+    std::stringstream ss(dirs);
+    std::string d;
+    while (std::getline(ss, d, ';'))
+    {
+      if (!d.empty())
+      {
+        p.directories.push_back(d);
+      }
+    }
+  }
+  return p;
+}
+}

@@ -1,0 +1,279 @@
+// SIPMSS data management layer (DML): the paper's device independent primitives.
+//
+// An algorithm describes its data structures in a Profile and calls Config(); the DML runs
+// in core when the estimated cost C <= budget B, otherwise out of core (each block a file in a
+// private per-instance directory, memory a WSClock page cache). Reconfigure() re-evaluates the
+// mode as the data shrinks or grows. Every byte the DML holds is counted against B.
+//
+// Thread safety: one DML instance is used by one thread at a time. Concurrent *reads* through
+// BasePointer() in core mode are safe while no other call runs.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace sipmss::storage
+{
+
+enum class Mode : std::uint8_t
+{
+  InCore,
+  OutOfCore
+};
+enum class ModePolicy : std::uint8_t
+{
+  Automatic,
+  InCore,
+  OutOfCore
+};
+const char* ToString(Mode m);
+
+// Page allocation between blocks in out-of-core mode.
+enum class PagePolicy : std::uint8_t
+{
+  StaticWeight, // the paper: a block's share of pages follows its weight (size / mean size)
+  Adaptive      // shares follow observed miss rates
+};
+
+struct StructureSpec
+{
+  std::string name;
+  std::size_t elementSize = 0;
+  std::uint64_t maxCount = 0;
+  double weight = 0.0; // 0: derived from the size, as in the paper
+};
+
+struct Profile
+{
+  std::vector<StructureSpec> structures; // C = sum(elementSize * maxCount) + metadata
+  std::vector<std::string> directories;  // empty: $TMPDIR or /tmp
+  std::uint64_t memoryBudget = 0;        // B in bytes; 0 = unbounded (always in core)
+  ModePolicy policy = ModePolicy::Automatic;
+  PagePolicy pagePolicy = PagePolicy::StaticWeight;
+  std::size_t pageSize = 0; // 0: automatic
+};
+
+struct Stats
+{
+  Mode mode = Mode::InCore;
+  bool usedInCore = false;
+  bool usedOutOfCore = false;
+  std::uint64_t bytesHeld = 0; // bytes of memory held now (pages, blocks, metadata)
+  std::uint64_t peakBytes = 0; // maximum of bytesHeld since Config
+  std::uint64_t hits = 0;
+  std::uint64_t misses = 0;
+  std::uint64_t bytesRead = 0;    // from files
+  std::uint64_t bytesWritten = 0; // to files
+  std::uint64_t reconfigurations = 0; // mode switches after Config
+};
+
+// Typed error for every storage failure: the path involved and the OS error (errno) if any.
+class StorageError : public std::runtime_error
+{
+public:
+  StorageError(const std::string& message, std::string path, int osError);
+  const std::string& Path() const noexcept { return this->path_; }
+  int OsError() const noexcept { return this->osError_; }
+
+private:
+  std::string path_;
+  int osError_;
+};
+
+// Raised when an operation cannot be done inside the memory budget (e.g. too many pinned pages).
+class BudgetError : public std::runtime_error
+{
+public:
+  using std::runtime_error::runtime_error;
+};
+
+// File backend: every file operation of the out-of-core mode goes through it so that tests can
+// inject faults. The default backend uses POSIX pread/pwrite with 64-bit offsets.
+class FileBackend
+{
+public:
+  virtual ~FileBackend() = default;
+  virtual int Create(const std::string& path) = 0; // returns a handle; throws StorageError
+  virtual void Close(int handle) = 0;
+  virtual void Remove(const std::string& path) = 0;
+  virtual void ReadAt(int handle, void* dst, std::size_t bytes, std::uint64_t offset) = 0;
+  virtual void WriteAt(int handle, const void* src, std::size_t bytes, std::uint64_t offset) = 0;
+  virtual void Truncate(int handle, std::uint64_t bytes) = 0;
+  static std::unique_ptr<FileBackend> CreatePosix();
+};
+
+using BlockId = std::int32_t;
+
+enum class Access : std::uint8_t
+{
+  Read,
+  Write // the page is marked dirty
+};
+
+// A pinned run of consecutive elements of one block (never crosses a page).
+struct Span
+{
+  void* data = nullptr;
+  std::uint64_t first = 0; // element index of data[0]
+  std::uint64_t count = 0; // elements valid from data
+};
+
+class DML
+{
+public:
+  DML();
+  explicit DML(std::unique_ptr<FileBackend> backend);
+  ~DML(); // closes every block, removes every file and the private directory
+  DML(const DML&) = delete;
+  DML& operator=(const DML&) = delete;
+
+  // --- configuration primitives
+  Mode Config(const Profile& profile);
+  Mode Reconfigure(); // re-evaluate C against B (C = bytes of the blocks open now)
+  Mode GetMode() const;
+  Stats GetStats() const;
+  const Profile& GetProfile() const;
+
+  // --- allocation primitives
+  BlockId OpenBlock(std::size_t elementSize, std::uint64_t count, double weight = 0.0);
+  void CloseBlock(BlockId id);
+  void Resize(BlockId id, std::uint64_t count); // grow (new elements are zero) or shrink
+  std::uint64_t Count(BlockId id) const;
+  std::size_t ElementSize(BlockId id) const;
+
+  // --- read/write primitives (elementSize must equal the block's)
+  void Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst);
+  void Write(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
+  void ReadRange(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
+  void WriteRange(BlockId id, std::uint64_t first, std::uint64_t count, const void* src);
+  void Fill(BlockId id, const void* element); // every element := *element
+
+  // --- zero-copy access for hot loops
+  // In core: the block's memory (valid until the next Config/Reconfigure/Resize/OpenBlock that
+  // changes the mode, or CloseBlock of this block). Out of core: nullptr.
+  void* BasePointer(BlockId id) const;
+  // Pin the page holding `index`; the span runs to the end of that page (or block).
+  Span Pin(BlockId id, std::uint64_t index, Access access);
+  void Unpin(BlockId id, const Span& span);
+
+  // --- variable-length records: one list of fixed-size elements per index
+  BlockId OpenListBlock(std::size_t elementSize, std::uint64_t listCount, double weight = 0.0);
+  void Append(BlockId id, std::uint64_t list, const void* element);
+  std::uint64_t ListSize(BlockId id, std::uint64_t list);
+  // Appends the list's elements to out (elementSize bytes each); returns the element count.
+  std::uint64_t ReadList(BlockId id, std::uint64_t list, std::vector<unsigned char>& out);
+  void SetList(BlockId id, std::uint64_t list, const void* elements, std::uint64_t count);
+
+  // Path of this instance's private directory ("" until the first file is made).
+  std::string PrivateDirectory() const;
+
+  // Removes private directories of dead processes under `directory`; returns how many.
+  static int CleanStaleDirectories(const std::string& directory);
+
+  struct Impl;
+
+private:
+  friend struct DMLTestAccess; // test and benchmark hooks (DMLTesting.h)
+  std::unique_ptr<Impl> impl_;
+};
+
+// Typed convenience over one fixed-size block.
+template <class T>
+class Array
+{
+public:
+  Array() = default;
+  Array(DML& dml, std::uint64_t count, double weight = 0.0)
+    : dml_(&dml)
+    , id_(dml.OpenBlock(sizeof(T), count, weight))
+  {
+  }
+  ~Array() { this->Close(); }
+  Array(const Array&) = delete;
+  Array& operator=(const Array&) = delete;
+  Array(Array&& o) noexcept : dml_(o.dml_), id_(o.id_) { o.dml_ = nullptr; }
+  Array& operator=(Array&& o) noexcept
+  {
+    if (this != &o)
+    {
+      this->Close();
+      this->dml_ = o.dml_;
+      this->id_ = o.id_;
+      o.dml_ = nullptr;
+    }
+    return *this;
+  }
+  void Close()
+  {
+    if (this->dml_)
+    {
+      this->dml_->CloseBlock(this->id_);
+      this->dml_ = nullptr;
+    }
+  }
+  bool IsOpen() const { return this->dml_ != nullptr; }
+  BlockId Id() const { return this->id_; }
+  std::uint64_t Size() const { return this->dml_->Count(this->id_); }
+  void Resize(std::uint64_t n) { this->dml_->Resize(this->id_, n); }
+
+  T Get(std::uint64_t i) const
+  {
+    if (void* base = this->dml_->BasePointer(this->id_))
+    {
+      return static_cast<const T*>(base)[i];
+    }
+    T v;
+    this->dml_->Read(this->id_, sizeof(T), i, &v);
+    return v;
+  }
+  void Set(std::uint64_t i, const T& v)
+  {
+    if (void* base = this->dml_->BasePointer(this->id_))
+    {
+      static_cast<T*>(base)[i] = v;
+      return;
+    }
+    this->dml_->Write(this->id_, sizeof(T), i, &v);
+  }
+  void Read(std::uint64_t first, std::uint64_t n, T* dst) const
+  {
+    this->dml_->ReadRange(this->id_, first, n, dst);
+  }
+  void Write(std::uint64_t first, std::uint64_t n, const T* src)
+  {
+    this->dml_->WriteRange(this->id_, first, n, src);
+  }
+
+  // Calls f(T* data, uint64_t first, uint64_t count) over [first, first+n) page by page.
+  template <class F>
+  void ForEachChunk(std::uint64_t first, std::uint64_t n, Access access, F&& f)
+  {
+    const std::uint64_t end = first + n;
+    while (first < end)
+    {
+      Span s = this->dml_->Pin(this->id_, first, access);
+      std::uint64_t c = s.count < end - first ? s.count : end - first;
+      try
+      {
+        f(static_cast<T*>(s.data), first, c);
+      }
+      catch (...)
+      {
+        this->dml_->Unpin(this->id_, s);
+        throw;
+      }
+      this->dml_->Unpin(this->id_, s);
+      first += c;
+    }
+  }
+
+private:
+  DML* dml_ = nullptr;
+  BlockId id_ = -1;
+};
+
+} // namespace sipmss::storage

@@ -1,0 +1,96 @@
+// vtkSIPMSSDecimate: reduction target, levels of detail on port 1, in core == out of core,
+// point data carried, bad input.
+#include "vtkSIPMSSDecimate.h"
+
+#include "SIPMSSTestUtilities.h"
+
+#include "vtkFloatArray.h"
+#include "vtkMultiBlockDataSet.h"
+#include "vtkNew.h"
+#include "vtkPointData.h"
+#include "vtkSphereSource.h"
+
+namespace
+{
+int TestSphere()
+{
+  vtkNew<vtkSphereSource> sphere;
+  sphere->SetThetaResolution(120);
+  sphere->SetPhiResolution(120);
+  sphere->Update();
+  vtkPolyData* in = sphere->GetOutput();
+  vtkNew<vtkFloatArray> x;
+  x->SetName("x");
+  for (vtkIdType i = 0; i < in->GetNumberOfPoints(); ++i)
+  {
+    x->InsertNextValue(static_cast<float>(in->GetPoint(i)[0]));
+  }
+  in->GetPointData()->AddArray(x);
+  const vtkIdType inTris = in->GetNumberOfPolys();
+
+  vtkNew<vtkSIPMSSDecimate> a;
+  a->SetInputData(in);
+  a->SetTargetNumberOfTriangles(1000);
+  a->SetNumberOfLevelsOfDetail(3);
+  a->SetOperationMode(vtkSIPMSSFilterBase::IN_CORE);
+  a->Update();
+  vtkPolyData* out = a->GetOutput();
+  SIPMSS_CHECK(out->GetNumberOfPolys() <= 1000);
+  SIPMSS_CHECK(out->GetNumberOfPolys() >= 900);
+  // every output point on the unit sphere's neighbourhood, x carried
+  vtkDataArray* ox = out->GetPointData()->GetArray("x");
+  SIPMSS_CHECK(ox != nullptr);
+  for (vtkIdType i = 0; i < out->GetNumberOfPoints(); ++i)
+  {
+    const double* p = out->GetPoint(i);
+    const double r = std::sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+    SIPMSS_CHECK(std::abs(r - 0.5) < 0.05);
+    SIPMSS_CHECK(std::abs(ox->GetTuple1(i) - p[0]) < 0.05);
+  }
+  // levels of detail: decreasing, the last equals port 0
+  vtkMultiBlockDataSet* lods = vtkMultiBlockDataSet::SafeDownCast(a->GetOutputDataObject(1));
+  SIPMSS_CHECK(lods && lods->GetNumberOfBlocks() == 3);
+  vtkIdType previous = inTris + 1;
+  for (unsigned int l = 0; l < 3; ++l)
+  {
+    vtkPolyData* lod = vtkPolyData::SafeDownCast(lods->GetBlock(l));
+    SIPMSS_CHECK(lod != nullptr);
+    SIPMSS_CHECK(lod->GetNumberOfPolys() < previous);
+    previous = lod->GetNumberOfPolys();
+  }
+  SIPMSS_CHECK(previous == out->GetNumberOfPolys());
+
+  vtkNew<vtkSIPMSSDecimate> b;
+  b->SetInputData(in);
+  b->SetTargetNumberOfTriangles(1000);
+  b->SetOperationMode(vtkSIPMSSFilterBase::OUT_OF_CORE);
+  b->SetMemoryBudgetMB(64.0 / 1024.0);
+  b->Update();
+  SIPMSS_CHECK(b->GetUsedOutOfCore());
+  SIPMSS_CHECK(SameMesh(out, b->GetOutput()));
+  return EXIT_SUCCESS;
+}
+
+int TestBadInput()
+{
+  vtkNew<ErrorRecorder> errors;
+  vtkNew<vtkSIPMSSDecimate> bad;
+  bad->AddObserver(vtkCommand::ErrorEvent, errors);
+  bad->GetExecutive()->AddObserver(vtkCommand::ErrorEvent, errors);
+  bad->SetFileName("/nonexistent/sipmss-missing.obj");
+  bad->Update();
+  SIPMSS_CHECK(errors->Count > 0);
+  SIPMSS_CHECK(errors->Last.find("sipmss-missing.obj") != std::string::npos);
+  return EXIT_SUCCESS;
+}
+}
+
+int TestSIPMSSDecimate(int, char*[])
+{
+  if (TestSphere() != EXIT_SUCCESS || TestBadInput() != EXIT_SUCCESS)
+  {
+    return EXIT_FAILURE;
+  }
+  std::cout << "TestSIPMSSDecimate passed" << std::endl;
+  return EXIT_SUCCESS;
+}

@@ -1,0 +1,275 @@
+// sipmss-meshgen: inputs for the demo, the tests and the benchmarks.
+//
+//   sipmss-meshgen scan OUTPUT [--triangles N] [--order scanner|shuffled]
+//       a closed, bumpy, scan-like surface (a displaced sphere) of about N triangles
+//   sipmss-meshgen subdivide INPUT OUTPUT [--levels L] [--displace D] [--order scanner|shuffled]
+//       midpoint subdivision (x4 triangles per level) with a small displacement along the normal
+//       so that the new triangles carry detail, as docs of ../shared/data recommend
+//
+// "scanner" order: vertices sorted along the longest axis, faces by their first vertex (the way
+// volumetric reconstructions such as vrip write their output); "shuffled": random order.
+// This is a tool for making inputs: it holds the mesh in memory (unlike sipmss itself).
+#include "sipmss/io/MeshIO.h"
+
+#include <CLI/CLI.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <numeric>
+#include <random>
+#include <unordered_map>
+#include <vector>
+
+using namespace sipmss;
+
+namespace
+{
+struct Mesh
+{
+  std::vector<float> p;
+  std::vector<std::uint32_t> t;
+};
+
+class Collect final : public io::MeshSink
+{
+public:
+  explicit Collect(Mesh& m)
+    : m_(m)
+  {
+  }
+  void Begin(const io::MeshHeader&) override {}
+  void Vertices(const io::VertexChunk& c) override
+  {
+    this->m_.p.resize(std::max(this->m_.p.size(), 3 * (c.first + c.count)));
+    std::copy_n(c.xyz, 3 * c.count, this->m_.p.begin() + 3 * c.first);
+  }
+  void Triangles(const std::uint32_t* i, std::size_t n) override
+  {
+    this->m_.t.insert(this->m_.t.end(), i, i + 3 * n);
+  }
+  void End(const io::ReadStats&) override {}
+
+private:
+  Mesh& m_;
+};
+
+Mesh Scan(std::uint64_t triangles)
+{
+  // UV sphere with n rings and 2n segments: about 4 n^2 triangles
+  const int n = std::max(4, int(std::sqrt(double(triangles) / 4.0)));
+  const int m = 2 * n;
+  Mesh mesh;
+  auto radius = [](double th, double ph) {
+    return 1.0 + 0.08 * std::sin(5 * th) * std::cos(4 * ph) + 0.03 * std::sin(17 * th + 3 * ph) +
+      0.01 * std::cos(41 * ph) * std::sin(29 * th);
+  };
+  mesh.p.insert(mesh.p.end(), { 0.f, 0.f, float(radius(0, 0)) });
+  for (int i = 1; i < n; ++i)
+  {
+    const double th = M_PI * i / n;
+    for (int j = 0; j < m; ++j)
+    {
+      const double ph = 2 * M_PI * j / m;
+      const double r = radius(th, ph);
+      mesh.p.insert(mesh.p.end(), { float(1.3 * r * std::sin(th) * std::cos(ph)),
+                                    float(r * std::sin(th) * std::sin(ph)), float(r * std::cos(th)) });
+    }
+  }
+  mesh.p.insert(mesh.p.end(), { 0.f, 0.f, float(-radius(M_PI, 0)) });
+  const std::uint32_t south = std::uint32_t(mesh.p.size() / 3 - 1);
+  auto id = [&](int i, int j) { return std::uint32_t(1 + (i - 1) * m + (j % m)); };
+  for (int j = 0; j < m; ++j)
+  {
+    mesh.t.insert(mesh.t.end(), { 0, id(1, j), id(1, j + 1) });
+    mesh.t.insert(mesh.t.end(), { south, id(n - 1, j + 1), id(n - 1, j) });
+  }
+  for (int i = 1; i < n - 1; ++i)
+  {
+    for (int j = 0; j < m; ++j)
+    {
+      mesh.t.insert(mesh.t.end(), { id(i, j), id(i + 1, j), id(i + 1, j + 1) });
+      mesh.t.insert(mesh.t.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
+    }
+  }
+  return mesh;
+}
+
+void Subdivide(Mesh& mesh, double displace)
+{
+  std::unordered_map<std::uint64_t, std::uint32_t> mid;
+  mid.reserve(mesh.t.size());
+  // per-vertex normals for the displacement
+  std::vector<float> nrm(mesh.p.size(), 0.f);
+  for (std::size_t f = 0; f < mesh.t.size(); f += 3)
+  {
+    const float* a = &mesh.p[3 * mesh.t[f]];
+    const float* b = &mesh.p[3 * mesh.t[f + 1]];
+    const float* c = &mesh.p[3 * mesh.t[f + 2]];
+    const float u[3] = { b[0] - a[0], b[1] - a[1], b[2] - a[2] };
+    const float v[3] = { c[0] - a[0], c[1] - a[1], c[2] - a[2] };
+    const float n[3] = { u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0] };
+    for (int k = 0; k < 3; ++k)
+      for (int d = 0; d < 3; ++d)
+        nrm[3 * mesh.t[f + k] + d] += n[d];
+  }
+  std::mt19937_64 rng(42);
+  std::uniform_real_distribution<float> noise(-1.f, 1.f);
+  std::vector<std::uint32_t> out;
+  out.reserve(4 * mesh.t.size());
+  auto midpoint = [&](std::uint32_t a, std::uint32_t b) {
+    const std::uint64_t key = a < b ? (std::uint64_t(a) << 32 | b) : (std::uint64_t(b) << 32 | a);
+    auto it = mid.find(key);
+    if (it != mid.end())
+      return it->second;
+    const std::uint32_t id = std::uint32_t(mesh.p.size() / 3);
+    float n[3];
+    float len = 0, elen = 0;
+    for (int d = 0; d < 3; ++d)
+    {
+      n[d] = nrm[3 * a + d] + nrm[3 * b + d];
+      len += n[d] * n[d];
+      const float e = mesh.p[3 * a + d] - mesh.p[3 * b + d];
+      elen += e * e;
+    }
+    len = std::sqrt(len);
+    const float s = len > 0 ? float(displace) * std::sqrt(elen) * noise(rng) / len : 0.f;
+    for (int d = 0; d < 3; ++d)
+      mesh.p.push_back(0.5f * (mesh.p[3 * a + d] + mesh.p[3 * b + d]) + s * n[d]);
+    mid.emplace(key, id);
+    return id;
+  };
+  for (std::size_t f = 0; f < mesh.t.size(); f += 3)
+  {
+    const std::uint32_t a = mesh.t[f], b = mesh.t[f + 1], c = mesh.t[f + 2];
+    const std::uint32_t ab = midpoint(a, b), bc = midpoint(b, c), ca = midpoint(c, a);
+    out.insert(out.end(), { a, ab, ca, ab, b, bc, ca, bc, c, ab, bc, ca });
+  }
+  mesh.t.swap(out);
+}
+
+void Order(Mesh& mesh, const std::string& order)
+{
+  const std::size_t nv = mesh.p.size() / 3;
+  std::vector<std::uint32_t> perm(nv);
+  std::iota(perm.begin(), perm.end(), 0u);
+  std::mt19937_64 rng(7);
+  if (order == "shuffled")
+  {
+    std::shuffle(perm.begin(), perm.end(), rng);
+  }
+  else
+  {
+    float lo[3] = { 1e30f, 1e30f, 1e30f }, hi[3] = { -1e30f, -1e30f, -1e30f };
+    for (std::size_t i = 0; i < nv; ++i)
+      for (int d = 0; d < 3; ++d)
+      {
+        lo[d] = std::min(lo[d], mesh.p[3 * i + d]);
+        hi[d] = std::max(hi[d], mesh.p[3 * i + d]);
+      }
+    int axis = 0;
+    for (int d = 1; d < 3; ++d)
+      if (hi[d] - lo[d] > hi[axis] - lo[axis])
+        axis = d;
+    std::stable_sort(perm.begin(), perm.end(),
+      [&](std::uint32_t a, std::uint32_t b) { return mesh.p[3 * a + axis] < mesh.p[3 * b + axis]; });
+  }
+  std::vector<std::uint32_t> rank(nv);
+  std::vector<float> p(mesh.p.size());
+  for (std::size_t i = 0; i < nv; ++i)
+  {
+    rank[perm[i]] = std::uint32_t(i);
+    std::copy_n(&mesh.p[3 * perm[i]], 3, &p[3 * i]);
+  }
+  mesh.p.swap(p);
+  const std::size_t nt = mesh.t.size() / 3;
+  for (auto& v : mesh.t)
+    v = rank[v];
+  std::vector<std::uint32_t> fperm(nt);
+  std::iota(fperm.begin(), fperm.end(), 0u);
+  if (order == "shuffled")
+    std::shuffle(fperm.begin(), fperm.end(), rng);
+  else
+    std::stable_sort(fperm.begin(), fperm.end(), [&](std::uint32_t a, std::uint32_t b) {
+      return *std::min_element(&mesh.t[3 * a], &mesh.t[3 * a + 3]) <
+        *std::min_element(&mesh.t[3 * b], &mesh.t[3 * b + 3]);
+    });
+  std::vector<std::uint32_t> t(mesh.t.size());
+  for (std::size_t i = 0; i < nt; ++i)
+    std::copy_n(&mesh.t[3 * fperm[i]], 3, &t[3 * i]);
+  mesh.t.swap(t);
+}
+
+void Write(const Mesh& mesh, const std::string& path)
+{
+  auto w = io::MeshWriter::Create(path, false);
+  w->Begin(mesh.p.size() / 3, mesh.t.size() / 3, io::VertexLayout{});
+  const std::size_t chunk = 1 << 16;
+  for (std::size_t first = 0; first < mesh.p.size() / 3; first += chunk)
+  {
+    io::VertexChunk c;
+    c.first = first;
+    c.count = std::min(chunk, mesh.p.size() / 3 - first);
+    c.xyz = &mesh.p[3 * first];
+    w->Vertices(c);
+  }
+  for (std::size_t first = 0; first < mesh.t.size() / 3; first += chunk)
+  {
+    w->Triangles(&mesh.t[3 * first], std::min(chunk, mesh.t.size() / 3 - first));
+  }
+  w->End();
+  std::printf("sipmss-meshgen: wrote %s: %zu vertices, %zu triangles\n", path.c_str(),
+    mesh.p.size() / 3, mesh.t.size() / 3);
+}
+} // namespace
+
+int main(int argc, char** argv)
+{
+  CLI::App app{ "sipmss-meshgen: generated inputs for SIPMSS demos, tests and benchmarks" };
+  app.require_subcommand(1);
+  std::string out, in, order = "scanner";
+  std::uint64_t triangles = 200000;
+  int levels = 1;
+  double displace = 0.02;
+  auto* scan = app.add_subcommand("scan", "a bumpy closed scan-like surface");
+  scan->add_option("OUTPUT", out)->required();
+  scan->add_option("--triangles", triangles, "about this many triangles")->check(CLI::Range(16.0, 4e9));
+  scan->add_option("--order", order)->check(CLI::IsMember({ "scanner", "shuffled" }));
+  auto* sub = app.add_subcommand("subdivide", "midpoint subdivision with displacement");
+  sub->add_option("INPUT", in)->required();
+  sub->add_option("OUTPUT", out)->required();
+  sub->add_option("--levels", levels)->check(CLI::Range(0, 6));
+  sub->add_option("--displace", displace, "displacement as a fraction of the edge length");
+  sub->add_option("--order", order)->check(CLI::IsMember({ "scanner", "shuffled" }));
+  try
+  {
+    app.parse(argc, argv);
+  }
+  catch (const CLI::ParseError& e)
+  {
+    return app.exit(e) == 0 ? 0 : 2;
+  }
+  try
+  {
+    Mesh mesh;
+    if (*scan)
+    {
+      mesh = Scan(triangles);
+    }
+    else
+    {
+      Collect c(mesh);
+      io::ReadMesh(in, c);
+      for (int l = 0; l < levels; ++l)
+        Subdivide(mesh, displace);
+    }
+    Order(mesh, order);
+    Write(mesh, out);
+  }
+  catch (const std::exception& e)
+  {
+    std::fprintf(stderr, "sipmss-meshgen: error: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}

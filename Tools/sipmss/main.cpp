@@ -1,0 +1,413 @@
+// sipmss: simplify huge triangle meshes under a fixed memory budget, compare and inspect meshes.
+//
+//   sipmss simplify INPUT OUTPUT [--algorithm cluster|decimate] [--grid N] [--target N |
+//                  --reduction R] [--memory-mb MB] [--tmpdir DIR]... [--lods K]
+//                  [--stats-json FILE] [--quiet]
+//   sipmss compare REFERENCE CANDIDATE [--samples N]
+//   sipmss info FILE
+//   sipmss --version
+//
+// Exit status: 0 success, 1 input or I/O error, 2 usage error.
+#include "sipmss/algorithms/Cluster.h"
+#include "sipmss/algorithms/Compare.h"
+#include "sipmss/algorithms/Decimate.h"
+#include "sipmss/io/MeshIO.h"
+
+#include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+
+#include <sys/resource.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <limits>
+#include <random>
+
+namespace fs = std::filesystem;
+using namespace sipmss;
+
+namespace
+{
+
+// A progress bar on a terminal; silent otherwise.
+class TerminalProgress final : public algorithms::Progress
+{
+public:
+  explicit TerminalProgress(bool enabled)
+    : enabled_(enabled)
+  {
+    this->SetInterval(0.1);
+  }
+  ~TerminalProgress() override { this->Finish(); }
+  void Report(double fraction, const char* phase) override
+  {
+    if (!this->enabled_)
+    {
+      return;
+    }
+    const int width = 30;
+    const int filled = static_cast<int>(fraction * width + 0.5);
+    std::fprintf(stderr, "\r[%.*s%*s] %3d%% %-10s", filled, "##############################",
+      width - filled, "", static_cast<int>(fraction * 100 + 0.5), phase);
+    std::fflush(stderr);
+    this->drawn_ = true;
+  }
+  void Finish()
+  {
+    if (this->drawn_)
+    {
+      std::fprintf(stderr, "\r%*s\r", 50, "");
+      this->drawn_ = false;
+    }
+  }
+
+private:
+  bool enabled_;
+  bool drawn_ = false;
+};
+
+// Writes a streamed mesh to a temporary name next to OUTPUT; Commit() renames it into place.
+// If the run fails or is abandoned, the temporary file is removed and OUTPUT is untouched.
+class FileSink final : public io::MeshSink
+{
+public:
+  explicit FileSink(fs::path output)
+    : output_(std::move(output))
+  {
+    // a hidden name in the same directory (so rename is atomic); the extension stays last so
+    // the writer picks the format from it
+    this->temp_ = this->output_.parent_path() /
+      (".sipmss-" + std::to_string(::getpid()) + "-" + this->output_.filename().string());
+  }
+  ~FileSink() override
+  {
+    this->writer_.reset();
+    if (!this->committed_)
+    {
+      std::error_code ec;
+      fs::remove(this->temp_, ec);
+    }
+  }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->writer_ = io::MeshWriter::Create(this->temp_.string(), false);
+    this->writer_->Begin(h.vertexCount, h.faceCount, h.layout);
+  }
+  void Vertices(const io::VertexChunk& c) override { this->writer_->Vertices(c); }
+  void Triangles(const std::uint32_t* i, std::size_t n) override { this->writer_->Triangles(i, n); }
+  void End(const io::ReadStats&) override { this->writer_->End(); }
+  void Commit()
+  {
+    this->writer_.reset();
+    std::error_code ec;
+    fs::rename(this->temp_, this->output_, ec);
+    if (ec)
+    {
+      throw io::MeshIOError(this->output_.string() + ": cannot write: " + ec.message());
+    }
+    this->committed_ = true;
+  }
+
+private:
+  fs::path output_, temp_;
+  std::unique_ptr<io::MeshWriter> writer_;
+  bool committed_ = false;
+};
+
+// Collects a whole mesh in memory (for compare).
+class MemorySink final : public io::MeshSink
+{
+public:
+  explicit MemorySink(algorithms::TriangleMesh& m)
+    : mesh_(m)
+  {
+  }
+  void Begin(const io::MeshHeader&) override {}
+  void Vertices(const io::VertexChunk& c) override
+  {
+    if (this->mesh_.points.size() < 3 * (c.first + c.count))
+    {
+      this->mesh_.points.resize(3 * (c.first + c.count));
+    }
+    std::copy_n(c.xyz, 3 * c.count, this->mesh_.points.begin() + 3 * c.first);
+  }
+  void Triangles(const std::uint32_t* i, std::size_t n) override
+  {
+    this->mesh_.triangles.insert(this->mesh_.triangles.end(), i, i + 3 * n);
+  }
+  void End(const io::ReadStats&) override {}
+
+private:
+  algorithms::TriangleMesh& mesh_;
+};
+
+// Gathers the header, counts and bounds (for info).
+class InfoSink final : public io::MeshSink
+{
+public:
+  void Begin(const io::MeshHeader& h) override { this->header = h; }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    for (std::size_t i = 0; i < 3 * c.count; ++i)
+    {
+      const int k = int(i % 3);
+      this->bounds[2 * k] = std::min<double>(this->bounds[2 * k], c.xyz[i]);
+      this->bounds[2 * k + 1] = std::max<double>(this->bounds[2 * k + 1], c.xyz[i]);
+    }
+  }
+  void Triangles(const std::uint32_t*, std::size_t) override {}
+  void End(const io::ReadStats& s) override { this->stats = s; }
+  io::MeshHeader header;
+  io::ReadStats stats;
+  std::array<double, 6> bounds{ HUGE_VAL, -HUGE_VAL, HUGE_VAL, -HUGE_VAL, HUGE_VAL, -HUGE_VAL };
+};
+
+double PeakRssMB()
+{
+  rusage ru{};
+  getrusage(RUSAGE_SELF, &ru);
+  return double(ru.ru_maxrss) / 1024.0; // ru_maxrss is in KiB on Linux
+}
+
+fs::path LodPath(const fs::path& output, int level)
+{
+  std::string stem = output.stem().string();
+  std::string ext = output.extension().string();
+  return output.parent_path() / (stem + "_lod" + std::to_string(level) + ext);
+}
+
+struct SimplifyArgs
+{
+  std::string input, output, algorithm = "cluster", statsJson;
+  int grid = 0;
+  std::uint64_t target = 0;
+  double reduction = -1;
+  double memoryMB = 0;
+  std::vector<std::string> tmpdirs;
+  int lods = 1;
+  bool quiet = false;
+};
+
+int RunSimplify(const SimplifyArgs& a)
+{
+  const bool tty = !a.quiet && ::isatty(STDERR_FILENO);
+  TerminalProgress progress(tty);
+  storage::Profile profile;
+  profile.memoryBudget = static_cast<std::uint64_t>(a.memoryMB * 1024.0 * 1024.0);
+  profile.directories = a.tmpdirs;
+  const algorithms::MeshSource source = algorithms::FileSource(a.input);
+
+  std::vector<std::unique_ptr<FileSink>> lodSinks;
+  FileSink sink(a.output);
+  algorithms::RunStats stats;
+  const auto start = std::chrono::steady_clock::now();
+  if (a.algorithm == "cluster")
+  {
+    algorithms::ClusterOptions o;
+    o.maximumGridDimension = a.grid > 0 ? a.grid : 50;
+    o.storage = profile;
+    stats = algorithms::Cluster(source, sink, o, progress);
+  }
+  else if (a.algorithm == "decimate")
+  {
+    algorithms::DecimateOptions o;
+    o.targetTriangles = a.target;
+    if (a.reduction >= 0)
+    {
+      o.targetReduction = a.reduction;
+    }
+    o.levelsOfDetail = a.lods;
+    o.storage = profile;
+    std::function<void(int, const std::function<void(io::MeshSink&)>&)> onLevel;
+    if (a.lods > 1)
+    {
+      onLevel = [&](int level, const std::function<void(io::MeshSink&)>& emit) {
+        auto s = std::make_unique<FileSink>(LodPath(a.output, level));
+        emit(*s);
+        lodSinks.push_back(std::move(s));
+      };
+    }
+    stats = algorithms::Decimate(source, sink, o, progress, onLevel);
+  }
+  else
+  {
+    throw CLI::ValidationError("--algorithm", "unknown algorithm " + a.algorithm);
+  }
+  sink.Commit();
+  for (auto& s : lodSinks)
+  {
+    s->Commit();
+  }
+  progress.Finish();
+  const double seconds =
+    std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+
+  if (!a.quiet)
+  {
+    std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices) in %.2f s, peak RSS %.1f MB, "
+                "%s%s\n",
+      a.algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
+      (unsigned long long)stats.outputTriangles, (unsigned long long)stats.outputVertices, seconds,
+      PeakRssMB(),
+      stats.storage.usedOutOfCore ? (stats.storage.usedInCore ? "out of core then in core" : "out of core")
+                                  : "in core",
+      "");
+    std::printf("sipmss: wrote %s\n", a.output.c_str());
+    if (a.lods > 1 && !lodSinks.empty())
+    {
+      std::printf("sipmss: wrote %zu levels of detail %s .. %s\n", lodSinks.size(),
+        LodPath(a.output, 0).c_str(), LodPath(a.output, int(lodSinks.size()) - 1).c_str());
+    }
+  }
+  if (!a.statsJson.empty())
+  {
+    nlohmann::json j;
+    j["algorithm"] = a.algorithm;
+    j["input"] = a.input;
+    j["output"] = a.output;
+    j["input_vertices"] = stats.inputVertices;
+    j["input_triangles"] = stats.inputTriangles;
+    j["dropped_input_faces"] = stats.droppedInputFaces;
+    j["output_vertices"] = stats.outputVertices;
+    j["output_triangles"] = stats.outputTriangles;
+    j["seconds"] = seconds;
+    j["peak_rss_mb"] = PeakRssMB();
+    j["memory_budget_bytes"] = profile.memoryBudget;
+    nlohmann::json phases = nlohmann::json::array();
+    for (const auto& p : stats.phases)
+    {
+      phases.push_back({ { "name", p.name }, { "seconds", p.seconds },
+        { "mode", p.mode == storage::Mode::InCore ? "in-core" : "out-of-core" } });
+    }
+    j["phases"] = phases;
+    const auto& s = stats.storage;
+    j["storage"] = { { "mode", storage::ToString(s.mode) }, { "used_in_core", s.usedInCore },
+      { "used_out_of_core", s.usedOutOfCore }, { "peak_bytes", s.peakBytes }, { "hits", s.hits },
+      { "misses", s.misses }, { "bytes_read", s.bytesRead }, { "bytes_written", s.bytesWritten },
+      { "reconfigurations", s.reconfigurations } };
+    std::ofstream f(a.statsJson);
+    f << j.dump(2) << "\n";
+    if (!f)
+    {
+      throw io::MeshIOError(a.statsJson + ": cannot write the statistics");
+    }
+  }
+  return 0;
+}
+
+int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t samples)
+{
+  algorithms::TriangleMesh a, b;
+  MemorySink sa(a), sb(b);
+  io::ReadMesh(ref, sa);
+  io::ReadMesh(cand, sb);
+  algorithms::CompareOptions o;
+  o.samples = samples;
+  const algorithms::CompareResult r = algorithms::CompareMeshes(a, b, o);
+  nlohmann::json j = { { "mean", r.mean }, { "rms", r.rms }, { "hausdorff", r.hausdorff },
+    { "diagonal", r.diagonal }, { "samples", r.samples }, { "mean_absolute", r.meanAbsolute },
+    { "rms_absolute", r.rmsAbsolute }, { "hausdorff_absolute", r.hausdorffAbsolute },
+    { "reference_triangles", a.NumberOfTriangles() },
+    { "candidate_triangles", b.NumberOfTriangles() } };
+  std::printf("%s\n", j.dump(2).c_str());
+  return 0;
+}
+
+int RunInfo(const std::string& path)
+{
+  InfoSink s;
+  io::ReadMesh(path, s);
+  nlohmann::json j = { { "file", path }, { "format", io::ToString(s.header.format) },
+    { "vertices", s.stats.vertices }, { "faces", s.stats.polygons },
+    { "triangles", s.stats.triangles }, { "dropped_faces", s.stats.droppedFaces },
+    { "bounds", s.stats.vertices ? nlohmann::json(s.bounds) : nlohmann::json(nullptr) } };
+  nlohmann::json props = nlohmann::json::array();
+  if (s.header.layout.normals)
+    props.push_back("normals");
+  if (s.header.layout.colors)
+    props.push_back("colors");
+  if (s.header.layout.texcoords)
+    props.push_back("texcoords");
+  for (const auto& n : s.header.layout.scalars)
+    props.push_back(n);
+  j["vertex_properties"] = props;
+  std::printf("%s\n", j.dump(2).c_str());
+  return 0;
+}
+
+} // namespace
+
+int main(int argc, char** argv)
+{
+  CLI::App app{ "sipmss: simplify huge triangle meshes under a fixed memory budget" };
+  app.set_version_flag("--version", std::string("sipmss ") + SIPMSS_VERSION);
+  app.require_subcommand(1);
+
+  SimplifyArgs sa;
+  CLI::App* simplify = app.add_subcommand("simplify", "simplify INPUT into OUTPUT");
+  simplify->add_option("INPUT", sa.input, "PLY, STL or OBJ file (.gz too)")->required();
+  simplify->add_option("OUTPUT", sa.output, "output file (.ply, .stl or .obj)")->required();
+  simplify->add_option("--algorithm", sa.algorithm, "cluster or decimate")
+    ->check(CLI::IsMember({ "cluster", "decimate" }));
+  simplify->add_option("--grid", sa.grid, "cluster: maximum grid dimension (default 50)")
+    ->check(CLI::Range(1, 65535));
+  auto* target = simplify->add_option("--target", sa.target, "decimate: target triangle count");
+  simplify->add_option("--reduction", sa.reduction, "decimate: fraction of triangles to remove")
+    ->check(CLI::Range(0.0, 1.0))
+    ->excludes(target);
+  simplify->add_option("--memory-mb", sa.memoryMB, "memory budget in MiB (0 = unbounded)")
+    ->check(CLI::Range(0.0, 1e9));
+  simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)");
+  simplify->add_option("--lods", sa.lods, "decimate: levels of detail, written as OUTPUT_lodK")
+    ->check(CLI::Range(1, 64));
+  simplify->add_option("--stats-json", sa.statsJson, "write run statistics as JSON");
+  simplify->add_flag("--quiet", sa.quiet, "no progress bar and no summary");
+
+  std::string ref, cand;
+  std::uint64_t samples = 0;
+  CLI::App* compare = app.add_subcommand("compare", "Metro-style distance between two meshes");
+  compare->add_option("REFERENCE", ref)->required();
+  compare->add_option("CANDIDATE", cand)->required();
+  compare->add_option("--samples", samples, "samples per side (default: automatic)");
+
+  std::string infoPath;
+  CLI::App* info = app.add_subcommand("info", "format, counts and bounds of a mesh file");
+  info->add_option("FILE", infoPath)->required();
+
+  try
+  {
+    app.parse(argc, argv);
+  }
+  catch (const CLI::ParseError& e)
+  {
+    const int rc = app.exit(e);
+    return rc == 0 ? 0 : 2;
+  }
+
+  try
+  {
+    if (*simplify)
+    {
+      return RunSimplify(sa);
+    }
+    if (*compare)
+    {
+      return RunCompare(ref, cand, samples);
+    }
+    return RunInfo(infoPath);
+  }
+  catch (const CLI::ValidationError& e)
+  {
+    std::fprintf(stderr, "sipmss: error: %s\n", e.what());
+    return 2;
+  }
+  catch (const std::exception& e)
+  {
+    std::fprintf(stderr, "sipmss: error: %s\n", e.what());
+    return 1;
+  }
+}

@@ -1,0 +1,105 @@
+# Builds the VTK module SIPMSS::Filters, its Python package `sipmss` and (for the paraview
+# frontend) the ParaView plugin.
+#
+# The module is described by the top-level vtk.module. vtk_module_build() adds the directory that
+# holds a module's vtk.module as a subdirectory (same path below the binary dir); for the project
+# root that would be the root binary dir itself. So the module is scanned through
+# Filters/vtk.module, a symlink to the top-level file: VTK reads the same description, and the
+# module's directory (sources, CMakeLists.txt, binary dir) is Filters/. Only public VTK API is used;
+# this works with VTK 9.1 and with ParaView 5.11's VTK 9.2.
+
+set(BUILD_SHARED_LIBS ON) # a static module would give a static plugin and no Python extension
+
+if (SIPMSS_FRONTEND STREQUAL "paraview")
+  # Ask only for what is used: without components, ParaView's config wants Qt5 development
+  # packages and the whole client stack.
+  find_package(ParaView 5.10 REQUIRED COMPONENTS RemotingCore RemotingServerManager
+    OPTIONAL_COMPONENTS Python)
+  set(_sipmss_vtk_components CommonCore CommonDataModel CommonExecutionModel FiltersCore
+    FiltersSources IOPLY Python WrappingPythonCore)
+  find_package(VTK REQUIRED COMPONENTS ${_sipmss_vtk_components})
+  set(SIPMSS_PARAVIEW_VERSION "${ParaView_VERSION}")
+else ()
+  find_package(VTK 9 REQUIRED COMPONENTS CommonCore CommonDataModel CommonExecutionModel
+    FiltersCore FiltersSources IOPLY Python WrappingPythonCore)
+endif ()
+message(STATUS "SIPMSS: building the VTK module against VTK ${VTK_VERSION} (${VTK_DIR})")
+
+find_package(Python3 REQUIRED COMPONENTS Interpreter Development.Module)
+
+vtk_module_scan(
+  MODULE_FILES      "${CMAKE_SOURCE_DIR}/Filters/vtk.module"
+  REQUEST_MODULES   SIPMSS::Filters
+  PROVIDES_MODULES  _sipmss_modules
+  ENABLE_TESTS      OFF) # our filter tests live in Testing/ (plain CTest, see below)
+
+vtk_module_build(
+  MODULES              ${_sipmss_modules}
+  INSTALL_HEADERS      OFF
+  INSTALL_EXPORT       SIPMSSFilters
+  VERSION              "${PROJECT_VERSION}"
+  SOVERSION            "1")
+
+# Python: `import sipmss` / `from sipmss import vtkSIPMSSCluster`.
+set(SIPMSS_PYTHON_SITE "${CMAKE_INSTALL_LIBDIR}/python3/dist-packages")
+vtk_module_wrap_python(
+  MODULES              ${_sipmss_modules}
+  PYTHON_PACKAGE       "sipmss"
+  MODULE_DESTINATION   "${SIPMSS_PYTHON_SITE}"
+  LIBRARY_DESTINATION  "${CMAKE_INSTALL_LIBDIR}"
+  INSTALL_HEADERS      OFF
+  INSTALL_EXPORT       SIPMSSPython
+  TARGET               SIPMSS::Python
+  BUILD_STATIC         OFF)
+configure_file("${CMAKE_SOURCE_DIR}/Wrapping/Python/sipmss/__init__.py"
+  "${CMAKE_BINARY_DIR}/${SIPMSS_PYTHON_SITE}/sipmss/__init__.py" COPYONLY)
+install(FILES "${CMAKE_SOURCE_DIR}/Wrapping/Python/sipmss/__init__.py"
+  DESTINATION "${SIPMSS_PYTHON_SITE}/sipmss")
+set(SIPMSS_PYTHONPATH "${CMAKE_BINARY_DIR}/${SIPMSS_PYTHON_SITE}")
+
+if (SIPMSS_FRONTEND STREQUAL "paraview")
+  paraview_plugin_scan(
+    PLUGIN_FILES      "${CMAKE_SOURCE_DIR}/ParaViewPlugin/paraview.plugin"
+    PROVIDES_PLUGINS  _sipmss_plugins
+    ENABLE_BY_DEFAULT ON)
+  paraview_plugin_build(
+    PLUGINS           ${_sipmss_plugins}
+    TARGET            SIPMSSPlugins
+    LIBRARY_SUBDIRECTORY "paraview-plugins"
+    AUTOLOAD          ""
+    ADD_INSTALL_RPATHS ON)
+  set(SIPMSS_PLUGIN_DIR "${CMAKE_BINARY_DIR}/${CMAKE_INSTALL_LIBDIR}/paraview-plugins/SIPMSS")
+endif ()
+
+# The environment tests (and users) need: our Python package and, for an unpacked VTK prefix,
+# its libraries and vtkmodules (they are not on the default search paths).
+set(SIPMSS_TEST_ENV "PYTHONPATH=path_list_prepend:${SIPMSS_PYTHONPATH}"
+  "SIPMSS_SHARED_DATA_DIR=set:${SIPMSS_SHARED_DATA_DIR}")
+set(SIPMSS_ENV_SH "export PYTHONPATH=\"${SIPMSS_PYTHONPATH}\${PYTHONPATH:+:\$PYTHONPATH}\"\n")
+if (SIPMSS_FRONTEND STREQUAL "vtk")
+  get_filename_component(_vtk_prefix "${VTK_DIR}/../../../.." ABSOLUTE)
+  if (NOT _vtk_prefix STREQUAL "/usr")
+    set(_vtk_libdir "${_vtk_prefix}/lib/${CMAKE_LIBRARY_ARCHITECTURE}")
+    set(_vtk_pydir "${_vtk_prefix}/lib/python3/dist-packages")
+    list(APPEND SIPMSS_TEST_ENV "LD_LIBRARY_PATH=path_list_prepend:${_vtk_libdir}"
+      "PYTHONPATH=path_list_append:${_vtk_pydir}")
+    string(APPEND SIPMSS_ENV_SH
+      "export LD_LIBRARY_PATH=\"${_vtk_libdir}\${LD_LIBRARY_PATH:+:\$LD_LIBRARY_PATH}\"\n"
+      "export PYTHONPATH=\"\$PYTHONPATH:${_vtk_pydir}\"\n")
+  endif ()
+endif ()
+if (SIPMSS_FRONTEND STREQUAL "paraview")
+  list(APPEND SIPMSS_TEST_ENV "PV_PLUGIN_PATH=set:${SIPMSS_PLUGIN_DIR}")
+  string(APPEND SIPMSS_ENV_SH "export PV_PLUGIN_PATH=\"${SIPMSS_PLUGIN_DIR}\"\n")
+endif ()
+# `. build/<preset>/sipmss-env.sh` sets up a shell to use this build from Python or ParaView.
+file(WRITE "${CMAKE_BINARY_DIR}/sipmss-env.sh"
+  "# Source this file to use this SIPMSS build from Python, pvpython or paraview.\n${SIPMSS_ENV_SH}")
+
+if (BUILD_TESTING)
+  add_subdirectory(Testing/Cxx)
+  add_subdirectory(Testing/Python)
+  if (SIPMSS_FRONTEND STREQUAL "paraview")
+    add_subdirectory(Testing/ParaView)
+  endif ()
+endif ()
