@@ -21,6 +21,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -200,6 +201,23 @@ int RunSimplify(const SimplifyArgs& a)
   profile.memoryBudget = static_cast<std::uint64_t>(a.memoryMB * 1024.0 * 1024.0);
   profile.directories = a.tmpdirs;
   const algorithms::MeshSource source = algorithms::FileSource(a.input);
+  // Block directories left by runs that were killed (kill -9) are removed first.
+  {
+    std::vector<std::string> dirs = a.tmpdirs;
+    if (dirs.empty())
+    {
+      const char* t = std::getenv("TMPDIR");
+      dirs.emplace_back(t && *t ? t : "/tmp");
+    }
+    for (const auto& d : dirs)
+    {
+      std::error_code ec;
+      if (fs::is_directory(d, ec))
+      {
+        storage::DML::CleanStaleDirectories(d);
+      }
+    }
+  }
 
   std::vector<std::unique_ptr<FileSink>> lodSinks;
   FileSink sink(a.output);

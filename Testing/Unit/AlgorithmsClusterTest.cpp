@@ -1,0 +1,237 @@
+// Algorithm II (grid clustering) on tiny hand-built meshes: exact results, in core == out of core,
+// abort, bad input.
+#include "sipmss/algorithms/Cluster.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <set>
+
+using namespace sipmss;
+using namespace sipmss::algorithms;
+
+namespace
+{
+struct Mesh
+{
+  std::vector<float> p;
+  std::vector<std::uint32_t> t;
+  std::vector<float> scalar; // optional point scalar "s"
+};
+
+MeshSource MemorySource(const Mesh& m)
+{
+  return [&m](io::MeshSink& sink, const io::ReadOptions& options) {
+    io::MeshHeader h;
+    h.vertexCount = m.p.size() / 3;
+    h.faceCount = m.t.size() / 3;
+    if (!m.scalar.empty())
+    {
+      h.layout.scalars = { "s" };
+    }
+    sink.Begin(h);
+    io::VertexChunk c;
+    c.count = m.p.size() / 3;
+    c.xyz = m.p.data();
+    c.scalars = m.scalar.empty() ? nullptr : m.scalar.data();
+    sink.Vertices(c);
+    io::ReadStats s;
+    s.vertices = c.count;
+    if (!options.verticesOnly)
+    {
+      sink.Triangles(m.t.data(), m.t.size() / 3);
+      s.triangles = m.t.size() / 3;
+      sink.End(s);
+    }
+    return s;
+  };
+}
+
+struct Collect final : io::MeshSink
+{
+  Mesh m;
+  io::MeshHeader header;
+  void Begin(const io::MeshHeader& h) override { this->header = h; }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    this->m.p.insert(this->m.p.end(), c.xyz, c.xyz + 3 * c.count);
+    if (c.scalars)
+    {
+      this->m.scalar.insert(this->m.scalar.end(), c.scalars, c.scalars + c.count);
+    }
+  }
+  void Triangles(const std::uint32_t* i, std::size_t n) override
+  {
+    this->m.t.insert(this->m.t.end(), i, i + 3 * n);
+  }
+  void End(const io::ReadStats&) override {}
+};
+
+// A cube [0,2]^3 as 12 triangles (outward orientation).
+Mesh Cube()
+{
+  Mesh m;
+  for (int i = 0; i < 8; ++i)
+  {
+    m.p.insert(m.p.end(), { float(2 * (i & 1)), float(2 * ((i >> 1) & 1)), float(2 * ((i >> 2) & 1)) });
+  }
+  const std::uint32_t q[6][4] = { { 0, 2, 3, 1 }, { 4, 5, 7, 6 }, { 0, 1, 5, 4 }, { 2, 6, 7, 3 },
+    { 0, 4, 6, 2 }, { 1, 3, 7, 5 } };
+  for (auto& f : q)
+  {
+    m.t.insert(m.t.end(), { f[0], f[1], f[2], f[0], f[2], f[3] });
+  }
+  return m;
+}
+
+// An n x n grid of the unit square in the plane z = 0 (2 n^2 triangles).
+Mesh Plane(int n)
+{
+  Mesh m;
+  for (int j = 0; j <= n; ++j)
+    for (int i = 0; i <= n; ++i)
+    {
+      m.p.insert(m.p.end(), { float(i) / n, float(j) / n, 0.f });
+      m.scalar.push_back(float(i) / n);
+    }
+  auto id = [n](int i, int j) { return std::uint32_t(j * (n + 1) + i); };
+  for (int j = 0; j < n; ++j)
+    for (int i = 0; i < n; ++i)
+    {
+      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j), id(i + 1, j + 1) });
+      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
+    }
+  return m;
+}
+
+Collect RunCluster(const Mesh& m, int grid, storage::ModePolicy policy = storage::ModePolicy::Automatic,
+  std::uint64_t budget = 0, RunStats* statsOut = nullptr)
+{
+  ClusterOptions o;
+  o.maximumGridDimension = grid;
+  o.storage.policy = policy;
+  o.storage.memoryBudget = budget;
+  Collect out;
+  NullProgress progress;
+  RunStats s = Cluster(MemorySource(m), out, o, progress);
+  if (statsOut)
+  {
+    *statsOut = s;
+  }
+  return out;
+}
+} // namespace
+
+TEST(Cluster, CubeCornersAreExact)
+{
+  const Mesh cube = Cube();
+  Collect out = RunCluster(cube, 2);
+  ASSERT_EQ(out.m.t.size() / 3, 12u);
+  ASSERT_EQ(out.m.p.size() / 3, 8u);
+  std::set<std::array<float, 3>> corners;
+  for (std::size_t i = 0; i < 8; ++i)
+  {
+    for (int k = 0; k < 3; ++k)
+    {
+      const float c = out.m.p[3 * i + k];
+      EXPECT_TRUE(std::abs(c) < 1e-5f || std::abs(c - 2.f) < 1e-5f) << c;
+    }
+    corners.insert({ std::round(out.m.p[3 * i]), std::round(out.m.p[3 * i + 1]),
+      std::round(out.m.p[3 * i + 2]) });
+  }
+  EXPECT_EQ(corners.size(), 8u);
+}
+
+TEST(Cluster, OneCellLeavesNothing)
+{
+  Collect out = RunCluster(Cube(), 1);
+  EXPECT_EQ(out.m.t.size(), 0u);
+  EXPECT_EQ(out.m.p.size(), 0u);
+}
+
+TEST(Cluster, PlaneStaysInItsPlaneAndKeepsOrientation)
+{
+  // 16x16 grid into 4 cells per axis: representatives are on z = 0 (the quadric is rank 1, the
+  // pseudo-inverse keeps the in-plane mean), every triangle faces +z.
+  const Mesh plane = Plane(16);
+  Collect out = RunCluster(plane, 4);
+  ASSERT_GT(out.m.t.size(), 0u);
+  for (std::size_t i = 0; i < out.m.p.size(); i += 3)
+  {
+    EXPECT_NEAR(out.m.p[i + 2], 0.f, 1e-6f);
+  }
+  for (std::size_t f = 0; f < out.m.t.size(); f += 3)
+  {
+    const float* a = &out.m.p[3 * out.m.t[f]];
+    const float* b = &out.m.p[3 * out.m.t[f + 1]];
+    const float* c = &out.m.p[3 * out.m.t[f + 2]];
+    const float nz = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+    EXPECT_GT(nz, 0.f);
+  }
+  // the scalar s = x is averaged per cell: equal to the mean x of the cell's vertices, which the
+  // pseudo-inverse keeps as the representative's x
+  ASSERT_EQ(out.m.scalar.size(), out.m.p.size() / 3);
+  for (std::size_t i = 0; i < out.m.scalar.size(); ++i)
+  {
+    EXPECT_NEAR(out.m.scalar[i], out.m.p[3 * i], 1e-5f);
+  }
+}
+
+TEST(Cluster, TwoCellsMakeNoTriangle)
+{
+  // A single triangle with two corners in one cell: dropped (needs three distinct cells).
+  Mesh m;
+  m.p = { 0.f, 0.f, 0.f, 0.1f, 0.f, 0.f, 1.f, 1.f, 0.f };
+  m.t = { 0, 1, 2 };
+  EXPECT_EQ(RunCluster(m, 2).m.t.size(), 0u);
+  // three cells: kept, exactly once even if the input repeats it
+  m.t = { 0, 1, 2, 0, 1, 2 };
+  EXPECT_EQ(RunCluster(m, 20).m.t.size(), 3u);
+}
+
+TEST(Cluster, InCoreEqualsOutOfCore)
+{
+  const Mesh plane = Plane(120);
+  RunStats a, b;
+  Collect in = RunCluster(plane, 30, storage::ModePolicy::InCore, 0, &a);
+  Collect out = RunCluster(plane, 30, storage::ModePolicy::OutOfCore, 64 * 1024, &b);
+  EXPECT_EQ(in.m.p, out.m.p);
+  EXPECT_EQ(in.m.t, out.m.t);
+  EXPECT_EQ(in.m.scalar, out.m.scalar);
+  EXPECT_TRUE(b.storage.usedOutOfCore);
+  EXPECT_LE(b.storage.peakBytes, 64u * 1024u);
+  EXPECT_GT(b.storage.misses, 0u);
+  EXPECT_EQ(a.outputTriangles, in.m.t.size() / 3);
+}
+
+TEST(Cluster, AbortThrows)
+{
+  struct AbortAfter final : Progress
+  {
+    int calls = 0;
+    void Report(double, const char*) override {}
+    bool Aborted() override { return ++this->calls > 2; }
+  } progress;
+  progress.SetInterval(0);
+  const Mesh plane = Plane(50);
+  ClusterOptions o;
+  Collect out;
+  EXPECT_THROW(Cluster(MemorySource(plane), out, o, progress), AbortedError);
+}
+
+TEST(Cluster, BadInput)
+{
+  Mesh m;
+  m.p = { 0.f, 0.f, 0.f, 1.f, 0.f, 0.f, 0.f, 1.f, 0.f };
+  m.t = { 0, 1, 7 }; // vertex 7 does not exist
+  Collect out;
+  ClusterOptions o;
+  NullProgress progress;
+  EXPECT_THROW(Cluster(MemorySource(m), out, o, progress), io::MeshIOError);
+  o.maximumGridDimension = 0;
+  EXPECT_THROW(Cluster(MemorySource(m), out, o, progress), std::invalid_argument);
+  Collect out2;
+  ClusterOptions o2;
+  EXPECT_THROW(Cluster(FileSource("/nonexistent/missing.ply"), out2, o2, progress), std::exception);
+}
