@@ -33,6 +33,8 @@ struct CellRec
   double sum[3];
   float first[3]; // first vertex seen in the cell (the paper's fallback)
   std::uint32_t count;
+  std::uint64_t triangles; // candidate output triangles whose smallest cell is this one; later
+                           // the end of its bucket
 };
 
 struct KeySlot
@@ -76,7 +78,7 @@ public:
       this->Grow();
     }
     const std::uint64_t mask = this->slots_.Size() - 1;
-    std::uint64_t i = Mix(key) & mask;
+    std::uint64_t i = this->Home(key, this->slots_.Size());
     for (;;)
     {
       KeySlot s = this->slots_.Get(i);
@@ -98,6 +100,10 @@ public:
   void Release() { this->slots_.Close(); }
 
 private:
+  static std::uint64_t Home(std::uint64_t key, std::uint64_t capacity)
+  {
+    return Mix(key) & (capacity - 1);
+  }
   void Grow()
   {
     Array<KeySlot> bigger(this->dml_, this->slots_.Size() * 2);
@@ -111,7 +117,7 @@ private:
           {
             continue;
           }
-          std::uint64_t i = Mix(data[j].key - 1) & mask;
+          std::uint64_t i = this->Home(data[j].key - 1, mask + 1);
           while (bigger.Get(i).key != 0)
           {
             i = (i + 1) & mask;
@@ -127,91 +133,87 @@ private:
   std::uint64_t size_ = 0;
 };
 
-// Set of output triangles (dedup) plus their first-seen order.
+// Output triangles. Candidates (faces over three distinct cells) are appended as they come;
+// after the read they are bucketed by their smallest cell (a counting sort over the dense cell
+// ids, which follow the input's order, so both passes touch the DML page by page) and each
+// bucket is deduplicated on its own. Linear time, no random-access hash set over all triangles.
 class TriangleSet
 {
 public:
   explicit TriangleSet(DML& dml)
     : dml_(dml)
-    , slots_(dml, 1u << 12)
-    , order_(dml, 1u << 10)
+    , candidates_(dml, 1u << 10)
   {
   }
-  void Insert(std::uint32_t a, std::uint32_t b, std::uint32_t c)
+  // a < b and a < c must hold (the caller rotates the smallest cell first, keeping orientation)
+  void Append(std::uint32_t a, std::uint32_t b, std::uint32_t c)
   {
-    // canonical rotation keeps the orientation: smallest index first
-    if (b < a && b < c)
+    if (this->numCandidates_ == this->candidates_.Size())
     {
-      std::uint32_t t = a;
-      a = b;
-      b = c;
-      c = t;
+      this->candidates_.Resize(this->candidates_.Size() * 2);
     }
-    else if (c < a && c < b)
+    this->candidates_.Set(this->numCandidates_++, TriSlot{ { a, b, c }, 1 });
+  }
+
+  // cells[i].triangles holds the number of candidates whose smallest cell is i. Fills Order()
+  // with the distinct triangles, sorted by (smallest cell, second, third).
+  void Finish(Array<CellRec>& cells, std::uint32_t numCells, Progress& progress)
+  {
+    // bucket ends by prefix sums
+    std::uint64_t total = 0;
+    for (std::uint32_t c = 0; c < numCells; ++c)
     {
-      std::uint32_t t = c;
-      c = b;
-      b = a;
-      a = t;
+      CellRec r = cells.Get(c);
+      total += r.triangles;
+      r.triangles = total; // end of the bucket; decremented while scattering
+      cells.Set(c, r);
     }
-    if ((this->size_ + 1) * 2 > this->slots_.Size())
-    {
-      this->Grow();
-    }
-    const std::uint64_t mask = this->slots_.Size() - 1;
-    std::uint64_t i = Hash(a, b, c) & mask;
-    for (;;)
-    {
-      TriSlot s = this->slots_.Get(i);
-      if (!s.used)
-      {
-        this->slots_.Set(i, TriSlot{ { a, b, c }, 1 });
-        if (this->size_ == this->order_.Size())
+    Array<TriSlot> buckets(this->dml_, std::max<std::uint64_t>(total, 1));
+    const std::uint64_t n = this->numCandidates_;
+    this->candidates_.ForEachChunk(0, n, storage::Access::Read,
+      [&](TriSlot* d, std::uint64_t first, std::uint64_t count) {
+        for (std::uint64_t j = 0; j < count; ++j)
         {
-          this->order_.Resize(this->order_.Size() * 2);
+          CellRec r = cells.Get(d[j].v[0]);
+          buckets.Set(--r.triangles, d[j]);
+          cells.Set(d[j].v[0], r);
         }
-        this->order_.Set(this->size_, TriSlot{ { a, b, c }, 1 });
-        ++this->size_;
-        return;
-      }
-      if (s.v[0] == a && s.v[1] == b && s.v[2] == c)
+        progress.Tick(0.5 * double(first + count) / double(std::max<std::uint64_t>(n, 1)));
+      });
+    this->candidates_.Close();
+    // each bucket [begin, end) now starts at cells[c].triangles; dedup within it
+    this->order_ = Array<TriSlot>(this->dml_, std::max<std::uint64_t>(total, 1));
+    std::vector<TriSlot> bucket;
+    for (std::uint32_t c = 0; c < numCells; ++c)
+    {
+      const std::uint64_t begin = cells.Get(c).triangles;
+      const std::uint64_t end = c + 1 < numCells ? cells.Get(c + 1).triangles : total;
+      if (begin == end)
       {
-        return;
+        continue;
       }
-      i = (i + 1) & mask;
+      bucket.resize(end - begin);
+      buckets.Read(begin, end - begin, bucket.data());
+      std::sort(bucket.begin(), bucket.end(), [](const TriSlot& x, const TriSlot& y) {
+        return x.v[1] != y.v[1] ? x.v[1] < y.v[1] : x.v[2] < y.v[2];
+      });
+      for (std::size_t k = 0; k < bucket.size(); ++k)
+      {
+        if (k == 0 || bucket[k].v[1] != bucket[k - 1].v[1] || bucket[k].v[2] != bucket[k - 1].v[2])
+        {
+          this->order_.Set(this->size_++, bucket[k]);
+        }
+      }
+      progress.Tick(0.5 + 0.5 * double(c) / double(numCells));
     }
   }
   std::uint64_t Size() const { return this->size_; }
   Array<TriSlot>& Order() { return this->order_; }
-  void ReleaseIndex() { this->slots_.Close(); }
 
 private:
-  static std::uint64_t Hash(std::uint32_t a, std::uint32_t b, std::uint32_t c)
-  {
-    return Mix((static_cast<std::uint64_t>(a) << 32 | b) ^ Mix(c));
-  }
-  void Grow()
-  {
-    Array<TriSlot> bigger(this->dml_, this->slots_.Size() * 2);
-    const std::uint64_t mask = bigger.Size() - 1;
-    // re-insert from the order list: same content, sequential reads
-    this->order_.ForEachChunk(0, this->size_, storage::Access::Read,
-      [&](TriSlot* data, std::uint64_t, std::uint64_t count) {
-        for (std::uint64_t j = 0; j < count; ++j)
-        {
-          std::uint64_t i = Hash(data[j].v[0], data[j].v[1], data[j].v[2]) & mask;
-          while (bigger.Get(i).used)
-          {
-            i = (i + 1) & mask;
-          }
-          bigger.Set(i, data[j]);
-        }
-      });
-    this->slots_ = std::move(bigger);
-  }
-
   DML& dml_;
-  Array<TriSlot> slots_;
+  Array<TriSlot> candidates_;
+  std::uint64_t numCandidates_ = 0;
   Array<TriSlot> order_;
   std::uint64_t size_ = 0;
 };
@@ -366,8 +368,9 @@ public:
   {
     this->vertices_.Close();
     this->cellMap_.Release();
-    this->triangles_.ReleaseIndex();
   }
+
+  void FinishTriangles() { this->triangles_.Finish(this->cells_, this->numCells_, this->progress_); }
 
   void Emit(io::MeshSink& out, const ClusterOptions& options, RunStats& stats)
   {
@@ -632,7 +635,14 @@ private:
     }
     if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
     {
-      this->triangles_.Insert(a.cell, b.cell, c.cell);
+      // rotate the smallest cell first (orientation kept) and count it in that cell's bucket
+      std::uint32_t t[3] = { a.cell, b.cell, c.cell };
+      const int m = t[0] < t[1] ? (t[0] < t[2] ? 0 : 2) : (t[1] < t[2] ? 1 : 2);
+      const std::uint32_t r0 = t[m], r1 = t[(m + 1) % 3], r2 = t[(m + 2) % 3];
+      CellRec rec = this->cells_.Get(r0);
+      ++rec.triangles;
+      this->cells_.Set(r0, rec);
+      this->triangles_.Append(r0, r1, r2);
     }
   }
 
@@ -809,7 +819,12 @@ RunStats Cluster(const MeshSource& input, io::MeshSink& output, const ClusterOpt
   }
   sink.ReleaseInputBlocks();
   {
-    progress.BeginPhase("output", 0.9, 1.0);
+    progress.BeginPhase("triangles", 0.9, 0.95);
+    PhaseTimer timer(stats, dml, "triangles");
+    sink.FinishTriangles();
+  }
+  {
+    progress.BeginPhase("output", 0.95, 1.0);
     PhaseTimer timer(stats, dml, "output");
     sink.Emit(output, options, stats);
   }
