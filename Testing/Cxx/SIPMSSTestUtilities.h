@@ -3,6 +3,7 @@
 #define SIPMSSTestUtilities_h
 
 #include "vtkCellArray.h"
+#include "vtkExecutive.h"
 #include "vtkCommand.h"
 #include "vtkPoints.h"
 #include "vtkPolyData.h"
@@ -30,10 +31,11 @@ public:
   void Execute(vtkObject*, unsigned long, void* data) override
   {
     ++this->Count;
-    this->Last = data ? static_cast<const char*>(data) : "";
+    this->All += data ? static_cast<const char*>(data) : "";
+    this->All += "\n";
   }
   int Count = 0;
-  std::string Last;
+  std::string All; // every message received
 };
 
 // True when both meshes have identical points and triangles.

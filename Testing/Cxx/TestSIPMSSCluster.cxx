@@ -131,7 +131,7 @@ int TestAbortAndErrors()
   bad->SetFileName("/nonexistent/sipmss-missing.ply");
   bad->Update();
   SIPMSS_CHECK(errors->Count > 0);
-  SIPMSS_CHECK(errors->Last.find("sipmss-missing.ply") != std::string::npos);
+  SIPMSS_CHECK(errors->All.find("sipmss-missing.ply") != std::string::npos);
   SIPMSS_CHECK(bad->GetOutput()->GetNumberOfPoints() == 0);
   return EXIT_SUCCESS;
 }

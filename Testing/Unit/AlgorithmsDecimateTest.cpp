@@ -1,0 +1,1032 @@
+// Tests of Algorithm I (sipmss::algorithms::Decimate): topology guarantees, geometry, point data,
+// levels of detail, mode independence, abort, and timings on real and generated meshes.
+#include "sipmss/algorithms/Decimate.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <map>
+#include <set>
+#include <string>
+#include <vector>
+
+#include <unistd.h>
+
+namespace
+{
+namespace alg = sipmss::algorithms;
+namespace io = sipmss::io;
+namespace st = sipmss::storage;
+
+struct Mesh
+{
+  std::vector<float> xyz;
+  std::vector<std::uint32_t> tris;
+  std::vector<float> normals;
+  std::vector<std::uint8_t> rgba;
+  std::vector<float> scalars; // scalarNames.size() per vertex
+  std::vector<std::string> scalarNames;
+  std::size_t Vertices() const { return this->xyz.size() / 3; }
+  std::size_t Triangles() const { return this->tris.size() / 3; }
+  std::array<double, 3> P(std::size_t i) const
+  {
+    return { this->xyz[3 * i], this->xyz[3 * i + 1], this->xyz[3 * i + 2] };
+  }
+};
+
+// Streams a Mesh in chunks. announce=false: counts 0 in the header (like OBJ/STL);
+// interleave=true: triangles are sent as soon as their vertices have been (like OBJ).
+alg::MeshSource MemorySource(const Mesh& m, bool announce = true, bool interleave = false)
+{
+  return [&m, announce, interleave](io::MeshSink& sink, const io::ReadOptions& options) {
+    io::MeshHeader h;
+    h.format = io::Format::Unknown;
+    h.vertexCount = announce ? m.Vertices() : 0;
+    h.faceCount = announce ? m.Triangles() : 0;
+    h.layout.normals = !m.normals.empty();
+    h.layout.colors = !m.rgba.empty();
+    h.layout.scalars = m.scalarNames;
+    sink.Begin(h);
+    const std::size_t chunk = interleave ? 37 : std::max<std::size_t>(options.chunkElements, 1);
+    const std::size_t ns = m.scalarNames.size();
+    std::size_t sentTris = 0;
+    auto sendTris = [&](std::size_t verticesSent) {
+      std::size_t end = sentTris;
+      while (end < m.Triangles())
+      {
+        const std::uint32_t* t = &m.tris[3 * end];
+        if (std::max({ t[0], t[1], t[2] }) >= verticesSent)
+        {
+          break;
+        }
+        ++end;
+      }
+      if (end > sentTris)
+      {
+        sink.Triangles(&m.tris[3 * sentTris], end - sentTris);
+        sentTris = end;
+      }
+    };
+    for (std::size_t first = 0; first < m.Vertices(); first += chunk)
+    {
+      io::VertexChunk c;
+      c.first = first;
+      c.count = std::min(chunk, m.Vertices() - first);
+      c.xyz = &m.xyz[3 * first];
+      c.normals = m.normals.empty() ? nullptr : &m.normals[3 * first];
+      c.rgba = m.rgba.empty() ? nullptr : &m.rgba[4 * first];
+      c.scalars = ns ? &m.scalars[ns * first] : nullptr;
+      sink.Vertices(c);
+      if (interleave)
+      {
+        sendTris(first + c.count);
+      }
+    }
+    io::ReadStats rs;
+    rs.vertices = m.Vertices();
+    if (!options.verticesOnly)
+    {
+      for (std::size_t first = sentTris; first < m.Triangles(); first += chunk)
+      {
+        sink.Triangles(&m.tris[3 * first], std::min(chunk, m.Triangles() - first));
+      }
+      rs.triangles = m.Triangles();
+      rs.polygons = m.Triangles();
+    }
+    sink.End(rs);
+    return rs;
+  };
+}
+
+class CollectSink final : public io::MeshSink
+{
+public:
+  Mesh mesh;
+  io::MeshHeader header;
+  bool ended = false;
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->header = h;
+    this->mesh = Mesh();
+    this->mesh.scalarNames = h.layout.scalars;
+    this->ended = false;
+  }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    EXPECT_EQ(c.first, this->mesh.Vertices());
+    const std::size_t ns = this->mesh.scalarNames.size();
+    this->mesh.xyz.insert(this->mesh.xyz.end(), c.xyz, c.xyz + 3 * c.count);
+    if (c.normals)
+    {
+      this->mesh.normals.insert(this->mesh.normals.end(), c.normals, c.normals + 3 * c.count);
+    }
+    if (c.rgba)
+    {
+      this->mesh.rgba.insert(this->mesh.rgba.end(), c.rgba, c.rgba + 4 * c.count);
+    }
+    if (c.scalars)
+    {
+      this->mesh.scalars.insert(this->mesh.scalars.end(), c.scalars, c.scalars + ns * c.count);
+    }
+  }
+  void Triangles(const std::uint32_t* idx, std::size_t n) override
+  {
+    this->mesh.tris.insert(this->mesh.tris.end(), idx, idx + 3 * n);
+  }
+  void End(const io::ReadStats&) override { this->ended = true; }
+};
+
+// ---- generators
+
+Mesh Tetrahedron()
+{
+  Mesh m;
+  m.xyz = { 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0, 1 };
+  m.tris = { 0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3 };
+  return m;
+}
+
+// n x n quads on [0,1]^2 split into triangles; quads with hole(i, j) true are left out.
+template <class Hole>
+Mesh Grid(int n, Hole hole, double (*height)(double, double) = nullptr)
+{
+  Mesh m;
+  for (int j = 0; j <= n; ++j)
+  {
+    for (int i = 0; i <= n; ++i)
+    {
+      double x = double(i) / n, y = double(j) / n;
+      m.xyz.push_back(float(x));
+      m.xyz.push_back(float(y));
+      m.xyz.push_back(float(height ? height(x, y) : 0.0));
+    }
+  }
+  auto id = [n](int i, int j) { return std::uint32_t(j * (n + 1) + i); };
+  for (int j = 0; j < n; ++j)
+  {
+    for (int i = 0; i < n; ++i)
+    {
+      if (hole(i, j))
+      {
+        continue;
+      }
+      // alternate the diagonal so that the mesh is not biased
+      if ((i + j) % 2 == 0)
+      {
+        m.tris.insert(m.tris.end(), { id(i, j), id(i + 1, j), id(i + 1, j + 1) });
+        m.tris.insert(m.tris.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
+      }
+      else
+      {
+        m.tris.insert(m.tris.end(), { id(i, j), id(i + 1, j), id(i, j + 1) });
+        m.tris.insert(m.tris.end(), { id(i + 1, j), id(i + 1, j + 1), id(i, j + 1) });
+      }
+    }
+  }
+  return m;
+}
+Mesh Grid(int n, double (*height)(double, double) = nullptr)
+{
+  return Grid(n, [](int, int) { return false; }, height);
+}
+
+double Bumps(double x, double y)
+{
+  return 0.05 * std::sin(9.0 * x) * std::cos(7.0 * y) + 0.02 * std::sin(23.0 * x + 11.0 * y);
+}
+
+double SphereBump(double x, double y, double z)
+{
+  return 1.0 + 0.06 * std::sin(5.0 * x) * std::sin(6.0 * y) * std::sin(4.0 * z + 1.0);
+}
+
+// A subdivided icosahedron (closed, 20 * 4^levels triangles) with radial bumps.
+Mesh BumpySphere(int levels)
+{
+  Mesh m;
+  const double t = (1.0 + std::sqrt(5.0)) / 2.0;
+  std::vector<std::array<double, 3>> p = { { -1, t, 0 }, { 1, t, 0 }, { -1, -t, 0 }, { 1, -t, 0 },
+    { 0, -1, t }, { 0, 1, t }, { 0, -1, -t }, { 0, 1, -t }, { t, 0, -1 }, { t, 0, 1 },
+    { -t, 0, -1 }, { -t, 0, 1 } };
+  for (auto& q : p)
+  {
+    double l = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
+    q = { q[0] / l, q[1] / l, q[2] / l };
+  }
+  std::vector<std::uint32_t> f = { 0, 11, 5, 0, 5, 1, 0, 1, 7, 0, 7, 10, 0, 10, 11, 1, 5, 9, 5, 11,
+    4, 11, 10, 2, 10, 7, 6, 7, 1, 8, 3, 9, 4, 3, 4, 2, 3, 2, 6, 3, 6, 8, 3, 8, 9, 4, 9, 5, 2, 4,
+    11, 6, 2, 10, 8, 6, 7, 9, 8, 1 };
+  for (int l = 0; l < levels; ++l)
+  {
+    std::map<std::pair<std::uint32_t, std::uint32_t>, std::uint32_t> mid;
+    auto midpoint = [&](std::uint32_t a, std::uint32_t b) {
+      auto key = std::make_pair(std::min(a, b), std::max(a, b));
+      auto it = mid.find(key);
+      if (it != mid.end())
+      {
+        return it->second;
+      }
+      std::array<double, 3> q = { p[a][0] + p[b][0], p[a][1] + p[b][1], p[a][2] + p[b][2] };
+      double len = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
+      p.push_back({ q[0] / len, q[1] / len, q[2] / len });
+      mid[key] = std::uint32_t(p.size() - 1);
+      return std::uint32_t(p.size() - 1);
+    };
+    std::vector<std::uint32_t> g;
+    for (std::size_t i = 0; i < f.size(); i += 3)
+    {
+      std::uint32_t a = f[i], b = f[i + 1], c = f[i + 2];
+      std::uint32_t ab = midpoint(a, b), bc = midpoint(b, c), ca = midpoint(c, a);
+      g.insert(g.end(), { a, ab, ca, b, bc, ab, c, ca, bc, ab, bc, ca });
+    }
+    f.swap(g);
+  }
+  for (auto& q : p)
+  {
+    double r = SphereBump(q[0], q[1], q[2]);
+    m.xyz.insert(m.xyz.end(), { float(q[0] * r), float(q[1] * r), float(q[2] * r) });
+  }
+  m.tris = f;
+  return m;
+}
+
+// ---- topology and geometry helpers
+
+using Edge = std::pair<std::uint32_t, std::uint32_t>;
+std::map<Edge, int> EdgeUse(const Mesh& m)
+{
+  std::map<Edge, int> use;
+  for (std::size_t i = 0; i < m.tris.size(); i += 3)
+  {
+    for (int k = 0; k < 3; ++k)
+    {
+      std::uint32_t a = m.tris[i + k], b = m.tris[i + (k + 1) % 3];
+      ++use[{ std::min(a, b), std::max(a, b) }];
+    }
+  }
+  return use;
+}
+
+int BoundaryLoops(const Mesh& m)
+{
+  std::map<std::uint32_t, std::vector<std::uint32_t>> adj;
+  for (auto& [e, n] : EdgeUse(m))
+  {
+    if (n == 1)
+    {
+      adj[e.first].push_back(e.second);
+      adj[e.second].push_back(e.first);
+    }
+  }
+  std::set<std::uint32_t> seen;
+  int loops = 0;
+  for (auto& [v, nbs] : adj)
+  {
+    if (seen.count(v))
+    {
+      continue;
+    }
+    ++loops;
+    std::vector<std::uint32_t> stack = { v };
+    while (!stack.empty())
+    {
+      std::uint32_t x = stack.back();
+      stack.pop_back();
+      if (!seen.insert(x).second)
+      {
+        continue;
+      }
+      for (std::uint32_t y : adj[x])
+      {
+        stack.push_back(y);
+      }
+    }
+  }
+  return loops;
+}
+
+std::array<double, 3> FaceNormal(const Mesh& m, std::size_t f)
+{
+  auto a = m.P(m.tris[3 * f]), b = m.P(m.tris[3 * f + 1]), c = m.P(m.tris[3 * f + 2]);
+  double u[3] = { b[0] - a[0], b[1] - a[1], b[2] - a[2] };
+  double v[3] = { c[0] - a[0], c[1] - a[1], c[2] - a[2] };
+  return { u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0] };
+}
+
+bool HasVertex(const Mesh& m, double x, double y, double z)
+{
+  for (std::size_t i = 0; i < m.Vertices(); ++i)
+  {
+    auto p = m.P(i);
+    if (p[0] == float(x) && p[1] == float(y) && p[2] == float(z))
+    {
+      return true;
+    }
+  }
+  return false;
+}
+
+struct Outcome
+{
+  Mesh out;
+  alg::RunStats stats;
+  double seconds = 0;
+};
+
+Outcome Simplify(const alg::MeshSource& src, const alg::DecimateOptions& o)
+{
+  Outcome r;
+  CollectSink sink;
+  alg::NullProgress progress;
+  auto t0 = std::chrono::steady_clock::now();
+  r.stats = alg::Decimate(src, sink, o, progress);
+  r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  EXPECT_TRUE(sink.ended);
+  EXPECT_EQ(sink.header.vertexCount, sink.mesh.Vertices());
+  EXPECT_EQ(sink.header.faceCount, sink.mesh.Triangles());
+  r.out = std::move(sink.mesh);
+  return r;
+}
+
+void ExpectValid(const Mesh& m)
+{
+  std::set<std::array<std::uint32_t, 3>> seen;
+  std::vector<bool> used(m.Vertices(), false);
+  for (std::size_t i = 0; i < m.tris.size(); i += 3)
+  {
+    std::array<std::uint32_t, 3> t = { m.tris[i], m.tris[i + 1], m.tris[i + 2] };
+    for (auto v : t)
+    {
+      ASSERT_LT(v, m.Vertices());
+      used[v] = true;
+    }
+    ASSERT_NE(t[0], t[1]);
+    ASSERT_NE(t[1], t[2]);
+    ASSERT_NE(t[0], t[2]);
+    std::sort(t.begin(), t.end());
+    EXPECT_TRUE(seen.insert(t).second) << "duplicate triangle";
+  }
+  EXPECT_EQ(std::count(used.begin(), used.end(), false), 0) << "unreferenced output vertices";
+}
+
+std::string PhaseSummary(const alg::RunStats& s)
+{
+  std::string out;
+  for (const auto& p : s.phases)
+  {
+    char buf[96];
+    std::snprintf(buf, sizeof(buf), "%s %.3fs (%s) ", p.name.c_str(), p.seconds,
+      st::ToString(p.mode));
+    out += buf;
+  }
+  return out;
+}
+
+// ---- tests
+
+TEST(AlgorithmsDecimate, TetrahedronStaysClosed)
+{
+  Mesh tet = Tetrahedron();
+  alg::DecimateOptions o;
+  o.targetTriangles = 1;
+  Outcome r = Simplify(MemorySource(tet), o);
+  ASSERT_EQ(r.out.Triangles(), 4u);
+  EXPECT_EQ(r.out.Vertices(), 4u);
+  for (auto& [e, n] : EdgeUse(r.out))
+  {
+    EXPECT_EQ(n, 2) << "edge " << e.first << "-" << e.second;
+  }
+  EXPECT_EQ(r.stats.inputTriangles, 4u);
+  EXPECT_EQ(r.stats.outputTriangles, 4u);
+}
+
+TEST(AlgorithmsDecimate, ClosedSphereStaysClosedAndManifold)
+{
+  Mesh s = BumpySphere(3); // 1280 triangles
+  alg::DecimateOptions o;
+  o.targetTriangles = 20;
+  Outcome r = Simplify(MemorySource(s), o);
+  ExpectValid(r.out);
+  EXPECT_LE(r.out.Triangles(), 20u);
+  EXPECT_GE(r.out.Triangles(), 4u);
+  for (auto& [e, n] : EdgeUse(r.out))
+  {
+    EXPECT_EQ(n, 2);
+  }
+  // Euler characteristic of a sphere.
+  EXPECT_EQ(
+    std::int64_t(r.out.Vertices()) - std::int64_t(EdgeUse(r.out).size()) + std::int64_t(r.out.Triangles()),
+    2);
+}
+
+TEST(AlgorithmsDecimate, FlatSquareCollapsesToTwoTrianglesOnItsCorners)
+{
+  Mesh g = Grid(8); // 128 triangles
+  alg::DecimateOptions o;
+  o.targetTriangles = 2;
+  Outcome r = Simplify(MemorySource(g), o);
+  ASSERT_EQ(r.out.Triangles(), 2u);
+  ASSERT_EQ(r.out.Vertices(), 4u);
+  EXPECT_TRUE(HasVertex(r.out, 0, 0, 0));
+  EXPECT_TRUE(HasVertex(r.out, 1, 0, 0));
+  EXPECT_TRUE(HasVertex(r.out, 0, 1, 0));
+  EXPECT_TRUE(HasVertex(r.out, 1, 1, 0));
+  // Same orientation as the input (+z).
+  for (std::size_t f = 0; f < r.out.Triangles(); ++f)
+  {
+    EXPECT_GT(FaceNormal(r.out, f)[2], 0.0);
+  }
+}
+
+TEST(AlgorithmsDecimate, HoleKeepsItsBoundary)
+{
+  // 12 x 12 grid with a 4 x 4 square hole in the middle.
+  Mesh g = Grid(12, [](int i, int j) { return i >= 4 && i < 8 && j >= 4 && j < 8; });
+  ASSERT_EQ(BoundaryLoops(g), 2);
+  for (std::uint64_t target : { 100u, 40u, 8u })
+  {
+    alg::DecimateOptions o;
+    o.targetTriangles = target;
+    Outcome r = Simplify(MemorySource(g), o);
+    ExpectValid(r.out);
+    EXPECT_LE(r.out.Triangles(), std::max<std::uint64_t>(target, 16)) << "target " << target;
+    int boundaryEdges = 0;
+    for (auto& [e, n] : EdgeUse(r.out))
+    {
+      EXPECT_LE(n, 2);
+      boundaryEdges += n == 1;
+    }
+    EXPECT_GT(boundaryEdges, 0);
+    EXPECT_EQ(BoundaryLoops(r.out), 2) << "the hole must stay open, target " << target;
+    for (double x : { 0.0, 1.0 })
+    {
+      for (double y : { 0.0, 1.0 })
+      {
+        EXPECT_TRUE(HasVertex(r.out, x, y, 0)) << x << "," << y << " target " << target;
+      }
+    }
+    // The hole's corners too.
+    for (double x : { 4.0 / 12, 8.0 / 12 })
+    {
+      for (double y : { 4.0 / 12, 8.0 / 12 })
+      {
+        EXPECT_TRUE(HasVertex(r.out, x, y, 0)) << x << "," << y << " target " << target;
+      }
+    }
+  }
+}
+
+TEST(AlgorithmsDecimate, LockBoundaryKeepsEveryBoundaryVertex)
+{
+  Mesh g = Grid(16, Bumps);
+  alg::DecimateOptions o;
+  o.targetTriangles = 150;
+  o.lockBoundary = true;
+  Outcome r = Simplify(MemorySource(g), o);
+  ExpectValid(r.out);
+  for (int i = 0; i <= 16; ++i)
+  {
+    double s = double(i) / 16;
+    EXPECT_TRUE(HasVertex(r.out, s, 0, Bumps(s, 0)));
+    EXPECT_TRUE(HasVertex(r.out, s, 1, Bumps(s, 1)));
+    EXPECT_TRUE(HasVertex(r.out, 0, s, Bumps(0, s)));
+    EXPECT_TRUE(HasVertex(r.out, 1, s, Bumps(1, s)));
+  }
+}
+
+TEST(AlgorithmsDecimate, NoFlippedFacesOnBumpySphereAndTerrain)
+{
+  {
+    Mesh s = BumpySphere(5); // 20480 triangles
+    alg::DecimateOptions o;
+    o.targetReduction = 0.9;
+    Outcome r = Simplify(MemorySource(s), o);
+    ExpectValid(r.out);
+    EXPECT_LE(r.out.Triangles(), 2048u);
+    EXPECT_GE(r.out.Triangles(), 2000u);
+    for (std::size_t f = 0; f < r.out.Triangles(); ++f)
+    {
+      auto n = FaceNormal(r.out, f);
+      auto a = r.out.P(r.out.tris[3 * f]), b = r.out.P(r.out.tris[3 * f + 1]),
+           c = r.out.P(r.out.tris[3 * f + 2]);
+      double cx = a[0] + b[0] + c[0], cy = a[1] + b[1] + c[1], cz = a[2] + b[2] + c[2];
+      double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+      double cl = std::sqrt(cx * cx + cy * cy + cz * cz);
+      ASSERT_GT(len, 0.0);
+      // The bumps tilt the true normal by < 25 degrees from the radial direction.
+      EXPECT_GT((n[0] * cx + n[1] * cy + n[2] * cz) / (len * cl), 0.0) << "face " << f;
+    }
+    for (auto& [e, n] : EdgeUse(r.out))
+    {
+      EXPECT_EQ(n, 2);
+    }
+    // Vertices stay near the surface.
+    double worst = 0;
+    for (std::size_t i = 0; i < r.out.Vertices(); ++i)
+    {
+      auto p = r.out.P(i);
+      double l = std::sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+      worst = std::max(worst, std::abs(l - SphereBump(p[0] / l, p[1] / l, p[2] / l)));
+    }
+    EXPECT_LT(worst, 0.02);
+  }
+  {
+    Mesh g = Grid(64, Bumps); // 8192 triangles
+    alg::DecimateOptions o;
+    o.targetReduction = 0.9;
+    Outcome r = Simplify(MemorySource(g), o);
+    ExpectValid(r.out);
+    for (std::size_t f = 0; f < r.out.Triangles(); ++f)
+    {
+      auto n = FaceNormal(r.out, f);
+      EXPECT_GT(n[2], 0.0) << "face " << f;
+    }
+    for (std::size_t i = 0; i < r.out.Vertices(); ++i)
+    {
+      auto p = r.out.P(i);
+      EXPECT_NEAR(p[2], Bumps(p[0], p[1]), 0.01);
+    }
+  }
+}
+
+Mesh ColoredSphere(int levels)
+{
+  Mesh s = BumpySphere(levels);
+  s.scalarNames = { "x", "quality" };
+  for (std::size_t i = 0; i < s.Vertices(); ++i)
+  {
+    auto p = s.P(i);
+    s.scalars.push_back(float(p[0]));
+    s.scalars.push_back(float(p[1] * p[2]));
+    s.rgba.insert(s.rgba.end(), { std::uint8_t(127.5 + 127 * p[0]), std::uint8_t(127.5 + 127 * p[1]),
+                                  std::uint8_t(127.5 + 127 * p[2]), 255 });
+    double l = std::sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+    s.normals.insert(s.normals.end(), { float(p[0] / l), float(p[1] / l), float(p[2] / l) });
+  }
+  return s;
+}
+
+TEST(AlgorithmsDecimate, InCoreAndOutOfCoreAreIdentical)
+{
+  Mesh s = ColoredSphere(5);
+  alg::DecimateOptions o;
+  o.targetTriangles = 1500;
+  o.levelsOfDetail = 3;
+  Outcome a = Simplify(MemorySource(s), o);
+  o.storage.policy = st::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 64 * 1024;
+  Outcome b = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(b.stats.storage.usedOutOfCore);
+  EXPECT_EQ(a.stats.storage.usedOutOfCore, false);
+  ASSERT_EQ(a.out.Triangles(), b.out.Triangles());
+  ASSERT_EQ(a.out.Vertices(), b.out.Vertices());
+  EXPECT_EQ(0, std::memcmp(a.out.xyz.data(), b.out.xyz.data(), a.out.xyz.size() * sizeof(float)));
+  EXPECT_TRUE(a.out.tris == b.out.tris);
+  EXPECT_EQ(0, std::memcmp(a.out.scalars.data(), b.out.scalars.data(), a.out.scalars.size() * 4));
+  EXPECT_EQ(0, std::memcmp(a.out.normals.data(), b.out.normals.data(), a.out.normals.size() * 4));
+  EXPECT_TRUE(a.out.rgba == b.out.rgba);
+  // Automatic mode with a small budget: starts out of core, ends in core, same result.
+  o.storage.policy = st::ModePolicy::Automatic;
+  o.storage.memoryBudget = 512 * 1024;
+  Outcome c = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(c.stats.storage.usedOutOfCore);
+  EXPECT_TRUE(c.stats.storage.usedInCore);
+  EXPECT_TRUE(a.out.tris == c.out.tris);
+  EXPECT_EQ(0, std::memcmp(a.out.xyz.data(), c.out.xyz.data(), a.out.xyz.size() * sizeof(float)));
+}
+
+TEST(AlgorithmsDecimate, UnannouncedAndInterleavedInputGiveTheSameResult)
+{
+  Mesh s = ColoredSphere(4);
+  alg::DecimateOptions o;
+  o.targetTriangles = 500;
+  Outcome a = Simplify(MemorySource(s), o);
+  Outcome b = Simplify(MemorySource(s, false, false), o);
+  Outcome c = Simplify(MemorySource(s, false, true), o);
+  EXPECT_TRUE(a.out.tris == b.out.tris);
+  EXPECT_TRUE(a.out.tris == c.out.tris);
+  EXPECT_TRUE(a.out.xyz == c.out.xyz);
+  EXPECT_TRUE(a.out.scalars == c.out.scalars);
+  EXPECT_EQ(c.stats.inputTriangles, s.Triangles());
+  EXPECT_EQ(c.stats.inputVertices, s.Vertices());
+}
+
+TEST(AlgorithmsDecimate, LevelsOfDetailDecrease)
+{
+  Mesh s = BumpySphere(5); // 20480
+  alg::DecimateOptions o;
+  o.targetTriangles = 1000;
+  o.levelsOfDetail = 5;
+  std::vector<int> levelIds;
+  std::vector<std::size_t> counts;
+  std::vector<Mesh> meshes;
+  CollectSink out;
+  alg::NullProgress progress;
+  alg::Decimate(MemorySource(s), out, o, progress,
+    [&](int level, const std::function<void(io::MeshSink&)>& emit) {
+      CollectSink sink;
+      emit(sink);
+      EXPECT_TRUE(sink.ended);
+      ExpectValid(sink.mesh);
+      levelIds.push_back(level);
+      counts.push_back(sink.mesh.Triangles());
+      meshes.push_back(sink.mesh);
+    });
+  ASSERT_EQ(counts.size(), 5u);
+  for (int i = 0; i < 5; ++i)
+  {
+    EXPECT_EQ(levelIds[i], i);
+  }
+  for (std::size_t i = 1; i < counts.size(); ++i)
+  {
+    EXPECT_LT(counts[i], counts[i - 1]);
+  }
+  EXPECT_LT(counts[0], 20480u);
+  EXPECT_LE(counts.back(), 1000u);
+  EXPECT_GE(counts.back(), 970u);
+  // Geometric spacing: 20480 * (1000/20480)^(k/5).
+  for (int i = 0; i < 4; ++i)
+  {
+    double expect = 20480.0 * std::pow(1000.0 / 20480.0, (i + 1) / 5.0);
+    EXPECT_NEAR(double(counts[i]), expect, 0.03 * expect + 2);
+  }
+  EXPECT_TRUE(meshes.back().tris == out.mesh.tris);
+  EXPECT_TRUE(meshes.back().xyz == out.mesh.xyz);
+}
+
+TEST(AlgorithmsDecimate, FinalCountMeetsTarget)
+{
+  Mesh g = Grid(50, Bumps); // 5000
+  for (std::uint64_t target : { 2500u, 1001u, 333u, 50u })
+  {
+    alg::DecimateOptions o;
+    o.targetTriangles = target;
+    Outcome r = Simplify(MemorySource(g), o);
+    EXPECT_LE(r.out.Triangles(), target);
+    EXPECT_GE(r.out.Triangles() + 2, target);
+  }
+  alg::DecimateOptions o;
+  o.targetReduction = 0.75;
+  Outcome r = Simplify(MemorySource(g), o);
+  EXPECT_LE(r.out.Triangles(), 1250u);
+  EXPECT_GE(r.out.Triangles(), 1248u);
+}
+
+TEST(AlgorithmsDecimate, MaximumErrorStopsEarly)
+{
+  Mesh g = Grid(32, Bumps);
+  alg::DecimateOptions o;
+  o.targetTriangles = 10;
+  o.maximumError = 1e-8;
+  Outcome tight = Simplify(MemorySource(g), o);
+  o.maximumError = 1e-4;
+  Outcome loose = Simplify(MemorySource(g), o);
+  EXPECT_GT(tight.out.Triangles(), loose.out.Triangles());
+  EXPECT_GT(tight.out.Triangles(), 10u);
+  EXPECT_LT(tight.out.Triangles(), g.Triangles());
+}
+
+TEST(AlgorithmsDecimate, PointDataFollowsThePositions)
+{
+  // Flat grid: every placement is on its edge, so scalar = x exactly and colors follow x.
+  Mesh g = Grid(20);
+  g.scalarNames = { "x" };
+  for (std::size_t i = 0; i < g.Vertices(); ++i)
+  {
+    float x = g.xyz[3 * i];
+    g.scalars.push_back(x);
+    g.rgba.insert(g.rgba.end(), { std::uint8_t(std::lround(200 * x)), 7, 9, 255 });
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 60;
+  Outcome r = Simplify(MemorySource(g), o);
+  ASSERT_EQ(r.out.scalars.size(), r.out.Vertices());
+  ASSERT_EQ(r.out.rgba.size(), 4 * r.out.Vertices());
+  for (std::size_t i = 0; i < r.out.Vertices(); ++i)
+  {
+    float x = r.out.xyz[3 * i];
+    EXPECT_NEAR(r.out.scalars[i], x, 1e-5);
+    EXPECT_NEAR(r.out.rgba[4 * i], 200 * x, 1.01);
+    EXPECT_EQ(r.out.rgba[4 * i + 1], 7);
+    EXPECT_EQ(r.out.rgba[4 * i + 2], 9);
+    EXPECT_EQ(r.out.rgba[4 * i + 3], 255);
+  }
+  // Bumpy terrain: the optimal placement leaves the edge slightly, scalar = x stays close.
+  Mesh t = Grid(40, Bumps);
+  t.scalarNames = { "x" };
+  for (std::size_t i = 0; i < t.Vertices(); ++i)
+  {
+    t.scalars.push_back(t.xyz[3 * i]);
+  }
+  o.targetTriangles = 400;
+  r = Simplify(MemorySource(t), o);
+  for (std::size_t i = 0; i < r.out.Vertices(); ++i)
+  {
+    EXPECT_NEAR(r.out.scalars[i], r.out.xyz[3 * i], 0.02);
+  }
+  // Sphere normals stay unit length.
+  Mesh s = ColoredSphere(4);
+  o.targetTriangles = 300;
+  r = Simplify(MemorySource(s), o);
+  ASSERT_EQ(r.out.normals.size(), 3 * r.out.Vertices());
+  for (std::size_t i = 0; i < r.out.Vertices(); ++i)
+  {
+    double l = std::sqrt(r.out.normals[3 * i] * r.out.normals[3 * i] +
+      r.out.normals[3 * i + 1] * r.out.normals[3 * i + 1] +
+      r.out.normals[3 * i + 2] * r.out.normals[3 * i + 2]);
+    EXPECT_NEAR(l, 1.0, 1e-5);
+  }
+}
+
+TEST(AlgorithmsDecimate, DropsDegenerateAndDuplicateTriangles)
+{
+  Mesh g = Grid(4); // 32 triangles, vertices 0..24
+  // collinear vertices 0, 1, 2 (y = 0): zero area
+  g.tris.insert(g.tris.end(), { 0, 1, 2 });
+  // repeated index
+  g.tris.insert(g.tris.end(), { 5, 5, 6 });
+  // exact duplicates (same vertex set) of the first two triangles
+  g.tris.insert(g.tris.end(), { g.tris[0], g.tris[1], g.tris[2] });
+  g.tris.insert(g.tris.end(), { g.tris[4], g.tris[5], g.tris[3] });
+  // an unreferenced vertex
+  g.xyz.insert(g.xyz.end(), { 5, 5, 5 });
+  alg::DecimateOptions o;
+  o.targetTriangles = 1000; // no simplification
+  Outcome r = Simplify(MemorySource(g), o);
+  EXPECT_EQ(r.stats.inputTriangles, 36u);
+  EXPECT_EQ(r.stats.droppedInputFaces, 4u);
+  EXPECT_EQ(r.out.Triangles(), 32u);
+  EXPECT_EQ(r.out.Vertices(), 25u);
+  ExpectValid(r.out);
+}
+
+TEST(AlgorithmsDecimate, NonManifoldInputIsHandled)
+{
+  Mesh g = Grid(10, Bumps);
+  // A fin: an extra triangle on the interior edge (5,5)-(6,5) of the grid -> an edge with 3
+  // faces, plus a bow-tie vertex: a triangle touching the grid only at corner (10,10).
+  std::uint32_t base = std::uint32_t(g.Vertices());
+  g.xyz.insert(g.xyz.end(), { 0.55f, 0.5f, 0.5f, 1.2f, 1.0f, 0.0f, 1.0f, 1.2f, 0.0f });
+  g.tris.insert(g.tris.end(), { 5 * 11 + 5, 5 * 11 + 6, base });
+  std::uint32_t corner = 10 * 11 + 10;
+  g.tris.insert(g.tris.end(), { corner, base + 1, base + 2 });
+  alg::DecimateOptions o;
+  o.targetTriangles = 30;
+  Outcome r = Simplify(MemorySource(g), o);
+  ExpectValid(r.out);
+  int nonManifold = 0;
+  for (auto& [e, n] : EdgeUse(r.out))
+  {
+    nonManifold += n > 2;
+  }
+  EXPECT_EQ(nonManifold, 1);
+  EXPECT_TRUE(HasVertex(r.out, 0.55, 0.5, 0.5));
+  EXPECT_TRUE(HasVertex(r.out, 0.5, 0.5, Bumps(0.5, 0.5)));
+  EXPECT_TRUE(HasVertex(r.out, 0.6, 0.5, Bumps(0.6, 0.5)));
+  EXPECT_TRUE(HasVertex(r.out, 1.2, 1.0, 0.0));
+}
+
+TEST(AlgorithmsDecimate, WeldJoinsCoincidentVertices)
+{
+  // Two halves of a grid with duplicated seam vertices.
+  Mesh g = Grid(10, Bumps);
+  Mesh split;
+  split.xyz = g.xyz;
+  std::map<std::uint32_t, std::uint32_t> copy;
+  for (std::size_t i = 0; i < g.tris.size(); i += 3)
+  {
+    bool right = g.xyz[3 * g.tris[i]] + g.xyz[3 * g.tris[i + 1]] + g.xyz[3 * g.tris[i + 2]] > 1.5f;
+    for (int k = 0; k < 3; ++k)
+    {
+      std::uint32_t v = g.tris[i + k];
+      if (right && g.xyz[3 * v] == 0.5f)
+      {
+        if (!copy.count(v))
+        {
+          copy[v] = std::uint32_t(split.xyz.size() / 3);
+          split.xyz.insert(split.xyz.end(), { g.xyz[3 * v], g.xyz[3 * v + 1], g.xyz[3 * v + 2] });
+        }
+        v = copy[v];
+      }
+      split.tris.push_back(v);
+    }
+  }
+  ASSERT_EQ(BoundaryLoops(split), 2);
+  alg::DecimateOptions o;
+  o.targetTriangles = 100000;
+  o.weldDistance = 0;
+  Outcome r = Simplify(MemorySource(split), o);
+  EXPECT_EQ(r.out.Vertices(), g.Vertices());
+  EXPECT_EQ(BoundaryLoops(r.out), 1);
+}
+
+class AbortingProgress final : public alg::Progress
+{
+public:
+  explicit AbortingProgress(int n)
+    : n_(n)
+  {
+    this->SetInterval(0);
+  }
+  void Report(double, const char* phase) override { this->phase = phase; }
+  bool Aborted() override { return ++this->calls > this->n_; }
+  int calls = 0;
+  std::string phase;
+
+private:
+  int n_;
+};
+
+TEST(AlgorithmsDecimate, AbortThrowsAndLeavesNoFiles)
+{
+  Mesh s = ColoredSphere(4);
+  namespace fs = std::filesystem;
+  fs::path dir = fs::temp_directory_path() / ("sipmss_decimate_abort_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  std::set<std::string> phases;
+  for (int n : { 0, 1, 2, 3, 5, 8, 20, 60, 200 })
+  {
+    alg::DecimateOptions o;
+    o.targetTriangles = 100;
+    o.storage.policy = st::ModePolicy::OutOfCore;
+    o.storage.memoryBudget = 64 * 1024;
+    o.storage.directories = { dir.string() };
+    AbortingProgress progress(n);
+    CollectSink sink;
+    EXPECT_THROW(alg::Decimate(MemorySource(s), sink, o, progress), alg::AbortedError) << n;
+    phases.insert(progress.phase);
+    EXPECT_TRUE(fs::is_empty(dir)) << "after abort at call " << n;
+  }
+  EXPECT_GE(phases.size(), 3u); // read, rings/quadrics, collapse, ...
+  fs::remove_all(dir);
+}
+
+TEST(AlgorithmsDecimate, AbortIsQuick)
+{
+  Mesh g = Grid(300, Bumps); // 180K triangles
+  class TimedAbort final : public alg::Progress
+  {
+  public:
+    std::chrono::steady_clock::time_point at;
+    void Report(double, const char*) override {}
+    bool Aborted() override { return std::chrono::steady_clock::now() >= this->at; }
+  } progress;
+  for (double after : { 0.02, 0.1, 0.25 })
+  {
+    alg::DecimateOptions o;
+    o.targetTriangles = 100;
+    CollectSink sink;
+    auto t0 = std::chrono::steady_clock::now();
+    progress.at = t0 + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                         std::chrono::duration<double>(after));
+    bool aborted = false;
+    try
+    {
+      alg::Decimate(MemorySource(g), sink, o, progress);
+    }
+    catch (const alg::AbortedError&)
+    {
+      aborted = true;
+    }
+    double late =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - progress.at).count();
+    if (aborted)
+    {
+      EXPECT_LT(late, 0.1) << "abort requested at " << after << " s";
+    }
+  }
+}
+
+TEST(AlgorithmsDecimate, StatsAndPhases)
+{
+  Mesh s = BumpySphere(4);
+  alg::DecimateOptions o;
+  o.targetTriangles = 500;
+  Outcome r = Simplify(MemorySource(s), o);
+  EXPECT_EQ(r.stats.inputVertices, s.Vertices());
+  EXPECT_EQ(r.stats.inputTriangles, s.Triangles());
+  EXPECT_EQ(r.stats.outputTriangles, r.out.Triangles());
+  EXPECT_EQ(r.stats.outputVertices, r.out.Vertices());
+  std::vector<std::string> names;
+  for (auto& p : r.stats.phases)
+  {
+    names.push_back(p.name);
+  }
+  EXPECT_EQ(names, (std::vector<std::string>{ "read", "rings", "quadrics", "collapse", "write" }));
+  EXPECT_GT(r.stats.storage.peakBytes, 0u);
+}
+
+TEST(AlgorithmsDecimate, InitialQuadricIsUsed)
+{
+  // A huge quadric pinning vertex 0 keeps it in place even when the rest collapses.
+  Mesh g = Grid(12, Bumps);
+  alg::DecimateOptions o;
+  o.targetTriangles = 20;
+  const std::uint32_t pinned = 6 * 13 + 6; // the center vertex
+  auto p = g.P(pinned);
+  o.initialQuadric = [p, pinned](std::uint64_t v, double q[10]) {
+    if (v != pinned)
+    {
+      return false;
+    }
+    // 1e6 * |x - p|^2
+    const double w = 1e6;
+    q[0] = w, q[1] = 0, q[2] = 0, q[3] = -w * p[0];
+    q[4] = w, q[5] = 0, q[6] = -w * p[1];
+    q[7] = w, q[8] = -w * p[2];
+    q[9] = w * (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+    return true;
+  };
+  Outcome r = Simplify(MemorySource(g), o);
+  EXPECT_TRUE(HasVertex(r.out, p[0], p[1], p[2]));
+}
+
+double RmsDistanceToSphere(const Mesh& m)
+{
+  double s = 0;
+  for (std::size_t i = 0; i < m.Vertices(); ++i)
+  {
+    auto p = m.P(i);
+    double l = std::sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+    double d = l - SphereBump(p[0] / l, p[1] / l, p[2] / l);
+    s += d * d;
+  }
+  return std::sqrt(s / double(std::max<std::size_t>(m.Vertices(), 1)));
+}
+
+TEST(AlgorithmsDecimate, BunnyTiming)
+{
+  const std::string path = std::string(SIPMSS_SHARED_DATA_DIR) + "/bunny.ply";
+  if (!std::filesystem::exists(path))
+  {
+    GTEST_SKIP() << "no shared data (" << path << ")";
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 5000;
+  Outcome a = Simplify(alg::FileSource(path), o);
+  EXPECT_LE(a.out.Triangles(), 5000u);
+  EXPECT_GE(a.out.Triangles(), 4900u);
+  ExpectValid(a.out);
+  std::printf("[ bunny    ] in core: %llu -> %llu triangles in %.3f s; %s\n",
+    (unsigned long long)a.stats.inputTriangles, (unsigned long long)a.out.Triangles(), a.seconds,
+    PhaseSummary(a.stats).c_str());
+  o.storage.memoryBudget = 8u << 20;
+  Outcome b = Simplify(alg::FileSource(path), o);
+  std::printf("[ bunny    ] 8 MB: %llu -> %llu triangles in %.3f s (peak %.1f MB, misses %llu); %s\n",
+    (unsigned long long)b.stats.inputTriangles, (unsigned long long)b.out.Triangles(), b.seconds,
+    b.stats.storage.peakBytes / 1048576.0, (unsigned long long)b.stats.storage.misses,
+    PhaseSummary(b.stats).c_str());
+  EXPECT_TRUE(a.out.tris == b.out.tris);
+  EXPECT_TRUE(a.out.xyz == b.out.xyz);
+  EXPECT_LE(b.stats.storage.peakBytes, 8u << 20);
+}
+
+TEST(AlgorithmsDecimate, Generated800KTiming)
+{
+  // 640 x 640 quads = 819,200 triangles, like the paper's Dragon (871K).
+  Mesh g = Grid(640, Bumps);
+  alg::DecimateOptions o;
+  o.targetTriangles = 10000;
+  Outcome a = Simplify(MemorySource(g), o);
+  EXPECT_LE(a.out.Triangles(), 10000u);
+  EXPECT_GE(a.out.Triangles(), 9900u);
+  std::printf("[ 800K     ] in core: %zu -> %zu triangles in %.3f s; %s\n", g.Triangles(),
+    a.out.Triangles(), a.seconds, PhaseSummary(a.stats).c_str());
+  for (std::size_t i = 0; i < a.out.Vertices(); ++i)
+  {
+    auto p = a.out.P(i);
+    ASSERT_NEAR(p[2], Bumps(p[0], p[1]), 0.01);
+  }
+  if (std::getenv("SIPMSS_SKIP_SLOW"))
+  {
+    return;
+  }
+  o.storage.memoryBudget = 8u << 20;
+  Outcome b = Simplify(MemorySource(g), o);
+  std::printf("[ 800K     ] 8 MB: %zu -> %zu triangles in %.3f s (peak %.1f MB); %s\n",
+    g.Triangles(), b.out.Triangles(), b.seconds, b.stats.storage.peakBytes / 1048576.0,
+    PhaseSummary(b.stats).c_str());
+  EXPECT_TRUE(a.out.tris == b.out.tris);
+  EXPECT_TRUE(a.out.xyz == b.out.xyz);
+}
+
+TEST(AlgorithmsDecimate, SphereQuality)
+{
+  Mesh s = BumpySphere(6); // 81920
+  alg::DecimateOptions o;
+  o.targetTriangles = 4000;
+  Outcome r = Simplify(MemorySource(s), o);
+  double rms = RmsDistanceToSphere(r.out);
+  std::printf("[ sphere   ] 81920 -> %zu triangles in %.3f s, rms vertex error %.2e\n",
+    r.out.Triangles(), r.seconds, rms);
+  EXPECT_LT(rms, 2e-3);
+}
+
+} // namespace

@@ -1,0 +1,129 @@
+// The sipmss command-line tool: exit codes, error messages, no partial output, stats JSON.
+#include <gtest/gtest.h>
+
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+namespace fs = std::filesystem;
+
+namespace
+{
+struct Result
+{
+  int status = -1;
+  std::string out;
+};
+
+Result RunCli(const std::string& args)
+{
+  Result r;
+  const std::string cmd = std::string(SIPMSS_CLI) + " " + args + " 2>&1";
+  FILE* p = ::popen(cmd.c_str(), "r");
+  std::array<char, 4096> buf{};
+  std::size_t n;
+  while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0)
+  {
+    r.out.append(buf.data(), n);
+  }
+  const int st = ::pclose(p);
+  r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+  return r;
+}
+
+class CLI : public ::testing::Test
+{
+protected:
+  void SetUp() override
+  {
+    this->dir = fs::temp_directory_path() /
+      ("sipmss-cli-test-" + std::to_string(::getpid()) + "-" +
+        ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::create_directories(this->dir);
+    // a small closed mesh: an octahedron in ASCII PLY
+    std::ofstream f(this->dir / "octa.ply");
+    f << "ply\nformat ascii 1.0\nelement vertex 6\nproperty float x\nproperty float y\n"
+         "property float z\nelement face 8\nproperty list uchar int vertex_indices\nend_header\n"
+         "1 0 0\n-1 0 0\n0 1 0\n0 -1 0\n0 0 1\n0 0 -1\n"
+         "3 0 2 4\n3 2 1 4\n3 1 3 4\n3 3 0 4\n3 2 0 5\n3 1 2 5\n3 3 1 5\n3 0 3 5\n";
+  }
+  void TearDown() override { fs::remove_all(this->dir); }
+  std::string P(const std::string& name) const { return (this->dir / name).string(); }
+  fs::path dir;
+};
+} // namespace
+
+TEST_F(CLI, VersionAndUsage)
+{
+  Result v = RunCli("--version");
+  EXPECT_EQ(v.status, 0);
+  EXPECT_NE(v.out.find("sipmss"), std::string::npos);
+  EXPECT_EQ(RunCli("").status, 2);
+  EXPECT_EQ(RunCli("simplify only-one-arg").status, 2);
+  EXPECT_EQ(RunCli("simplify a.ply b.ply --algorithm nonsense").status, 2);
+  EXPECT_EQ(RunCli("simplify a.ply b.ply --grid 0").status, 2);
+}
+
+TEST_F(CLI, InfoAndSimplify)
+{
+  Result info = RunCli("info " + P("octa.ply"));
+  ASSERT_EQ(info.status, 0) << info.out;
+  EXPECT_NE(info.out.find("\"vertices\": 6"), std::string::npos) << info.out;
+  EXPECT_NE(info.out.find("\"faces\": 8"), std::string::npos) << info.out;
+
+  Result s = RunCli("simplify " + P("octa.ply") + " " + P("out.ply") + " --grid 2 --quiet --stats-json " +
+    P("stats.json"));
+  ASSERT_EQ(s.status, 0) << s.out;
+  EXPECT_TRUE(fs::exists(this->dir / "out.ply"));
+  std::ifstream js(this->dir / "stats.json");
+  std::string json((std::istreambuf_iterator<char>(js)), std::istreambuf_iterator<char>());
+  EXPECT_NE(json.find("\"phases\""), std::string::npos);
+  EXPECT_NE(json.find("\"mode\": \"in-core\""), std::string::npos);
+  EXPECT_NE(json.find("\"input_triangles\": 8"), std::string::npos);
+  EXPECT_NE(json.find("\"misses\""), std::string::npos);
+
+  // out of core at a tiny budget: same output bytes
+  Result o = RunCli("simplify " + P("octa.ply") + " " + P("out2.ply") +
+    " --grid 2 --quiet --memory-mb 0.0625 --tmpdir " + this->dir.string());
+  ASSERT_EQ(o.status, 0) << o.out;
+  std::ifstream a(this->dir / "out.ply", std::ios::binary), b(this->dir / "out2.ply", std::ios::binary);
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(a), {}), std::string(std::istreambuf_iterator<char>(b), {}));
+
+  Result c = RunCli("compare " + P("octa.ply") + " " + P("octa.ply") + " --samples 2000");
+  ASSERT_EQ(c.status, 0) << c.out;
+  const std::size_t h = c.out.find("\"hausdorff\": ");
+  ASSERT_NE(h, std::string::npos) << c.out;
+  EXPECT_LT(std::stod(c.out.substr(h + 13)), 1e-9) << c.out;
+}
+
+TEST_F(CLI, BadInputLeavesNothing)
+{
+  {
+    std::ofstream f(this->dir / "bad.ply");
+    f << "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+         "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+         "0 0 0\n1 0 0\n0 1 0\n3 0 1 9\n";
+  }
+  {
+    std::ofstream keep(this->dir / "existing.ply");
+    keep << "precious";
+  }
+  Result r = RunCli("simplify " + P("bad.ply") + " " + P("existing.ply") + " --quiet");
+  EXPECT_EQ(r.status, 1);
+  EXPECT_NE(r.out.find("sipmss: error:"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("bad.ply"), std::string::npos) << r.out;
+  // the user's file is untouched and no temporary file is left
+  std::ifstream keep(this->dir / "existing.ply");
+  std::string content((std::istreambuf_iterator<char>(keep)), std::istreambuf_iterator<char>());
+  EXPECT_EQ(content, "precious");
+  for (const auto& e : fs::directory_iterator(this->dir))
+  {
+    const std::string name = e.path().filename().string();
+    EXPECT_TRUE(name == "octa.ply" || name == "bad.ply" || name == "existing.ply") << name;
+  }
+  Result m = RunCli("simplify " + P("missing.ply") + " " + P("o.ply") + " --quiet");
+  EXPECT_EQ(m.status, 1);
+  EXPECT_NE(m.out.find("missing.ply"), std::string::npos) << m.out;
+}

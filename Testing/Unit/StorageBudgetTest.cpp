@@ -1,0 +1,293 @@
+// The memory budget is hard: these tests replace malloc/free (and so operator new/delete) with
+// counting versions and check that the heap bytes the DML really holds stay within B.
+//
+// The hook counts malloc_usable_size() of every live chunk, process-wide. Between the baseline
+// and the end of a measurement the test body itself does not allocate (buffers are made before
+// the baseline), so the growth of the live bytes is the DML's.
+#include "StorageTestUtil.h"
+
+#include "sipmss/storage/DML.h"
+#include "sipmss/storage/DMLTesting.h"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <cstring>
+#include <malloc.h>
+#include <random>
+#include <vector>
+
+extern "C"
+{
+  void* __libc_malloc(std::size_t);
+  void __libc_free(void*);
+  void* __libc_calloc(std::size_t, std::size_t);
+  void* __libc_realloc(void*, std::size_t);
+  void* __libc_memalign(std::size_t, std::size_t);
+}
+
+namespace
+{
+std::atomic<std::int64_t> gLive{ 0 };
+std::atomic<std::int64_t> gPeak{ 0 };
+
+void Added(void* p)
+{
+  if (p)
+  {
+    const std::int64_t now =
+      gLive.fetch_add(static_cast<std::int64_t>(malloc_usable_size(p))) +
+      static_cast<std::int64_t>(malloc_usable_size(p));
+    std::int64_t peak = gPeak.load(std::memory_order_relaxed);
+    while (now > peak && !gPeak.compare_exchange_weak(peak, now))
+    {
+    }
+  }
+}
+void Removed(void* p)
+{
+  if (p)
+  {
+    gLive.fetch_sub(static_cast<std::int64_t>(malloc_usable_size(p)));
+  }
+}
+} // namespace
+
+extern "C"
+{
+  void* malloc(std::size_t n)
+  {
+    void* p = __libc_malloc(n);
+    Added(p);
+    return p;
+  }
+  void free(void* p)
+  {
+    Removed(p);
+    __libc_free(p);
+  }
+  void* calloc(std::size_t n, std::size_t s)
+  {
+    void* p = __libc_calloc(n, s);
+    Added(p);
+    return p;
+  }
+  void* realloc(void* p, std::size_t n)
+  {
+    const std::int64_t old = p ? static_cast<std::int64_t>(malloc_usable_size(p)) : 0;
+    void* q = __libc_realloc(p, n);
+    if (q || n == 0)
+    {
+      gLive.fetch_sub(old);
+      Added(q);
+    }
+    return q;
+  }
+  void* memalign(std::size_t a, std::size_t n)
+  {
+    void* p = __libc_memalign(a, n);
+    Added(p);
+    return p;
+  }
+  void* aligned_alloc(std::size_t a, std::size_t n)
+  {
+    return memalign(a, n);
+  }
+  int posix_memalign(void** out, std::size_t a, std::size_t n)
+  {
+    void* p = memalign(a, n);
+    if (!p)
+    {
+      return ENOMEM;
+    }
+    *out = p;
+    return 0;
+  }
+}
+
+namespace
+{
+using namespace sipmss::storage;
+using sipmss::storage::testing::TempDir;
+
+// Live heap growth since the baseline, with its peak.
+struct HeapMeter
+{
+  std::int64_t base = 0;
+  void Start()
+  {
+    this->base = gLive.load();
+    gPeak.store(this->base);
+  }
+  std::int64_t Now() const { return gLive.load() - this->base; }
+  std::int64_t Peak() const { return gPeak.load() - this->base; }
+};
+
+TEST(StorageBudget, HookWorks)
+{
+  HeapMeter m;
+  m.Start();
+  void* p = std::malloc(100000);
+  EXPECT_GE(m.Now(), 100000);
+  std::free(p);
+  EXPECT_GE(m.Peak(), 100000);
+  EXPECT_LT(m.Now(), 1000);
+}
+
+// 8 blocks of 4 MiB with B = 256 KiB: the real heap of the DML never exceeds B.
+TEST(StorageBudget, ManyLargeBlocksStayWithinBudget)
+{
+  TempDir tmp;
+  const std::uint64_t B = 256 * 1024;
+  Profile profile;
+  profile.directories = { tmp.Path() };
+  profile.memoryBudget = B;
+  profile.structures = { { "blocks", 8, 8 * 512 * 1024, 0.0 } };
+  std::vector<std::uint64_t> buf(20000);   // made before the baseline
+  std::vector<unsigned char> listOut;
+  listOut.reserve(1 << 16);
+  std::int64_t worstOverAccounted = 0; // real - accounted after each call
+  HeapMeter m;
+  m.Start();
+  {
+    DML dml;
+    ASSERT_EQ(dml.Config(profile), Mode::OutOfCore);
+    auto check = [&] {
+      worstOverAccounted = std::max<std::int64_t>(
+        worstOverAccounted, m.Now() - static_cast<std::int64_t>(dml.GetStats().bytesHeld));
+    };
+    BlockId ids[8];
+    for (int b = 0; b < 8; ++b)
+    {
+      ids[b] = dml.OpenBlock(8, 512 * 1024, b == 0 ? 4.0 : 0.0); // 4 MiB each
+      check();
+    }
+    const BlockId lists = dml.OpenListBlock(4, 100000);
+    std::mt19937_64 rng(3);
+    for (int round = 0; round < 3; ++round)
+    {
+      for (int b = 0; b < 8; ++b)
+      {
+        for (std::uint64_t i = 0; i < 512 * 1024; i += 97)
+        {
+          const std::uint64_t v = i * 8 + b + round;
+          dml.Write(ids[b], 8, i, &v);
+        }
+        check();
+      }
+      for (int k = 0; k < 20000; ++k)
+      {
+        const int b = static_cast<int>(rng() % 8);
+        const std::uint64_t i = (rng() % (512 * 1024 / 97)) * 97;
+        std::uint64_t v = 0;
+        dml.Read(ids[b], 8, i, &v);
+        ASSERT_EQ(v, i * 8 + b + round);
+        const std::uint32_t f = static_cast<std::uint32_t>(k);
+        dml.Append(lists, rng() % 100000, &f);
+      }
+      check();
+      dml.ReadRange(ids[round], 1000, buf.size(), buf.data());
+      dml.WriteRange(ids[round + 1], 5000, buf.size(), buf.data());
+      Span s = dml.Pin(ids[7], 12345, Access::Write);
+      static_cast<std::uint64_t*>(s.data)[0] = 1;
+      dml.Unpin(ids[7], s);
+      check();
+    }
+    dml.ReadList(lists, 5, listOut);
+    dml.Resize(ids[0], 4 * 1024 * 1024); // grow to 32 MiB (sparse)
+    dml.Resize(ids[1], 10);
+    check();
+    for (int b = 2; b < 8; ++b)
+    {
+      dml.CloseBlock(ids[b]);
+    }
+    dml.Reconfigure();
+    check();
+    const Stats st = dml.GetStats();
+    EXPECT_LE(st.peakBytes, B);
+    EXPECT_LE(st.bytesHeld, B);
+    EXPECT_GT(st.misses, 1000u);
+    EXPECT_EQ(st.mode, Mode::OutOfCore);
+  }
+  EXPECT_LE(m.Peak(), static_cast<std::int64_t>(B)) << "real DML heap exceeded the budget";
+  EXPECT_LE(worstOverAccounted, 0) << "real heap above the accounted bytes";
+  EXPECT_LE(m.Now(), 0) << "leak";
+}
+
+// In core the budget is hard too: an OpenBlock that would exceed it moves everything out.
+TEST(StorageBudget, InCoreGrowthSwitchesInsteadOfExceeding)
+{
+  TempDir tmp;
+  const std::uint64_t B = 1 << 20;
+  Profile profile;
+  profile.directories = { tmp.Path() };
+  profile.memoryBudget = B;
+  HeapMeter m;
+  m.Start();
+  {
+    DML dml;
+    ASSERT_EQ(dml.Config(profile), Mode::InCore);
+    const BlockId a = dml.OpenBlock(4, 100000);
+    const BlockId l = dml.OpenListBlock(4, 1000);
+    for (std::uint32_t k = 0; k < 200000; ++k) // the list pool grows until it must spill
+    {
+      dml.Append(l, k % 1000, &k);
+      if (k % 1000 == 0)
+      {
+        dml.Resize(a, dml.Count(a) + 1000);
+      }
+    }
+    EXPECT_EQ(dml.GetMode(), Mode::OutOfCore);
+    EXPECT_GE(dml.GetStats().reconfigurations, 1u);
+    EXPECT_LE(dml.GetStats().peakBytes, B);
+    std::vector<unsigned char> out;
+    out.reserve(1 << 12);
+    EXPECT_EQ(dml.ReadList(l, 7, out), 200u);
+  }
+  EXPECT_LE(m.Peak(), static_cast<std::int64_t>(B));
+}
+
+// Metadata that grows with the number of blocks is inside the budget as well.
+TEST(StorageBudget, BlockMetadataIsCounted)
+{
+  TempDir tmp;
+  const std::uint64_t B = 128 * 1024;
+  Profile profile;
+  profile.directories = { tmp.Path() };
+  profile.memoryBudget = B;
+  profile.policy = ModePolicy::OutOfCore;
+  std::vector<BlockId> ids;
+  ids.reserve(5000);
+  HeapMeter m;
+  m.Start();
+  bool refused = false;
+  {
+    DML dml;
+    dml.Config(profile);
+    try
+    {
+      for (int i = 0; i < 5000; ++i)
+      {
+        ids.push_back(dml.OpenBlock(8, 1000));
+        const std::uint64_t v = static_cast<std::uint64_t>(i);
+        dml.Write(ids.back(), 8, 999, &v);
+      }
+    }
+    catch (const BudgetError&)
+    {
+      refused = true; // the descriptors alone would exceed B
+    }
+    EXPECT_GT(ids.size(), 100u);
+    for (std::size_t i = 0; i < ids.size(); i += 13)
+    {
+      std::uint64_t v = 0;
+      dml.Read(ids[i], 8, 999, &v);
+      ASSERT_EQ(v, i);
+    }
+    EXPECT_LE(dml.GetStats().peakBytes, B);
+  }
+  EXPECT_TRUE(refused);
+  EXPECT_LE(m.Peak(), static_cast<std::int64_t>(B));
+}
+
+} // namespace

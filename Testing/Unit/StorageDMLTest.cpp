@@ -1,0 +1,720 @@
+// Functional tests of the DML: both modes, lists, pins, mode switches, big sparse files, and a
+// randomized workload compared against a plain std::vector model under several budgets.
+#include "StorageTestUtil.h"
+
+#include "sipmss/storage/DML.h"
+#include "sipmss/storage/DMLTesting.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cstring>
+#include <functional>
+#include <random>
+#include <string>
+#include <thread>
+#include <vector>
+
+namespace
+{
+using namespace sipmss::storage;
+using sipmss::storage::testing::ListDir;
+using sipmss::storage::testing::TempDir;
+
+Profile MakeProfile(const std::string& dir, std::uint64_t budget, ModePolicy policy,
+  PagePolicy pages = PagePolicy::StaticWeight)
+{
+  Profile p;
+  p.directories = { dir };
+  p.memoryBudget = budget;
+  p.policy = policy;
+  p.pagePolicy = pages;
+  return p;
+}
+
+TEST(StorageDML, InCoreBasics)
+{
+  DML dml;
+  EXPECT_EQ(dml.Config(Profile{}), Mode::InCore);
+  Array<int> a(dml, 1000);
+  ASSERT_NE(dml.BasePointer(a.Id()), nullptr);
+  for (int i = 0; i < 1000; ++i)
+  {
+    EXPECT_EQ(a.Get(i), 0);
+    a.Set(i, i * 3);
+  }
+  EXPECT_EQ(a.Get(999), 2997);
+  // Pin in core: the whole rest of the block, Unpin is a no-op.
+  Span s = dml.Pin(a.Id(), 10, Access::Read);
+  EXPECT_EQ(s.count, 990u);
+  EXPECT_EQ(static_cast<int*>(s.data)[0], 30);
+  dml.Unpin(a.Id(), s);
+  std::int64_t sum = 0;
+  a.ForEachChunk(0, 1000, Access::Read, [&](int* d, std::uint64_t, std::uint64_t n) {
+    EXPECT_EQ(n, 1000u); // one chunk in core
+    for (std::uint64_t i = 0; i < n; ++i)
+    {
+      sum += d[i];
+    }
+  });
+  EXPECT_EQ(sum, 3 * 999 * 1000 / 2);
+  a.Resize(5000);
+  EXPECT_EQ(a.Get(999), 2997);
+  EXPECT_EQ(a.Get(4999), 0);
+  a.Resize(10);
+  a.Resize(20);
+  EXPECT_EQ(a.Get(9), 27);
+  EXPECT_EQ(a.Get(15), 0); // regrown elements are zero
+  EXPECT_EQ(dml.GetStats().mode, Mode::InCore);
+  EXPECT_EQ(dml.PrivateDirectory(), "");
+  EXPECT_THROW(dml.Read(a.Id(), 8, 0, &sum), std::invalid_argument);
+  EXPECT_THROW(dml.Read(a.Id(), 4, 20, &sum), std::out_of_range);
+  EXPECT_THROW(dml.CloseBlock(12345), std::invalid_argument);
+}
+
+TEST(StorageDML, OutOfCoreBasicsAndCleanup)
+{
+  TempDir tmp;
+  std::string priv;
+  {
+    DML dml;
+    EXPECT_EQ(dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::OutOfCore)),
+      Mode::OutOfCore);
+    Array<double> a(dml, 100000);
+    Array<std::uint32_t> b(dml, 3);
+    EXPECT_EQ(dml.BasePointer(a.Id()), nullptr);
+    priv = dml.PrivateDirectory();
+    EXPECT_EQ(priv.rfind(tmp.Path() + "/sipmss-" + std::to_string(::getpid()) + "-", 0), 0u);
+    EXPECT_EQ(ListDir(priv).size(), 2u);
+    for (int i = 0; i < 100000; ++i)
+    {
+      a.Set(i, i * 0.5);
+    }
+    // 64 KiB budget: small pages, at least ~16 of them.
+    EXPECT_LE(DMLTestAccess::PageSize(dml), 4096u);
+    EXPECT_GE(DMLTestAccess::FrameSlots(dml), 16u);
+    for (int i = 99999; i >= 0; i -= 7)
+    {
+      ASSERT_EQ(a.Get(i), i * 0.5);
+    }
+    // ForEachChunk runs page by page out of core.
+    std::uint64_t chunks = 0;
+    double sum = 0;
+    a.ForEachChunk(0, 100000, Access::Read, [&](double* d, std::uint64_t, std::uint64_t n) {
+      ++chunks;
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        sum += d[i];
+      }
+    });
+    EXPECT_GT(chunks, 100u);
+    EXPECT_DOUBLE_EQ(sum, 0.5 * 99999.0 * 100000.0 / 2.0);
+    b.Close();
+    EXPECT_EQ(ListDir(priv).size(), 1u); // CloseBlock removes the file
+    const Stats st = dml.GetStats();
+    EXPECT_GT(st.misses, 0u);
+    EXPECT_GT(st.hits, 0u);
+    EXPECT_GT(st.bytesWritten, 0u);
+    EXPECT_LE(st.peakBytes, 64u * 1024u);
+    EXPECT_TRUE(st.usedOutOfCore);
+  }
+  EXPECT_TRUE(ListDir(tmp.Path()).empty()); // the destructor removes the private directory
+}
+
+TEST(StorageDML, ElementsLargerThanAPage)
+{
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::OutOfCore));
+  Array<int> small(dml, 5000);
+  for (int i = 0; i < 5000; ++i)
+  {
+    small.Set(i, i);
+  }
+  struct Big
+  {
+    unsigned char bytes[6000];
+  };
+  const BlockId big = dml.OpenBlock(sizeof(Big), 20);
+  Big v{};
+  for (int i = 0; i < 20; ++i)
+  {
+    std::memset(v.bytes, i + 1, sizeof(v.bytes));
+    dml.Write(big, sizeof(Big), i, &v);
+  }
+  EXPECT_GE(DMLTestAccess::PageSize(dml), sizeof(Big));
+  for (int i = 0; i < 20; ++i)
+  {
+    dml.Read(big, sizeof(Big), i, &v);
+    EXPECT_EQ(v.bytes[0], i + 1);
+    EXPECT_EQ(v.bytes[5999], i + 1);
+  }
+  for (int i = 0; i < 5000; ++i)
+  {
+    ASSERT_EQ(small.Get(i), i);
+  }
+  EXPECT_LE(dml.GetStats().peakBytes, 64u * 1024u);
+}
+
+TEST(StorageDML, PinsAreLimitedByTheBudget)
+{
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::OutOfCore));
+  Array<std::uint64_t> a(dml, 200000);
+  std::vector<Span> pinned;
+  bool refused = false;
+  for (std::uint64_t i = 0; i < 200000;)
+  {
+    try
+    {
+      Span s = dml.Pin(a.Id(), i, Access::Write);
+      static_cast<std::uint64_t*>(s.data)[0] = i + 1;
+      pinned.push_back(s);
+      i += s.count;
+    }
+    catch (const BudgetError&)
+    {
+      refused = true;
+      break;
+    }
+  }
+  EXPECT_TRUE(refused);
+  EXPECT_GT(pinned.size(), 4u);
+  // Plain accesses still work while the rest is pinned.
+  a.Set(199999, 7);
+  EXPECT_EQ(a.Get(199999), 7u);
+  for (const Span& s : pinned)
+  {
+    dml.Unpin(a.Id(), s);
+  }
+  for (const Span& s : pinned)
+  {
+    EXPECT_EQ(a.Get(s.first), s.first + 1);
+  }
+  EXPECT_LE(dml.GetStats().peakBytes, 64u * 1024u);
+}
+
+TEST(StorageDML, AutomaticSwitchAndReconfigure)
+{
+  TempDir tmp;
+  DML dml;
+  const std::uint64_t B = 1 << 20;
+  EXPECT_EQ(dml.Config(MakeProfile(tmp.Path(), B, ModePolicy::Automatic)), Mode::InCore);
+  Array<std::uint32_t> a(dml, 100000); // 400 KB: in core
+  for (std::uint32_t i = 0; i < 100000; ++i)
+  {
+    a.Set(i, i);
+  }
+  EXPECT_NE(dml.BasePointer(a.Id()), nullptr);
+  // Opening 800 KB more would exceed B: the DML moves out of core on its own.
+  Array<std::uint32_t> b(dml, 200000);
+  EXPECT_EQ(dml.GetMode(), Mode::OutOfCore);
+  EXPECT_EQ(dml.GetStats().reconfigurations, 1u);
+  EXPECT_EQ(dml.BasePointer(a.Id()), nullptr);
+  EXPECT_EQ(a.Get(12345), 12345u);
+  b.Set(199999, 5);
+  // Still too big: Reconfigure keeps the mode.
+  EXPECT_EQ(dml.Reconfigure(), Mode::OutOfCore);
+  // Shrink below B: back in core, files gone, data intact.
+  b.Resize(1000);
+  EXPECT_EQ(dml.Reconfigure(), Mode::InCore);
+  EXPECT_TRUE(ListDir(dml.PrivateDirectory()).empty());
+  const Stats st = dml.GetStats();
+  EXPECT_EQ(st.reconfigurations, 2u);
+  EXPECT_TRUE(st.usedInCore && st.usedOutOfCore);
+  EXPECT_LE(st.peakBytes, B);
+  EXPECT_NE(dml.BasePointer(a.Id()), nullptr);
+  for (std::uint32_t i = 0; i < 100000; i += 17)
+  {
+    ASSERT_EQ(a.Get(i), i);
+  }
+  // Growth past B in core spills again (in -> out), counted.
+  b.Resize(300000);
+  EXPECT_EQ(dml.GetMode(), Mode::OutOfCore);
+  EXPECT_EQ(dml.GetStats().reconfigurations, 3u);
+  EXPECT_EQ(b.Get(299999), 0u);
+  EXPECT_EQ(a.Get(99999), 99999u);
+  b.Close();
+  EXPECT_EQ(dml.Reconfigure(), Mode::InCore);
+  EXPECT_EQ(dml.GetStats().reconfigurations, 4u);
+  EXPECT_LE(dml.GetStats().peakBytes, B);
+}
+
+TEST(StorageDML, ConfigEstimateAndForcedModes)
+{
+  TempDir tmp;
+  {
+    DML dml;
+    Profile p = MakeProfile(tmp.Path(), 1 << 20, ModePolicy::Automatic);
+    p.structures = { { "vertices", 12, 1000000, 0.0 }, { "faces", 12, 2000000, 0.0 } };
+    EXPECT_EQ(dml.Config(p), Mode::OutOfCore); // C = 36 MB > B
+    Array<float> small(dml, 1000);
+    small.Set(3, 1.5f);
+    EXPECT_EQ(dml.Reconfigure(), Mode::InCore); // what is open fits
+    EXPECT_EQ(small.Get(3), 1.5f);
+    EXPECT_EQ(dml.GetStats().reconfigurations, 1u);
+  }
+  {
+    DML dml;
+    EXPECT_EQ(dml.Config(MakeProfile(tmp.Path(), 1 << 20, ModePolicy::InCore)), Mode::InCore);
+    Array<char> a(dml, 1000);
+    EXPECT_THROW(dml.OpenBlock(1, 2 << 20), BudgetError); // hard budget, forced in core
+    EXPECT_EQ(dml.GetMode(), Mode::InCore);
+  }
+  {
+    DML dml;
+    EXPECT_EQ(dml.Config(MakeProfile(tmp.Path(), 1 << 20, ModePolicy::OutOfCore)),
+      Mode::OutOfCore);
+    Array<char> a(dml, 10);
+    EXPECT_EQ(dml.Reconfigure(), Mode::OutOfCore); // forced
+  }
+  {
+    DML dml; // budget 0: unbounded, in core
+    Profile p = MakeProfile(tmp.Path(), 0, ModePolicy::Automatic);
+    p.structures = { { "huge", 8, std::uint64_t(1) << 40, 0.0 } };
+    EXPECT_EQ(dml.Config(p), Mode::InCore);
+  }
+  EXPECT_TRUE(ListDir(tmp.Path()).empty());
+}
+
+TEST(StorageDML, ListsBothModes)
+{
+  TempDir tmp;
+  for (const ModePolicy policy : { ModePolicy::InCore, ModePolicy::OutOfCore })
+  {
+    DML dml;
+    dml.Config(MakeProfile(tmp.Path(), policy == ModePolicy::InCore ? 0 : 64 * 1024, policy));
+    const BlockId L = dml.OpenListBlock(4, 10000);
+    EXPECT_EQ(dml.Count(L), 10000u);
+    EXPECT_EQ(dml.ElementSize(L), 4u);
+    for (std::uint32_t f = 0; f < 20000; ++f) // a face pass: 3 appends per face
+    {
+      for (std::uint32_t k = 0; k < 3; ++k)
+      {
+        const std::uint32_t v = (f * 7 + k * 3331) % 10000;
+        dml.Append(L, v, &f);
+      }
+    }
+    std::uint64_t total = 0;
+    std::vector<unsigned char> out;
+    for (std::uint64_t v = 0; v < 10000; ++v)
+    {
+      out.clear();
+      const std::uint64_t n = dml.ReadList(L, v, out);
+      ASSERT_EQ(n, dml.ListSize(L, v));
+      ASSERT_EQ(out.size(), n * 4);
+      total += n;
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        std::uint32_t f = 0;
+        std::memcpy(&f, out.data() + 4 * i, 4);
+        bool ok = false;
+        for (std::uint32_t k = 0; k < 3; ++k)
+        {
+          ok = ok || (f * 7 + k * 3331) % 10000 == v;
+        }
+        ASSERT_TRUE(ok);
+      }
+    }
+    EXPECT_EQ(total, 60000u);
+    const std::uint32_t repl[2] = { 42, 43 };
+    dml.SetList(L, 5, repl, 2);
+    out.clear();
+    EXPECT_EQ(dml.ReadList(L, 5, out), 2u);
+    std::uint32_t back[2];
+    std::memcpy(back, out.data(), 8);
+    EXPECT_EQ(back[0], 42u);
+    EXPECT_EQ(back[1], 43u);
+    dml.Resize(L, 10);
+    dml.Resize(L, 20);
+    EXPECT_EQ(dml.ListSize(L, 15), 0u);
+    EXPECT_EQ(dml.ListSize(L, 5), 2u);
+    EXPECT_THROW(dml.ListSize(L, 20), std::out_of_range);
+    dml.CloseBlock(L);
+  }
+  EXPECT_TRUE(ListDir(tmp.Path()).empty());
+}
+
+TEST(StorageDML, SparseFileBeyond4GiB)
+{
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 1 << 20, ModePolicy::Automatic));
+  const std::uint64_t count = 625000000; // 5e9 bytes of 8-byte elements
+  const BlockId id = dml.OpenBlock(8, count);
+  EXPECT_EQ(dml.GetMode(), Mode::OutOfCore);
+  EXPECT_EQ(DMLTestAccess::FileBytes(dml, id), 5000000000ull);
+  const std::uint64_t at4G = (std::uint64_t(1) << 32) / 8;
+  const std::uint64_t idx[] = { 0, at4G - 1, at4G, at4G + 1, 600000000, count - 1 };
+  for (const std::uint64_t i : idx)
+  {
+    const std::uint64_t v = i * 2654435761u + 1;
+    dml.Write(id, 8, i, &v);
+  }
+  std::vector<std::uint64_t> range(1000);
+  for (std::uint64_t i = 0; i < range.size(); ++i)
+  {
+    range[i] = i ^ 0xABCDEFull;
+  }
+  dml.WriteRange(id, at4G + 100000, range.size(), range.data()); // direct I/O past 4 GiB
+  // Force everything out of the cache with unrelated traffic.
+  for (std::uint64_t i = 0; i < 2000; ++i)
+  {
+    std::uint64_t x = 0;
+    dml.Read(id, 8, 100000000 + i * 1000, &x);
+    ASSERT_EQ(x, 0u); // never written: zeros
+  }
+  for (const std::uint64_t i : idx)
+  {
+    std::uint64_t v = 0;
+    dml.Read(id, 8, i, &v);
+    EXPECT_EQ(v, i * 2654435761u + 1) << i;
+  }
+  std::vector<std::uint64_t> back(range.size());
+  dml.ReadRange(id, at4G + 100000, back.size(), back.data());
+  EXPECT_EQ(back, range);
+  dml.Resize(id, count + 1000); // grow past 5 GB: new elements read as zeros
+  std::uint64_t z = 1;
+  dml.Read(id, 8, count + 999, &z);
+  EXPECT_EQ(z, 0u);
+  EXPECT_LE(dml.GetStats().peakBytes, 1u << 20);
+}
+
+TEST(StorageDML, FillAndRanges)
+{
+  TempDir tmp;
+  for (const ModePolicy policy : { ModePolicy::InCore, ModePolicy::OutOfCore })
+  {
+    DML dml;
+    dml.Config(MakeProfile(tmp.Path(), policy == ModePolicy::InCore ? 0 : 64 * 1024, policy));
+    Array<std::uint16_t> a(dml, 30001);
+    const std::uint16_t seven = 7;
+    dml.Fill(a.Id(), &seven);
+    EXPECT_EQ(a.Get(0), 7);
+    EXPECT_EQ(a.Get(30000), 7);
+    a.Set(5, 1);
+    const std::uint16_t zero = 0;
+    dml.Fill(a.Id(), &zero);
+    EXPECT_EQ(a.Get(5), 0);
+    EXPECT_EQ(a.Get(30000), 0);
+    std::vector<std::uint16_t> v(30001);
+    for (std::size_t i = 0; i < v.size(); ++i)
+    {
+      v[i] = static_cast<std::uint16_t>(i * 31);
+    }
+    a.Write(0, v.size(), v.data());
+    std::vector<std::uint16_t> w(v.size());
+    a.Read(0, w.size(), w.data());
+    EXPECT_EQ(v, w);
+    EXPECT_THROW(a.Read(30000, 2, w.data()), std::out_of_range);
+  }
+}
+
+// ------------------------------------------------------------------------------------------------
+// Randomized equivalence against a std::vector model.
+class Workload
+{
+public:
+  struct Model
+  {
+    std::size_t es = 0;
+    BlockId id = -1;
+    std::vector<unsigned char> data;
+  };
+
+  Workload(DML& dml, std::uint64_t seed)
+    : dml_(dml)
+    , rng_(seed)
+  {
+    const std::size_t sizes[] = { 4, 12, 80, 3, 2500 };
+    const std::uint64_t counts[] = { 100000, 30000, 5000, 50000, 100 };
+    for (int i = 0; i < 5; ++i)
+    {
+      Model m;
+      m.es = sizes[i];
+      m.id = dml.OpenBlock(m.es, counts[i]);
+      m.data.assign(m.es * counts[i], 0);
+      this->blocks_.push_back(std::move(m));
+    }
+    this->list_ = dml.OpenListBlock(4, 20000);
+    this->lists_.assign(20000, {});
+  }
+
+  void Step(int step)
+  {
+    const int op = static_cast<int>(this->rng_() % 100);
+    Model& m = this->blocks_[this->rng_() % this->blocks_.size()];
+    const std::uint64_t n = m.data.size() / m.es;
+    if (op < 28 && n > 0) // write one
+    {
+      const std::uint64_t i = this->rng_() % n;
+      std::vector<unsigned char> e = this->Bytes(m.es);
+      this->dml_.Write(m.id, m.es, i, e.data());
+      std::memcpy(m.data.data() + i * m.es, e.data(), m.es);
+    }
+    else if (op < 50 && n > 0) // read one
+    {
+      const std::uint64_t i = this->rng_() % n;
+      std::vector<unsigned char> e(m.es);
+      this->dml_.Read(m.id, m.es, i, e.data());
+      ASSERT_EQ(0, std::memcmp(e.data(), m.data.data() + i * m.es, m.es))
+        << "step " << step << " block " << m.id << " index " << i;
+    }
+    else if (op < 57 && n > 0) // write a range (up to ~100 KB, crossing pages)
+    {
+      const std::uint64_t first = this->rng_() % n;
+      const std::uint64_t c = std::min<std::uint64_t>(n - first, 1 + this->rng_() % (100000 / m.es));
+      std::vector<unsigned char> e = this->Bytes(c * m.es);
+      this->dml_.WriteRange(m.id, first, c, e.data());
+      std::memcpy(m.data.data() + first * m.es, e.data(), e.size());
+    }
+    else if (op < 64 && n > 0) // read a range
+    {
+      const std::uint64_t first = this->rng_() % n;
+      const std::uint64_t c = std::min<std::uint64_t>(n - first, 1 + this->rng_() % (100000 / m.es));
+      std::vector<unsigned char> e(c * m.es);
+      this->dml_.ReadRange(m.id, first, c, e.data());
+      ASSERT_EQ(0, std::memcmp(e.data(), m.data.data() + first * m.es, e.size()))
+        << "step " << step << " range " << first << "+" << c;
+    }
+    else if (op < 67) // resize: shrink or grow, bounded
+    {
+      std::uint64_t target = n / 2 + this->rng_() % (n + n / 4 + 200); // drifts upwards
+      target = std::min<std::uint64_t>(target, 400000 / m.es + 10);
+      this->Resize(m, target);
+    }
+    else if (op < 68 && n > 0) // pin and modify a page
+    {
+      const std::uint64_t i = this->rng_() % n;
+      Span s = this->dml_.Pin(m.id, i, Access::Write);
+      const std::uint64_t c = std::min<std::uint64_t>(s.count, 5);
+      std::vector<unsigned char> e = this->Bytes(c * m.es);
+      std::memcpy(s.data, e.data(), e.size());
+      this->dml_.Unpin(m.id, s);
+      std::memcpy(m.data.data() + i * m.es, e.data(), e.size());
+    }
+    else if (op < 69) // fill
+    {
+      std::vector<unsigned char> e = this->Bytes(m.es);
+      if (this->rng_() % 2)
+      {
+        std::fill(e.begin(), e.end(), 0);
+      }
+      this->dml_.Fill(m.id, e.data());
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        std::memcpy(m.data.data() + i * m.es, e.data(), m.es);
+      }
+    }
+    else if (op < 87) // append (skewed to low list numbers, like vertex valences)
+    {
+      const std::uint64_t l = this->rng_() % 4 == 0 ? this->rng_() % 20000 : this->rng_() % 500;
+      const std::uint32_t v = static_cast<std::uint32_t>(this->rng_());
+      this->dml_.Append(this->list_, l, &v);
+      this->lists_[l].push_back(v);
+    }
+    else if (op < 91) // set a list
+    {
+      const std::uint64_t l = this->rng_() % 20000;
+      std::vector<std::uint32_t> v(this->rng_() % 40);
+      for (auto& x : v)
+      {
+        x = static_cast<std::uint32_t>(this->rng_());
+      }
+      this->dml_.SetList(this->list_, l, v.data(), v.size());
+      this->lists_[l] = v;
+    }
+    else // read a list
+    {
+      const std::uint64_t l = this->rng_() % 600;
+      this->CheckList(l, step);
+    }
+  }
+
+  void Resize(Model& m, std::uint64_t count)
+  {
+    this->dml_.Resize(m.id, count);
+    m.data.resize(count * m.es, 0);
+  }
+
+  void ShrinkAll(std::uint64_t bytes)
+  {
+    for (auto& m : this->blocks_)
+    {
+      this->Resize(m, std::min<std::uint64_t>(m.data.size(), bytes) / m.es);
+    }
+  }
+
+  void CheckAll()
+  {
+    for (const auto& m : this->blocks_)
+    {
+      const std::uint64_t n = m.data.size() / m.es;
+      ASSERT_EQ(this->dml_.Count(m.id), n);
+      std::vector<unsigned char> e(m.data.size());
+      this->dml_.ReadRange(m.id, 0, n, e.data());
+      ASSERT_TRUE(e == m.data) << "block " << m.id;
+    }
+    for (std::uint64_t l = 0; l < this->lists_.size(); ++l)
+    {
+      this->CheckList(l, -1);
+    }
+  }
+
+private:
+  std::vector<unsigned char> Bytes(std::size_t n)
+  {
+    std::vector<unsigned char> e(n);
+    for (auto& c : e)
+    {
+      c = static_cast<unsigned char>(this->rng_());
+    }
+    return e;
+  }
+
+  void CheckList(std::uint64_t l, int step)
+  {
+    std::vector<unsigned char> out;
+    const std::uint64_t c = this->dml_.ReadList(this->list_, l, out);
+    ASSERT_EQ(c, this->lists_[l].size()) << "step " << step << " list " << l;
+    ASSERT_EQ(0, std::memcmp(out.data(), this->lists_[l].data(), out.size()))
+      << "step " << step << " list " << l;
+  }
+
+  DML& dml_;
+  std::mt19937_64 rng_;
+  std::vector<Model> blocks_;
+  BlockId list_ = -1;
+  std::vector<std::vector<std::uint32_t>> lists_;
+};
+
+struct RandomCase
+{
+  const char* name;
+  std::uint64_t budget;
+  ModePolicy policy;
+  PagePolicy pages;
+};
+
+class StorageDMLRandom : public ::testing::TestWithParam<RandomCase>
+{
+};
+
+TEST_P(StorageDMLRandom, MatchesVectorModel)
+{
+  const RandomCase c = GetParam();
+  TempDir tmp;
+  {
+    DML dml;
+    Profile p = MakeProfile(tmp.Path(), c.budget, c.policy, c.pages);
+    p.structures = { { "data", 1, 1600000, 0.0 } };
+    const Mode mode = dml.Config(p);
+    EXPECT_EQ(mode, c.budget == 0 ? Mode::InCore : Mode::OutOfCore);
+    Workload w(dml, 20240607);
+    for (int step = 0; step < 15000; ++step)
+    {
+      w.Step(step);
+      if (::testing::Test::HasFatalFailure())
+      {
+        return;
+      }
+    }
+    w.CheckAll();
+    const Stats st = dml.GetStats();
+    if (c.budget != 0)
+    {
+      EXPECT_LE(st.peakBytes, c.budget);
+      EXPECT_EQ(st.mode, Mode::OutOfCore);
+      EXPECT_GT(st.misses, 0u);
+    }
+  }
+  EXPECT_TRUE(ListDir(tmp.Path()).empty());
+}
+
+INSTANTIATE_TEST_SUITE_P(Budgets, StorageDMLRandom,
+  ::testing::Values(RandomCase{ "InCore", 0, ModePolicy::Automatic, PagePolicy::StaticWeight },
+    RandomCase{ "OutOfCore64K", 64 * 1024, ModePolicy::Automatic, PagePolicy::StaticWeight },
+    RandomCase{ "OutOfCore256K", 256 * 1024, ModePolicy::Automatic, PagePolicy::StaticWeight },
+    RandomCase{ "OutOfCore1M", 1024 * 1024, ModePolicy::Automatic, PagePolicy::StaticWeight },
+    RandomCase{ "Adaptive256K", 256 * 1024, ModePolicy::Automatic, PagePolicy::Adaptive }),
+  [](const ::testing::TestParamInfo<RandomCase>& i) { return std::string(i.param.name); });
+
+TEST(StorageDML, RandomizedWithReconfiguration)
+{
+  TempDir tmp;
+  DML dml;
+  const std::uint64_t B = 1 << 20;
+  Profile p = MakeProfile(tmp.Path(), B, ModePolicy::Automatic);
+  p.structures = { { "data", 1, 1600000, 0.0 } };
+  ASSERT_EQ(dml.Config(p), Mode::OutOfCore);
+  Workload w(dml, 77);
+  bool sawIn = false;
+  bool sawOut = false;
+  for (int step = 0; step < 20000; ++step)
+  {
+    w.Step(step);
+    ASSERT_FALSE(::testing::Test::HasFatalFailure());
+    if (step % 2500 == 1249)
+    {
+      w.ShrinkAll(60000); // small enough to fit B
+      ASSERT_EQ(dml.Reconfigure(), Mode::InCore) << "step " << step; // out -> in
+      sawIn = true;
+    }
+    if (dml.GetMode() == Mode::OutOfCore && sawIn)
+    {
+      sawOut = true; // the workload grew past B: in -> out happened on its own
+    }
+    if (step % 2500 == 2000)
+    {
+      dml.Reconfigure(); // whatever it decides, contents must stay identical
+    }
+  }
+  w.CheckAll();
+  const Stats st = dml.GetStats();
+  EXPECT_TRUE(sawIn);
+  EXPECT_TRUE(sawOut);
+  EXPECT_GE(st.reconfigurations, 4u);
+  EXPECT_TRUE(st.usedInCore && st.usedOutOfCore);
+  EXPECT_LE(st.peakBytes, B);
+}
+
+TEST(StorageDML, InstancesInThreadsDoNotShareFiles)
+{
+  TempDir tmp;
+  std::vector<std::string> dirs(4);
+  std::vector<int> ok(4, 0);
+  std::vector<std::thread> threads;
+  for (int t = 0; t < 4; ++t)
+  {
+    threads.emplace_back([&, t] {
+      DML dml;
+      dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::OutOfCore));
+      Array<int> a(dml, 50000);
+      for (int i = 0; i < 50000; ++i)
+      {
+        a.Set(i, i * (t + 1));
+      }
+      dirs[t] = dml.PrivateDirectory();
+      int good = 1;
+      for (int i = 0; i < 50000; ++i)
+      {
+        good &= a.Get(i) == i * (t + 1);
+      }
+      ok[t] = good;
+    });
+  }
+  for (auto& th : threads)
+  {
+    th.join();
+  }
+  std::sort(dirs.begin(), dirs.end());
+  EXPECT_EQ(std::unique(dirs.begin(), dirs.end()), dirs.end());
+  for (int t = 0; t < 4; ++t)
+  {
+    EXPECT_EQ(ok[t], 1);
+  }
+  EXPECT_TRUE(ListDir(tmp.Path()).empty());
+}
+
+} // namespace
