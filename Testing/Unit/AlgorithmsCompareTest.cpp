@@ -443,6 +443,55 @@ TEST(AlgorithmsCompare, IndexNearestMatchesBruteForceNearASurface)
   }
 }
 
+TEST(AlgorithmsCompare, IndexNearestMatchesBruteForceFarFromOriginAndTilted)
+{
+  // Georeferenced-style coordinates (small triangles 1e5 away from the origin) and a tilted,
+  // wavy height field, queried near and far: the oriented boxes must stay conservative.
+  TriangleMesh far = RandomSoup(1500, 17);
+  for (std::size_t i = 0; i < far.points.size(); ++i)
+  {
+    far.points[i] += (i % 3 == 0) ? 1e5f : (i % 3 == 1 ? -2e4f : 3e3f);
+  }
+  TriangleMesh field;
+  const int g = 40;
+  for (int i = 0; i <= g; ++i)
+  {
+    for (int j = 0; j <= g; ++j)
+    {
+      const double x = double(i) / g, y = double(j) / g;
+      const double z = 0.05 * std::sin(6 * x) * std::cos(4 * y);
+      field.points.insert(field.points.end(), { static_cast<float>(0.6 * x - 0.8 * z + 0.3 * y),
+                                                static_cast<float>(y),
+                                                static_cast<float>(0.8 * x + 0.6 * z) });
+    }
+  }
+  for (int i = 0; i < g; ++i)
+  {
+    for (int j = 0; j < g; ++j)
+    {
+      const auto a = static_cast<std::uint32_t>(i * (g + 1) + j);
+      const std::uint32_t b = a + 1, c = a + g + 1, d = c + 1;
+      field.triangles.insert(field.triangles.end(), { a, b, d, a, d, c });
+    }
+  }
+  std::mt19937 rng(23);
+  std::uniform_real_distribution<double> u(-1.0, 2.0);
+  for (const TriangleMesh* mesh : { &far, &field })
+  {
+    const MeshDistanceIndex index(*mesh, 2);
+    const auto b = mesh->Bounds();
+    for (int q = 0; q < 400; ++q)
+    {
+      double p[3];
+      for (int k = 0; k < 3; ++k)
+      {
+        p[k] = b[2 * k] + u(rng) * (b[2 * k + 1] - b[2 * k]);
+      }
+      ASSERT_EQ(index.Nearest(p).distanceSquared, BruteForce(*mesh, p)) << "query " << q;
+    }
+  }
+}
+
 TEST(AlgorithmsCompare, IndexSingleAndDegenerateTriangles)
 {
   TriangleMesh one;

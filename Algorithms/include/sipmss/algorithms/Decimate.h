@@ -23,7 +23,15 @@ struct DecimateOptions
   storage::Profile storage;          // memory budget, directories, mode policy
   // Initial per-vertex quadrics, e.g. the cell quadrics of a clustering stage (two-stage).
   // Called for each input vertex index; return false to use the face quadrics only.
+  // Quadric layout: the upper triangle of the symmetric 4x4 row by row,
+  // a00 a01 a02 b0 a11 a12 b1 a22 b2 c (E(p) = p^T A p + 2 b.p + c), in input coordinates.
   std::function<bool(std::uint64_t vertex, double quadric[10])> initialQuadric;
+  // Pass schedule: each pass removes at most this fraction of the remaining triangles (the
+  // cheapest independent collapses), and never goes below the next level's target.
+  double passFraction = 0.15;
+  // A collapse is rejected when a surviving face's normal turns so that the cosine between its
+  // new and old normal falls below this (0.2: about 78 degrees; flips are always rejected).
+  double minNormalCosine = 0.2;
 };
 
 // Runs Algorithm I on `input` and streams the final mesh into `output`.

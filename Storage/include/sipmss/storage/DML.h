@@ -179,7 +179,16 @@ public:
 private:
   friend struct DMLTestAccess; // test and benchmark hooks (DMLTesting.h)
   std::unique_ptr<Impl> impl_;
+  // Base pointers of the in-core element blocks by block id (nullptr otherwise), kept up to
+  // date by Impl so that BasePointer() is inline: a compare and two loads, no call.
+  void* const* bases_ = nullptr;
+  std::size_t baseCount_ = 0;
 };
+
+inline void* DML::BasePointer(BlockId id) const
+{
+  return static_cast<std::size_t>(id) < this->baseCount_ ? this->bases_[id] : nullptr;
+}
 
 // Typed convenience over one fixed-size block.
 template <class T>

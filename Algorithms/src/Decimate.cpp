@@ -1,0 +1,2099 @@
+// Algorithm I of SIPMSS: a linear-time iterative full edge collapse with quadric error metrics,
+// written against the DML so that it runs in core or out of core with identical results.
+//
+// Stages (paper section 4.1):
+//   read      the source is streamed into DML blocks (positions as doubles relative to the first
+//             vertex, triangles, packed point attributes). Blocks grow with Resize when the source
+//             does not announce its counts (OBJ, STL, gzip) and vertices/triangles may interleave.
+//   rings     one pass over the faces counts the vertex degrees, a prefix sum gives CSR offsets
+//             and a second pass over the faces fills the incident face lists (vertex rings).
+//             Degenerate (repeated index, zero area) and duplicate triangles are dropped here.
+//   quadrics  per vertex (a gather over its ring): area-weighted face plane quadrics, boundary
+//             constraint quadrics (plane through the boundary edge perpendicular to its face,
+//             weight boundaryWeight * |edge|^2), options.initialQuadric. Vertices on non-manifold
+//             edges (> 2 faces) or with more than two boundary edges are locked.
+//   collapse  passes without a global priority queue. Each pass
+//               1. computes for every vertex its cheapest *legal* incident edge collapse
+//                  (optimal placement from the summed quadric when well conditioned, else the
+//                  best point of the edge segment, endpoints preferred on ties);
+//               2. orders the candidates with a counting sort on the cost's float bits (32768
+//                  log-spaced bins: linear time, deterministic, ties by vertex index);
+//               3. collapses them in that order while the pass goal is not met. A collapse marks
+//                  every vertex of the faces around both endpoints, and a candidate whose
+//                  endpoints are marked is skipped, so no two collapses of one pass touch the
+//                  same faces; therefore the legality computed in step 1 still holds;
+//               4. compacts the live vertices and faces into fresh blocks, rebuilds the rings and
+//                  calls Reconfigure() so that the run moves in core as the mesh shrinks.
+//             The pass goal removes at most passFraction of the remaining triangles and never
+//             goes below the next level's target, so every level (and the final target) is met
+//             exactly unless the mesh runs out of legal collapses.
+//   write     the final level is streamed to the output sink.
+#include "sipmss/algorithms/Decimate.h"
+
+#include <Eigen/Dense>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <limits>
+#include <string>
+#include <vector>
+
+namespace sipmss::algorithms
+{
+namespace
+{
+using storage::Array;
+using storage::BlockId;
+using storage::DML;
+
+constexpr std::uint32_t kNone = 0xffffffffu;
+constexpr int kCostBins = 1 << 15;
+
+// Per-vertex state bits.
+enum : std::uint8_t
+{
+  kRemoved = 1,  // collapsed into another vertex during this pass
+  kMarked = 2,   // touched by a collapse of this pass
+  kBoundary = 4, // has boundary edges
+  kLocked = 8,   // non-manifold: never collapsed
+  kFixed = 16,   // lockBoundary: never moves, never removed (may absorb an interior neighbour)
+  kNeedsLegal = 32, // its cheapest collapse was illegal: evaluate with legality until touched
+  kDirty = 64        // touched by the last pass: its candidate is evaluated again
+};
+// A vertex evaluated on the light path of the sweep.
+inline bool Light(std::uint8_t s)
+{
+  return (s & (kDirty | kNeedsLegal | kLocked)) == kDirty;
+}
+
+struct Vec3
+{
+  double x, y, z;
+};
+inline Vec3 operator-(const Vec3& a, const Vec3& b)
+{
+  return { a.x - b.x, a.y - b.y, a.z - b.z };
+}
+inline Vec3 operator+(const Vec3& a, const Vec3& b)
+{
+  return { a.x + b.x, a.y + b.y, a.z + b.z };
+}
+inline Vec3 operator*(double s, const Vec3& a)
+{
+  return { s * a.x, s * a.y, s * a.z };
+}
+inline double Dot(const Vec3& a, const Vec3& b)
+{
+  return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+inline Vec3 Cross(const Vec3& a, const Vec3& b)
+{
+  return { a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x };
+}
+
+struct Tri
+{
+  std::uint32_t v[3];
+};
+inline bool Alive(const Tri& t)
+{
+  return t.v[0] != kNone;
+}
+inline bool Has(const Tri& t, std::uint32_t x)
+{
+  return t.v[0] == x || t.v[1] == x || t.v[2] == x;
+}
+constexpr Tri kDeadTri = { { kNone, kNone, kNone } };
+
+// Symmetric 4x4 quadric, upper triangle row by row:
+// a00 a01 a02 b0 | a11 a12 b1 | a22 b2 | c  ->  E(p) = p^T A p + 2 b.p + c
+struct Quadric
+{
+  double q[10];
+};
+inline void AddTo(Quadric& dst, const Quadric& src)
+{
+  for (int i = 0; i < 10; ++i)
+  {
+    dst.q[i] += src.q[i];
+  }
+}
+inline void AddPlane(Quadric& Q, const Vec3& n, double d, double w)
+{
+  double* q = Q.q;
+  q[0] += w * n.x * n.x;
+  q[1] += w * n.x * n.y;
+  q[2] += w * n.x * n.z;
+  q[3] += w * n.x * d;
+  q[4] += w * n.y * n.y;
+  q[5] += w * n.y * n.z;
+  q[6] += w * n.y * d;
+  q[7] += w * n.z * n.z;
+  q[8] += w * n.z * d;
+  q[9] += w * d * d;
+}
+inline double Eval(const Quadric& Q, const Vec3& p)
+{
+  const double* q = Q.q;
+  return p.x * (q[0] * p.x + 2.0 * (q[1] * p.y + q[2] * p.z + q[3])) +
+    p.y * (q[4] * p.y + 2.0 * (q[5] * p.z + q[6])) + p.z * (q[7] * p.z + 2.0 * q[8]) + q[9];
+}
+inline double Trace(const Quadric& Q)
+{
+  return Q.q[0] + Q.q[4] + Q.q[7];
+}
+
+// One pass's candidate of a vertex: collapse it with `partner` to p; t = position of p along the
+// edge (0: this vertex, 1: partner) for the point data.
+struct Cand
+{
+  double cost;
+  double p[3];
+  std::uint32_t partner;
+  float t;
+};
+static_assert(sizeof(Cand) == 40, "Cand layout");
+
+struct Placement
+{
+  double cost;
+  Vec3 p;
+  double t;
+};
+
+// Fast element access: the block's memory when in core, the DML's read/write otherwise.
+// Refresh() after any OpenBlock/Resize/Reconfigure (they may change the mode).
+template <class T>
+class View
+{
+public:
+  View() = default;
+  View(DML& dml, const Array<T>& a)
+    : dml_(&dml)
+    , id_(a.Id())
+  {
+    this->Refresh();
+  }
+  void Refresh() { this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_)); }
+  // Direct pointer to element i when in core, else nullptr.
+  const T* Ptr(std::uint64_t i) const { return this->base_ ? this->base_ + i : nullptr; }
+  T Get(std::uint64_t i) const
+  {
+    if (this->base_)
+    {
+      return this->base_[i];
+    }
+    T v;
+    this->dml_->Read(this->id_, sizeof(T), i, &v);
+    return v;
+  }
+  void Set(std::uint64_t i, const T& v)
+  {
+    if (this->base_)
+    {
+      this->base_[i] = v;
+      return;
+    }
+    this->dml_->Write(this->id_, sizeof(T), i, &v);
+  }
+  void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
+  {
+    if (n == 0)
+    {
+      return;
+    }
+    if (this->base_)
+    {
+      std::memcpy(dst, this->base_ + first, n * sizeof(T));
+      return;
+    }
+    this->dml_->ReadRange(this->id_, first, n, dst);
+  }
+  void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
+  {
+    if (n == 0)
+    {
+      return;
+    }
+    if (this->base_)
+    {
+      std::memcpy(this->base_ + first, src, n * sizeof(T));
+      return;
+    }
+    this->dml_->WriteRange(this->id_, first, n, src);
+  }
+
+private:
+  DML* dml_ = nullptr;
+  BlockId id_ = -1;
+  T* base_ = nullptr;
+};
+
+template <class T>
+void FillBlock(DML& dml, const Array<T>& a, const T& value)
+{
+  dml.Fill(a.Id(), &value);
+}
+
+// A vertex's ring loaded into memory (bounded by its valence, not by the input).
+struct RingFace
+{
+  std::uint32_t id;
+  Tri t;
+  int corner;          // index of the ring's vertex in t
+  std::uint32_t nb[2]; // nbs index of t.v[(corner + 1) % 3] and of t.v[(corner + 2) % 3]
+};
+struct Nb
+{
+  std::uint32_t v;
+  std::uint32_t count;  // faces of the ring containing the edge
+  std::uint32_t opp[2]; // the third vertices of the first two of them
+  std::uint32_t slot;   // the first of them (index into faces)
+  Vec3 p;               // position of v (when loaded with positions)
+};
+struct Ring
+{
+  std::uint32_t x = kNone;
+  Vec3 px{ 0, 0, 0 };
+  std::vector<std::uint32_t> ids;
+  std::vector<RingFace> faces;
+  std::vector<Nb> nbs; // sorted by v
+  std::vector<std::uint64_t> keys;
+
+  const Nb* Find(std::uint32_t v) const
+  {
+    auto it = std::lower_bound(
+      this->nbs.begin(), this->nbs.end(), v, [](const Nb& n, std::uint32_t x) { return n.v < x; });
+    return (it != this->nbs.end() && it->v == v) ? &*it : nullptr;
+  }
+  // Is there a face (x, a, b) in the ring?
+  bool HasFace(std::uint32_t a, std::uint32_t b) const
+  {
+    const Nb* n = this->Find(a);
+    if (!n)
+    {
+      return false;
+    }
+    if (n->count <= 2)
+    {
+      return n->opp[0] == b || (n->count == 2 && n->opp[1] == b);
+    }
+    for (const RingFace& f : this->faces)
+    {
+      if (Has(f.t, a) && Has(f.t, b))
+      {
+        return true;
+      }
+    }
+    return false;
+  }
+  // The corner positions of face `slot`, in the face's order.
+  void Corners(std::size_t slot, Vec3 out[3]) const
+  {
+    const RingFace& f = this->faces[slot];
+    out[f.corner] = this->px;
+    out[(f.corner + 1) % 3] = this->nbs[f.nb[0]].p;
+    out[(f.corner + 2) % 3] = this->nbs[f.nb[1]].p;
+  }
+};
+
+template <class K>
+void SmallSort(K* a, std::size_t n)
+{
+  if (n > 24)
+  {
+    std::sort(a, a + n);
+    return;
+  }
+  for (std::size_t i = 1; i < n; ++i)
+  {
+    K k = a[i];
+    std::size_t j = i;
+    while (j > 0 && k < a[j - 1])
+    {
+      a[j] = a[j - 1];
+      --j;
+    }
+    a[j] = k;
+  }
+}
+
+struct EdgeCand
+{
+  double cost;
+  std::uint32_t v;
+  std::uint32_t nbIndex;
+  Placement pl;
+};
+
+class Decimator;
+
+// The sink that streams the source into the DML.
+class Loader final : public io::MeshSink
+{
+public:
+  Loader(Decimator& d, Progress& p)
+    : d_(d)
+    , progress_(p)
+  {
+  }
+  void Begin(const io::MeshHeader& header) override;
+  void Vertices(const io::VertexChunk& chunk) override;
+  void Triangles(const std::uint32_t* indices, std::size_t count) override;
+  void End(const io::ReadStats& stats) override;
+  bool AbortRequested() override
+  {
+    try
+    {
+      this->Tick();
+    }
+    catch (const AbortedError&)
+    {
+      return true;
+    }
+    return false;
+  }
+  bool Aborted() const { return this->aborted_; }
+  void Tick();
+
+private:
+  Decimator& d_;
+  Progress& progress_;
+  bool aborted_ = false;
+};
+
+class Decimator
+{
+public:
+  Decimator(const DecimateOptions& options, Progress& progress, RunStats& stats)
+    : opt_(options)
+    , progress_(progress)
+    , stats_(stats)
+    , hist_(kCostBins, 0)
+  {
+    this->cosThreshold_ = options.minNormalCosine;
+  }
+
+  void Run(const MeshSource& input, io::MeshSink& output,
+    const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel);
+
+  // Loader callbacks.
+  void BeginInput(const io::MeshHeader& header);
+  void AddVertices(const io::VertexChunk& chunk);
+  void AddTriangles(const std::uint32_t* indices, std::size_t count);
+  void EndInput(const io::ReadStats& stats) { this->readerDropped_ = stats.droppedFaces; }
+  double ReadFraction() const
+  {
+    double total = double(this->announcedV_ + this->announcedF_);
+    return total > 0 ? double(this->nv_ + this->nf_) / total : 0.5;
+  }
+
+private:
+  void Read(const MeshSource& input);
+  void Weld();
+  void BuildRings();
+  void BuildQuadrics();
+  bool Pass(std::uint64_t goal, double progressBase, double progressSpan);
+  void Compact();
+  void Emit(io::MeshSink& sink);
+
+  void BindViews();
+  void LoadRing(std::uint32_t x, Ring& r, bool positions);
+  void Evaluate(std::uint32_t u);
+  void EvaluateEdge(std::uint32_t u, std::uint8_t su, const Quadric& Qu, const Vec3& pu,
+    std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n);
+  void EvaluateFull(std::uint32_t u, std::uint8_t su);
+  void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
+  bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p);
+  bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
+  Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, std::uint8_t su,
+    std::uint8_t sv) const;
+  void Collapse(std::uint32_t u, const Cand& c);
+  void InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t);
+  void EnsureVertexCapacity(std::uint64_t n);
+  void EnsureFaceCapacity(std::uint64_t n);
+  void Tick(std::uint64_t i, std::uint64_t n)
+  {
+    if ((i & 1023) == 0)
+    {
+      this->progress_.Tick(n ? double(i) / double(n) : 0.0);
+    }
+  }
+
+  const DecimateOptions& opt_;
+  Progress& progress_;
+  RunStats& stats_;
+  double cosThreshold_ = 0.2;
+
+  DML dml_; // before every block so that the blocks close first
+
+  // Input description.
+  io::VertexLayout layout_;
+  std::size_t nFloats_ = 0; // normals, texcoords, scalars as floats
+  std::size_t recSize_ = 0; // bytes of one vertex's attribute record
+  std::uint64_t announcedV_ = 0, announcedF_ = 0;
+  bool begun_ = false;
+  Vec3 origin_{ 0, 0, 0 };
+  bool haveOrigin_ = false;
+  std::uint64_t vCap_ = 0, fCap_ = 0;
+  std::uint64_t readerDropped_ = 0, dropped_ = 0;
+
+  // The current mesh.
+  std::uint64_t nv_ = 0, nf_ = 0, liveFaces_ = 0;
+  Array<Vec3> pos_;
+  Array<Quadric> quad_;
+  Array<std::uint8_t> attr_; // nv_ * recSize_ bytes
+  Array<std::uint8_t> state_;
+  Array<Tri> faces_;
+  Array<std::uint32_t> ringOff_;  // nv_ + 1
+  Array<std::uint32_t> ringFace_; // ringOff_[nv_]
+  Array<Cand> cand_;
+  Array<std::uint32_t> order_;
+
+  View<Vec3> P_;
+  View<Quadric> Q_;
+  View<std::uint8_t> A_;
+  View<std::uint8_t> S_;
+  View<Tri> F_;
+  View<std::uint32_t> RO_, RF_;
+  View<Cand> C_;
+  View<std::uint32_t> O_;
+
+  // Scratch bounded by valences and chunk sizes.
+  Ring ru_, rv_;
+  std::vector<EdgeCand> edges_;
+  const Cand none_ = { std::numeric_limits<double>::infinity(), { 0, 0, 0 }, kNone, 0.0f };
+  std::vector<std::uint32_t> ids_, next_ = std::vector<std::uint32_t>(64),
+                                   prev_ = std::vector<std::uint32_t>(64);
+  std::vector<std::uint32_t> hist_;
+  std::vector<Vec3> vbuf_;
+  std::vector<std::uint8_t> abuf_, abuf2_;
+  std::vector<Tri> tbuf_;
+};
+
+void Loader::Tick()
+{
+  try
+  {
+    this->progress_.Tick(this->d_.ReadFraction());
+  }
+  catch (const AbortedError&)
+  {
+    this->aborted_ = true;
+    throw;
+  }
+}
+void Loader::Begin(const io::MeshHeader& header)
+{
+  this->d_.BeginInput(header);
+}
+void Loader::Vertices(const io::VertexChunk& chunk)
+{
+  this->Tick();
+  this->d_.AddVertices(chunk);
+}
+void Loader::Triangles(const std::uint32_t* indices, std::size_t count)
+{
+  this->Tick();
+  this->d_.AddTriangles(indices, count);
+}
+void Loader::End(const io::ReadStats& stats)
+{
+  this->d_.EndInput(stats);
+}
+
+// ---------------------------------------------------------------------------------------------
+// read
+
+void Decimator::BeginInput(const io::MeshHeader& header)
+{
+  if (this->begun_)
+  {
+    return;
+  }
+  this->begun_ = true;
+  this->layout_ = header.layout;
+  this->nFloats_ = (this->layout_.normals ? 3 : 0) + (this->layout_.texcoords ? 2 : 0) +
+    this->layout_.scalars.size();
+  this->recSize_ = this->nFloats_ * sizeof(float) + (this->layout_.colors ? 4 : 0);
+  this->announcedV_ = header.vertexCount;
+  this->announcedF_ = header.faceCount;
+
+  // The profile: the structures of the run, sized from the header (0 when unknown: the blocks
+  // then grow with Resize and the DML re-evaluates the mode as they do).
+  storage::Profile profile = this->opt_.storage;
+  const std::uint64_t V = header.vertexCount, F = header.faceCount;
+  auto add = [&profile](const char* name, std::size_t size, std::uint64_t count) {
+    if (size == 0)
+    {
+      return;
+    }
+    storage::StructureSpec s;
+    s.name = name;
+    s.elementSize = size;
+    s.maxCount = count;
+    profile.structures.push_back(std::move(s));
+  };
+  add("decimate.positions", sizeof(Vec3), V);
+  add("decimate.attributes", this->recSize_, V);
+  add("decimate.quadrics", sizeof(Quadric), V);
+  add("decimate.vertexState", 1, V);
+  add("decimate.faces", sizeof(Tri), F);
+  add("decimate.ringOffsets", sizeof(std::uint32_t), V + 1);
+  add("decimate.ringFaces", sizeof(std::uint32_t), 3 * F);
+  add("decimate.candidates", sizeof(Cand), V);
+  add("decimate.order", sizeof(std::uint32_t), V);
+  this->dml_.Config(profile);
+
+  this->vCap_ = std::max<std::uint64_t>(V, 1);
+  this->fCap_ = std::max<std::uint64_t>(F, 1);
+  this->pos_ = Array<Vec3>(this->dml_, this->vCap_);
+  if (this->recSize_)
+  {
+    this->attr_ = Array<std::uint8_t>(this->dml_, this->vCap_ * this->recSize_);
+  }
+  this->faces_ = Array<Tri>(this->dml_, this->fCap_);
+}
+
+void Decimator::EnsureVertexCapacity(std::uint64_t n)
+{
+  if (n <= this->vCap_)
+  {
+    return;
+  }
+  std::uint64_t cap = std::max<std::uint64_t>({ n, this->vCap_ * 2, 1024 });
+  this->pos_.Resize(cap);
+  if (this->recSize_)
+  {
+    this->attr_.Resize(cap * this->recSize_);
+  }
+  this->vCap_ = cap;
+}
+
+void Decimator::EnsureFaceCapacity(std::uint64_t n)
+{
+  if (n <= this->fCap_)
+  {
+    return;
+  }
+  std::uint64_t cap = std::max<std::uint64_t>({ n, this->fCap_ * 2, 1024 });
+  this->faces_.Resize(cap);
+  this->fCap_ = cap;
+}
+
+void Decimator::AddVertices(const io::VertexChunk& c)
+{
+  if (!this->begun_)
+  {
+    throw io::MeshIOError("decimate: the source sent vertices before Begin()");
+  }
+  if (c.count == 0)
+  {
+    return;
+  }
+  const std::uint64_t end = c.first + c.count;
+  if (end >= kNone)
+  {
+    throw io::MeshIOError("decimate: more than 2^32 - 1 vertices");
+  }
+  this->EnsureVertexCapacity(end);
+  if (!this->haveOrigin_)
+  {
+    this->origin_ = { double(c.xyz[0]), double(c.xyz[1]), double(c.xyz[2]) };
+    this->haveOrigin_ = true;
+  }
+  this->vbuf_.resize(c.count);
+  for (std::size_t i = 0; i < c.count; ++i)
+  {
+    this->vbuf_[i] = { double(c.xyz[3 * i]) - this->origin_.x,
+      double(c.xyz[3 * i + 1]) - this->origin_.y, double(c.xyz[3 * i + 2]) - this->origin_.z };
+  }
+  View<Vec3>(this->dml_, this->pos_).SetRange(c.first, c.count, this->vbuf_.data());
+  if (this->recSize_)
+  {
+    const std::size_t rec = this->recSize_;
+    const std::size_t ns = this->layout_.scalars.size();
+    this->abuf_.assign(c.count * rec, 0);
+    for (std::size_t i = 0; i < c.count; ++i)
+    {
+      float* f = reinterpret_cast<float*>(this->abuf_.data() + i * rec);
+      std::size_t k = 0;
+      if (this->layout_.normals)
+      {
+        for (int j = 0; j < 3; ++j)
+        {
+          f[k++] = c.normals ? c.normals[3 * i + j] : 0.0f;
+        }
+      }
+      if (this->layout_.texcoords)
+      {
+        for (int j = 0; j < 2; ++j)
+        {
+          f[k++] = c.texcoords ? c.texcoords[2 * i + j] : 0.0f;
+        }
+      }
+      for (std::size_t j = 0; j < ns; ++j)
+      {
+        f[k++] = c.scalars ? c.scalars[ns * i + j] : 0.0f;
+      }
+      if (this->layout_.colors)
+      {
+        std::uint8_t* rgba = this->abuf_.data() + i * rec + this->nFloats_ * sizeof(float);
+        for (int j = 0; j < 4; ++j)
+        {
+          rgba[j] = c.rgba ? c.rgba[4 * i + j] : std::uint8_t(255);
+        }
+      }
+    }
+    View<std::uint8_t>(this->dml_, this->attr_)
+      .SetRange(c.first * rec, c.count * rec, this->abuf_.data());
+  }
+  this->nv_ = std::max(this->nv_, end);
+}
+
+void Decimator::AddTriangles(const std::uint32_t* idx, std::size_t count)
+{
+  if (!this->begun_)
+  {
+    throw io::MeshIOError("decimate: the source sent triangles before Begin()");
+  }
+  this->tbuf_.clear();
+  for (std::size_t i = 0; i < count; ++i)
+  {
+    Tri t = { { idx[3 * i], idx[3 * i + 1], idx[3 * i + 2] } };
+    if (t.v[0] == t.v[1] || t.v[1] == t.v[2] || t.v[0] == t.v[2])
+    {
+      ++this->dropped_;
+      continue;
+    }
+    this->tbuf_.push_back(t);
+  }
+  if (this->tbuf_.empty())
+  {
+    return;
+  }
+  this->EnsureFaceCapacity(this->nf_ + this->tbuf_.size());
+  View<Tri>(this->dml_, this->faces_).SetRange(this->nf_, this->tbuf_.size(), this->tbuf_.data());
+  this->nf_ += this->tbuf_.size();
+}
+
+void Decimator::Read(const MeshSource& input)
+{
+  PhaseTimer timer(this->stats_, this->dml_, "read");
+  this->progress_.BeginPhase("read", 0.0, 0.25);
+  Loader loader(*this, this->progress_);
+  io::ReadOptions ro;
+  io::ReadStats rs;
+  try
+  {
+    rs = input(loader, ro);
+  }
+  catch (const AbortedError&)
+  {
+    throw;
+  }
+  catch (...)
+  {
+    if (loader.Aborted())
+    {
+      throw AbortedError();
+    }
+    throw;
+  }
+  if (loader.Aborted())
+  {
+    throw AbortedError();
+  }
+  if (!this->begun_)
+  {
+    io::MeshHeader h;
+    this->BeginInput(h);
+  }
+  this->stats_.inputVertices = this->nv_;
+  this->stats_.inputTriangles = this->nf_ + this->dropped_;
+  this->readerDropped_ = std::max(this->readerDropped_, rs.droppedFaces);
+  // Exact sizes, then let the DML re-evaluate the mode.
+  this->vCap_ = std::max<std::uint64_t>(this->nv_, 1);
+  this->fCap_ = std::max<std::uint64_t>(this->nf_, 1);
+  this->pos_.Resize(this->vCap_);
+  if (this->recSize_)
+  {
+    this->attr_.Resize(this->vCap_ * this->recSize_);
+  }
+  this->faces_.Resize(this->fCap_);
+  this->dml_.Reconfigure();
+}
+
+// Greedy welding: each vertex joins the lowest-index representative within weldDistance (a
+// spatial hash of cells of that size in the DML), else becomes a representative.
+void Decimator::Weld()
+{
+  const double d = this->opt_.weldDistance;
+  const std::uint64_t nv = this->nv_;
+  if (nv == 0)
+  {
+    return;
+  }
+  std::uint64_t tableSize = 1024;
+  while (tableSize < 2 * nv)
+  {
+    tableSize *= 2;
+  }
+  const std::uint64_t mask = tableSize - 1;
+  Array<std::uint32_t> head(this->dml_, tableSize);
+  Array<std::uint32_t> next(this->dml_, nv);
+  Array<std::uint32_t> rep(this->dml_, nv);
+  FillBlock(this->dml_, head, kNone);
+  View<std::uint32_t> H(this->dml_, head), N(this->dml_, next), R(this->dml_, rep);
+  View<Vec3> P(this->dml_, this->pos_);
+  const double inv = d > 0 ? 1.0 / d : 0.0;
+  const double d2 = d * d;
+  auto cellOf = [&](const Vec3& p, std::int64_t c[3]) {
+    if (d > 0)
+    {
+      c[0] = std::int64_t(std::floor(p.x * inv));
+      c[1] = std::int64_t(std::floor(p.y * inv));
+      c[2] = std::int64_t(std::floor(p.z * inv));
+    }
+    else
+    {
+      std::memcpy(&c[0], &p.x, 8);
+      std::memcpy(&c[1], &p.y, 8);
+      std::memcpy(&c[2], &p.z, 8);
+    }
+  };
+  auto hash = [mask](std::int64_t x, std::int64_t y, std::int64_t z) {
+    std::uint64_t h = std::uint64_t(x) * 0x9E3779B97F4A7C15ull;
+    h ^= std::uint64_t(y) * 0xC2B2AE3D27D4EB4Full + (h << 6) + (h >> 2);
+    h ^= std::uint64_t(z) * 0x165667B19E3779F9ull + (h << 6) + (h >> 2);
+    h ^= h >> 29;
+    return h & mask;
+  };
+  const int reach = d > 0 ? 1 : 0;
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    this->Tick(v, nv);
+    Vec3 p = P.Get(v);
+    std::int64_t c[3];
+    cellOf(p, c);
+    std::uint32_t best = kNone;
+    for (int dx = -reach; dx <= reach; ++dx)
+    {
+      for (int dy = -reach; dy <= reach; ++dy)
+      {
+        for (int dz = -reach; dz <= reach; ++dz)
+        {
+          for (std::uint32_t w = H.Get(hash(c[0] + dx, c[1] + dy, c[2] + dz)); w != kNone;
+               w = N.Get(w))
+          {
+            if (w >= best)
+            {
+              continue;
+            }
+            Vec3 q = P.Get(w);
+            Vec3 e = q - p;
+            bool match = d > 0 ? Dot(e, e) <= d2 : (q.x == p.x && q.y == p.y && q.z == p.z);
+            if (match)
+            {
+              best = w;
+            }
+          }
+        }
+      }
+    }
+    if (best == kNone)
+    {
+      std::uint64_t h = hash(c[0], c[1], c[2]);
+      N.Set(v, H.Get(h));
+      H.Set(h, std::uint32_t(v));
+      R.Set(v, std::uint32_t(v));
+    }
+    else
+    {
+      R.Set(v, best);
+    }
+  }
+  View<Tri> F(this->dml_, this->faces_);
+  for (std::uint64_t f = 0; f < this->nf_; ++f)
+  {
+    this->Tick(f, this->nf_);
+    Tri t = F.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    Tri w = t;
+    for (int k = 0; k < 3; ++k)
+    {
+      if (t.v[k] >= nv)
+      {
+        throw io::MeshIOError("decimate: triangle " + std::to_string(f) + " has vertex index " +
+          std::to_string(t.v[k]) + " >= vertex count " + std::to_string(nv));
+      }
+      w.v[k] = R.Get(t.v[k]);
+    }
+    if (w.v[0] == w.v[1] || w.v[1] == w.v[2] || w.v[0] == w.v[2])
+    {
+      F.Set(f, kDeadTri);
+      ++this->dropped_;
+    }
+    else if (w.v[0] != t.v[0] || w.v[1] != t.v[1] || w.v[2] != t.v[2])
+    {
+      F.Set(f, w);
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// rings
+
+void Decimator::BuildRings()
+{
+  PhaseTimer timer(this->stats_, this->dml_, "rings");
+  this->progress_.BeginPhase("rings", 0.25, 0.3);
+  const std::uint64_t nv = this->nv_, nf = this->nf_;
+  if (3 * nf >= kNone)
+  {
+    throw std::runtime_error("decimate: more than 1.4 billion triangles");
+  }
+  this->ringOff_ = Array<std::uint32_t>(this->dml_, nv + 1);
+  FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
+  View<Tri> F(this->dml_, this->faces_);
+  View<Vec3> P(this->dml_, this->pos_);
+  View<std::uint32_t> RO(this->dml_, this->ringOff_);
+  // Pass 1 over the faces: validate, drop zero-area faces, count the degrees.
+  std::uint64_t live = 0;
+  for (std::uint64_t f = 0; f < nf; ++f)
+  {
+    this->Tick(f, 3 * nf);
+    Tri t = F.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      if (t.v[k] >= nv)
+      {
+        throw io::MeshIOError("decimate: triangle " + std::to_string(f) + " has vertex index " +
+          std::to_string(t.v[k]) + " >= vertex count " + std::to_string(nv));
+      }
+    }
+    Vec3 a = P.Get(t.v[0]), b = P.Get(t.v[1]), c = P.Get(t.v[2]);
+    Vec3 n = Cross(b - a, c - a);
+    if (Dot(n, n) == 0.0)
+    {
+      F.Set(f, kDeadTri);
+      ++this->dropped_;
+      continue;
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      RO.Set(t.v[k], RO.Get(t.v[k]) + 1);
+    }
+    ++live;
+  }
+  // Inclusive prefix sums: RO[v] = end of v's list.
+  std::uint32_t sum = 0;
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    sum += RO.Get(v);
+    RO.Set(v, sum);
+  }
+  RO.Set(nv, sum);
+  this->ringFace_ = Array<std::uint32_t>(this->dml_, std::max<std::uint32_t>(sum, 1));
+  F.Refresh();
+  P.Refresh();
+  RO.Refresh();
+  View<std::uint32_t> RF(this->dml_, this->ringFace_);
+  // Pass 2 (faces in reverse): each list ends up in increasing face order, RO[v] = its start.
+  for (std::uint64_t i = nf; i-- > 0;)
+  {
+    this->Tick(nf + (nf - i), 3 * nf);
+    Tri t = F.Get(i);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      std::uint32_t e = RO.Get(t.v[k]) - 1;
+      RO.Set(t.v[k], e);
+      RF.Set(e, std::uint32_t(i));
+    }
+  }
+  // Duplicates: a face equal (as a vertex set) to an earlier face is dropped.
+  std::vector<std::uint32_t> ids;
+  for (std::uint64_t f = 0; f < nf; ++f)
+  {
+    this->Tick(2 * nf + f, 3 * nf);
+    Tri t = F.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    std::uint32_t s[3] = { t.v[0], t.v[1], t.v[2] };
+    SmallSort(s, 3);
+    std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
+    ids.resize(e - b);
+    RF.GetRange(b, e - b, ids.data());
+    for (std::uint32_t g : ids)
+    {
+      if (g >= f)
+      {
+        break;
+      }
+      Tri u = F.Get(g);
+      if (!Alive(u))
+      {
+        continue;
+      }
+      std::uint32_t r[3] = { u.v[0], u.v[1], u.v[2] };
+      SmallSort(r, 3);
+      if (r[0] == s[0] && r[1] == s[1] && r[2] == s[2])
+      {
+        F.Set(f, kDeadTri);
+        ++this->dropped_;
+        --live;
+        break;
+      }
+    }
+  }
+  this->liveFaces_ = live;
+}
+
+// ---------------------------------------------------------------------------------------------
+// rings of single vertices
+
+void Decimator::BindViews()
+{
+  this->P_ = View<Vec3>(this->dml_, this->pos_);
+  this->Q_ = this->quad_.IsOpen() ? View<Quadric>(this->dml_, this->quad_) : View<Quadric>();
+  this->A_ = this->recSize_ ? View<std::uint8_t>(this->dml_, this->attr_) : View<std::uint8_t>();
+  this->S_ = this->state_.IsOpen() ? View<std::uint8_t>(this->dml_, this->state_)
+                                   : View<std::uint8_t>();
+  this->F_ = View<Tri>(this->dml_, this->faces_);
+  this->RO_ = View<std::uint32_t>(this->dml_, this->ringOff_);
+  this->RF_ = View<std::uint32_t>(this->dml_, this->ringFace_);
+  this->C_ = this->cand_.IsOpen() ? View<Cand>(this->dml_, this->cand_) : View<Cand>();
+  this->O_ = this->order_.IsOpen() ? View<std::uint32_t>(this->dml_, this->order_)
+                                   : View<std::uint32_t>();
+}
+
+void Decimator::LoadRing(std::uint32_t x, Ring& r, bool positions)
+{
+  r.x = x;
+  r.faces.clear();
+  r.nbs.clear();
+  r.keys.clear();
+  const std::uint32_t b = this->RO_.Get(x), e = this->RO_.Get(x + 1);
+  r.ids.resize(e - b);
+  this->RF_.GetRange(b, e - b, r.ids.data());
+  for (std::uint32_t id : r.ids)
+  {
+    const Tri t = this->F_.Get(id);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    const int corner = t.v[0] == x ? 0 : (t.v[1] == x ? 1 : 2);
+    const std::uint64_t slot = r.faces.size();
+    r.faces.push_back({ id, t, corner, { 0, 0 } });
+    // key: neighbour | slot | which (0: next corner, 1: previous corner)
+    r.keys.push_back((std::uint64_t(t.v[(corner + 1) % 3]) << 32) | (slot << 1));
+    r.keys.push_back((std::uint64_t(t.v[(corner + 2) % 3]) << 32) | (slot << 1) | 1);
+  }
+  SmallSort(r.keys.data(), r.keys.size());
+  for (std::uint64_t key : r.keys)
+  {
+    const std::uint32_t v = std::uint32_t(key >> 32);
+    const std::uint32_t slot = std::uint32_t(key & 0xffffffffu) >> 1;
+    const int which = int(key & 1);
+    RingFace& rf = r.faces[slot];
+    const std::uint32_t opp = rf.t.v[which == 0 ? (rf.corner + 2) % 3 : (rf.corner + 1) % 3];
+    if (r.nbs.empty() || r.nbs.back().v != v)
+    {
+      r.nbs.push_back({ v, 1, { opp, kNone }, slot, { 0, 0, 0 } });
+    }
+    else
+    {
+      Nb& n = r.nbs.back();
+      if (n.count < 2)
+      {
+        n.opp[1] = opp;
+      }
+      ++n.count;
+    }
+    rf.nb[which] = std::uint32_t(r.nbs.size() - 1);
+  }
+  if (positions)
+  {
+    r.px = this->P_.Get(x);
+    for (Nb& n : r.nbs)
+    {
+      n.p = this->P_.Get(n.v);
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// quadrics
+
+void Decimator::BuildQuadrics()
+{
+  PhaseTimer timer(this->stats_, this->dml_, "quadrics");
+  this->progress_.BeginPhase("quadrics", 0.3, 0.35);
+  const std::uint64_t nv = this->nv_;
+  this->quad_ = Array<Quadric>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->state_ = Array<std::uint8_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->cand_ = Array<Cand>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  FillBlock(this->dml_, this->cand_, this->none_);
+  this->BindViews();
+  Ring& r = this->ru_;
+  const double bw = this->opt_.boundaryWeight;
+  for (std::uint64_t u = 0; u < nv; ++u)
+  {
+    this->Tick(u, nv);
+    this->LoadRing(std::uint32_t(u), r, true);
+    Quadric Q;
+    std::fill(Q.q, Q.q + 10, 0.0);
+    std::uint8_t flags = kDirty;
+    // Face plane quadrics, weighted by area.
+    Vec3 un[64];
+    std::vector<Vec3> unBig;
+    Vec3* unit = un;
+    if (r.faces.size() > 64)
+    {
+      unBig.resize(r.faces.size());
+      unit = unBig.data();
+    }
+    for (std::size_t s = 0; s < r.faces.size(); ++s)
+    {
+      Vec3 c[3];
+      r.Corners(s, c);
+      const Vec3& a = c[0];
+      Vec3 n = Cross(c[1] - a, c[2] - a);
+      double len = std::sqrt(Dot(n, n));
+      if (len > 0)
+      {
+        n = (1.0 / len) * n;
+        AddPlane(Q, n, -Dot(n, a), 0.5 * len);
+      }
+      unit[s] = n;
+    }
+    // Boundary constraint planes and topology.
+    int boundaryEdges = 0;
+    for (const Nb& n : r.nbs)
+    {
+      if (n.count > 2)
+      {
+        flags |= kLocked;
+      }
+      else if (n.count == 1)
+      {
+        ++boundaryEdges;
+        const Vec3 pu = r.px;
+        Vec3 e = n.p - pu;
+        Vec3 m = Cross(e, unit[n.slot]);
+        double len = std::sqrt(Dot(m, m));
+        if (len > 0 && bw > 0)
+        {
+          m = (1.0 / len) * m;
+          AddPlane(Q, m, -Dot(m, pu), bw * Dot(e, e));
+        }
+      }
+    }
+    if (boundaryEdges > 0)
+    {
+      flags |= kBoundary;
+      if (boundaryEdges != 2)
+      {
+        flags |= kLocked; // several fans meet here
+      }
+      if (this->opt_.lockBoundary)
+      {
+        flags |= kFixed;
+      }
+    }
+    if (this->opt_.initialQuadric)
+    {
+      double iq[10] = { 0 };
+      if (this->opt_.initialQuadric(u, iq))
+      {
+        // World to local coordinates: x = y + o.
+        const Vec3 o = this->origin_;
+        const double ax = iq[0] * o.x + iq[1] * o.y + iq[2] * o.z;
+        const double ay = iq[1] * o.x + iq[4] * o.y + iq[5] * o.z;
+        const double az = iq[2] * o.x + iq[5] * o.y + iq[7] * o.z;
+        Quadric T;
+        std::copy(iq, iq + 10, T.q);
+        T.q[3] = ax + iq[3];
+        T.q[6] = ay + iq[6];
+        T.q[8] = az + iq[8];
+        T.q[9] = o.x * ax + o.y * ay + o.z * az + 2.0 * (iq[3] * o.x + iq[6] * o.y + iq[8] * o.z) +
+          iq[9];
+        AddTo(Q, T);
+      }
+    }
+    this->Q_.Set(u, Q);
+    this->S_.Set(u, flags);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// collapse
+
+Placement Decimator::Place(
+  const Quadric& Q, const Vec3& pu, const Vec3& pv, std::uint8_t su, std::uint8_t sv) const
+{
+  if (su & kFixed)
+  {
+    return { std::max(0.0, Eval(Q, pu)), pu, 0.0 };
+  }
+  if (sv & kFixed)
+  {
+    return { std::max(0.0, Eval(Q, pv)), pv, 1.0 };
+  }
+  const double* q = Q.q;
+  const Vec3 e = pv - pu;
+  const double len2 = Dot(e, e);
+  const double tr = Trace(Q);
+  const double tol = 1e-10 * tr * len2; // below the noise of the cost evaluation
+  const double cu = Eval(Q, pu), cv = Eval(Q, pv);
+  Placement best = cu <= cv ? Placement{ cu, pu, 0.0 } : Placement{ cv, pv, 1.0 };
+  bool solved = false;
+  if (tr > 0)
+  {
+    Eigen::Matrix3d A;
+    A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
+    Eigen::Matrix3d inv;
+    double det = 0;
+    bool invertible = false;
+    A.computeInverseAndDetWithCheck(inv, det, invertible, 0.0);
+    // Well conditioned: det (the product of the eigenvalues) against the cube of their sum.
+    if (invertible && det > 1e-12 * tr * tr * tr)
+    {
+      // Solve around the midpoint for accuracy: A (m + d) + b = 0.
+      const Vec3 m = 0.5 * (pu + pv);
+      const Eigen::Vector3d g(q[0] * m.x + q[1] * m.y + q[2] * m.z + q[3],
+        q[1] * m.x + q[4] * m.y + q[5] * m.z + q[6], q[2] * m.x + q[5] * m.y + q[7] * m.z + q[8]);
+      const Eigen::Vector3d d = -(inv * g);
+      // The optimum of a nearly singular quadric can slide far along the weak direction: keep it
+      // within one edge length of the midpoint, else use the segment.
+      if (d.squaredNorm() <= len2)
+      {
+        solved = true;
+        const Vec3 p = { m.x + d.x(), m.y + d.y(), m.z + d.z() };
+        const double c = Eval(Q, p);
+        if (c < best.cost - tol)
+        {
+          const double t = len2 > 0 ? Dot(p - pu, e) / len2 : 0.0;
+          best = { c, p, std::min(1.0, std::max(0.0, t)) };
+        }
+      }
+    }
+  }
+  if (!solved)
+  {
+    // Best point of the segment pu + t e (covers the endpoints and the midpoint).
+    const Vec3 Ae = { q[0] * e.x + q[1] * e.y + q[2] * e.z, q[1] * e.x + q[4] * e.y + q[5] * e.z,
+      q[2] * e.x + q[5] * e.y + q[7] * e.z };
+    const Vec3 gu = { q[0] * pu.x + q[1] * pu.y + q[2] * pu.z + q[3],
+      q[1] * pu.x + q[4] * pu.y + q[5] * pu.z + q[6], q[2] * pu.x + q[5] * pu.y + q[7] * pu.z + q[8] };
+    const double a2 = Dot(e, Ae);
+    const double b1 = Dot(e, gu);
+    if (a2 > 0)
+    {
+      const double t = -b1 / a2;
+      if (t > 0 && t < 1)
+      {
+        const Vec3 p = pu + t * e;
+        const double c = Eval(Q, p);
+        if (c < best.cost - tol)
+        {
+          best = { c, p, t };
+        }
+      }
+    }
+  }
+  if (!(best.cost >= 0))
+  {
+    best.cost = best.cost < 0 ? 0.0 : std::numeric_limits<double>::infinity();
+  }
+  return best;
+}
+
+bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
+{
+  Vec3 c[3];
+  r.Corners(slot, c);
+  const Vec3 n0 = Cross(c[1] - c[0], c[2] - c[0]);
+  c[r.faces[slot].corner] = p;
+  const Vec3 e0 = c[1] - c[0], e1 = c[2] - c[0], e2 = c[2] - c[1];
+  const Vec3 n1 = Cross(e0, e1);
+  const double l1 = Dot(n1, n1);
+  const double maxE = std::max({ Dot(e0, e0), Dot(e1, e1), Dot(e2, e2) });
+  if (!(l1 > 1e-20 * maxE * maxE))
+  {
+    return false; // (nearly) zero area
+  }
+  const double l0 = Dot(n0, n0);
+  if (l0 > 0 && Dot(n0, n1) < this->cosThreshold_ * std::sqrt(l0 * l1))
+  {
+    return false; // flips or turns too much
+  }
+  return true;
+}
+
+// Is collapsing u (ring in ru_, with positions) and nb.v to p legal? Loads rv_ (positions).
+bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
+{
+  const std::uint32_t v = nb.v;
+  const std::uint32_t m = nb.count;
+  Ring& ru = this->ru_;
+  Ring& rv = this->rv_;
+  this->LoadRing(v, rv, true);
+  // The collapse must leave faces (no vanishing component).
+  if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
+  {
+    return false;
+  }
+  // Link condition: the common neighbours are exactly the vertices opposite the edge.
+  std::uint32_t common = 0;
+  {
+    std::size_t i = 0, j = 0;
+    while (i < ru.nbs.size() && j < rv.nbs.size())
+    {
+      const std::uint32_t a = ru.nbs[i].v, b = rv.nbs[j].v;
+      if (a < b)
+      {
+        ++i;
+      }
+      else if (b < a)
+      {
+        ++j;
+      }
+      else
+      {
+        if (a != u && a != v)
+        {
+          ++common;
+        }
+        ++i;
+        ++j;
+      }
+    }
+  }
+  if (common != m)
+  {
+    return false;
+  }
+  // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
+  if (m == 2 && ru.HasFace(nb.opp[0], nb.opp[1]) && rv.HasFace(nb.opp[0], nb.opp[1]))
+  {
+    return false;
+  }
+  // Geometry of the faces that survive.
+  for (std::size_t s = 0; s < ru.faces.size(); ++s)
+  {
+    if (!Has(ru.faces[s].t, v) && !this->FaceOk(ru, s, p))
+    {
+      return false;
+    }
+  }
+  for (std::size_t s = 0; s < rv.faces.size(); ++s)
+  {
+    if (!Has(rv.faces[s].t, u) && !this->FaceOk(rv, s, p))
+    {
+      return false;
+    }
+  }
+  return true;
+}
+
+void Decimator::Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
+{
+  Cand c = this->C_.Get(x);
+  if (pl.cost < c.cost || (pl.cost == c.cost && partner < c.partner))
+  {
+    c.cost = pl.cost;
+    c.p[0] = pl.p.x;
+    c.p[1] = pl.p.y;
+    c.p[2] = pl.p.z;
+    c.partner = partner;
+    c.t = float(fromPartner ? 1.0 - pl.t : pl.t);
+    this->C_.Set(x, c);
+  }
+}
+
+// The candidate sweep for vertex u: evaluates u's edges to higher neighbours once and offers
+// them to both endpoints (light path: the ring's faces only, no neighbour table). An edge u-a is
+// taken from the face where a follows u; an edge seen only with a before u is a boundary edge
+// (or inconsistently oriented) and is taken from there.
+void Decimator::Evaluate(std::uint32_t u)
+{
+  const std::uint8_t su = this->S_.Get(u);
+  if (su & kLocked)
+  {
+    return;
+  }
+  if (su & kNeedsLegal)
+  {
+    this->EvaluateFull(u, su);
+    return;
+  }
+  if (!(su & kDirty))
+  {
+    return; // untouched by the last pass: its candidate is still exact
+  }
+  const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
+  const std::uint32_t* ids = this->RF_.Ptr(b);
+  if (!ids)
+  {
+    this->ids_.resize(e - b);
+    this->RF_.GetRange(b, e - b, this->ids_.data());
+    ids = this->ids_.data();
+  }
+  std::uint32_t* next = this->next_.data();
+  std::uint32_t* prev = this->prev_.data();
+  std::size_t n = 0;
+  if (e - b > this->next_.size())
+  {
+    this->next_.resize(e - b);
+    this->prev_.resize(e - b);
+    next = this->next_.data();
+    prev = this->prev_.data();
+  }
+  for (std::uint32_t k = 0; k < e - b; ++k)
+  {
+    const Tri t = this->F_.Get(ids[k]);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    const int c = t.v[0] == u ? 0 : (t.v[1] == u ? 1 : 2);
+    next[n] = t.v[c == 2 ? 0 : c + 1];
+    prev[n] = t.v[c == 0 ? 2 : c - 1];
+    ++n;
+  }
+  if (n == 0)
+  {
+    return;
+  }
+  const Quadric Qu = this->Q_.Get(u);
+  const Vec3 pu = this->P_.Get(u);
+  auto in = [](const std::uint32_t* a, std::size_t m, std::uint32_t x) {
+    for (std::size_t i = 0; i < m; ++i)
+    {
+      if (a[i] == x)
+      {
+        return true;
+      }
+    }
+    return false;
+  };
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    const std::uint32_t a = next[i];
+    if (!in(next, i, a))
+    {
+      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n);
+    }
+  }
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    const std::uint32_t a = prev[i];
+    if (!in(next, n, a) && !in(prev, i, a))
+    {
+      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n);
+    }
+  }
+}
+
+void Decimator::EvaluateEdge(std::uint32_t u, std::uint8_t su, const Quadric& Qu, const Vec3& pu,
+  std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n)
+{
+  const std::uint8_t sv = this->S_.Get(v);
+  if (sv & kLocked) // also every vertex of an edge with > 2 faces
+  {
+    return;
+  }
+  const bool lightV = Light(sv);
+  if (lightV && v < u)
+  {
+    return; // done in v's sweep, and offered to u
+  }
+  if ((su & kFixed) && (sv & kFixed))
+  {
+    return;
+  }
+  if ((su & kBoundary) && (sv & kBoundary))
+  {
+    std::size_t count = 0;
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      count += (next[i] == v) + (prev[i] == v);
+    }
+    if (count != 1)
+    {
+      return; // would pinch the surface across the interior
+    }
+  }
+  Quadric Q = this->Q_.Get(v);
+  AddTo(Q, Qu);
+  const Placement pl = this->Place(Q, pu, this->P_.Get(v), su, sv);
+  if (!std::isfinite(pl.cost) ||
+    (std::isfinite(this->opt_.maximumError) && pl.cost > this->opt_.maximumError * Trace(Q)))
+  {
+    return;
+  }
+  this->Offer(u, v, pl, false);
+  if (lightV)
+  {
+    this->Offer(v, u, pl, true);
+  }
+}
+
+// The heavy path for a vertex whose cheapest collapse was illegal: all its edges, in cost
+// order, the first legal one is its candidate. Edges to higher neighbours are still offered to
+// them.
+void Decimator::EvaluateFull(std::uint32_t u, std::uint8_t su)
+{
+  this->C_.Set(u, this->none_);
+  Ring& ru = this->ru_;
+  this->LoadRing(u, ru, true);
+  if (ru.faces.empty())
+  {
+    return;
+  }
+  const Quadric Qu = this->Q_.Get(u);
+  const double maxErr = this->opt_.maximumError;
+  const bool checkErr = std::isfinite(maxErr);
+  this->edges_.clear();
+  for (std::uint32_t k = 0; k < ru.nbs.size(); ++k)
+  {
+    const Nb& nb = ru.nbs[k];
+    if (nb.count > 2)
+    {
+      continue;
+    }
+    const std::uint8_t sv = this->S_.Get(nb.v);
+    if (sv & kLocked)
+    {
+      continue;
+    }
+    if ((su & kBoundary) && (sv & kBoundary) && nb.count != 1)
+    {
+      continue;
+    }
+    if ((su & kFixed) && (sv & kFixed))
+    {
+      continue;
+    }
+    Quadric Q = this->Q_.Get(nb.v);
+    AddTo(Q, Qu);
+    const Placement pl = this->Place(Q, ru.px, nb.p, su, sv);
+    if (!std::isfinite(pl.cost) || (checkErr && pl.cost > maxErr * Trace(Q)))
+    {
+      continue;
+    }
+    this->edges_.push_back({ pl.cost, nb.v, k, pl });
+    if (nb.v > u && Light(sv))
+    {
+      this->Offer(nb.v, u, pl, true);
+    }
+  }
+  std::sort(this->edges_.begin(), this->edges_.end(), [](const EdgeCand& a, const EdgeCand& b) {
+    return a.cost < b.cost || (a.cost == b.cost && a.v < b.v);
+  });
+  for (const EdgeCand& ec : this->edges_)
+  {
+    if (this->Legal(u, ru.nbs[ec.nbIndex], ec.pl.p))
+    {
+      Cand c;
+      c.cost = ec.cost;
+      c.p[0] = ec.pl.p.x;
+      c.p[1] = ec.pl.p.y;
+      c.p[2] = ec.pl.p.z;
+      c.partner = ec.v;
+      c.t = float(ec.pl.t);
+      this->C_.Set(u, c);
+      return;
+    }
+  }
+}
+
+void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t)
+{
+  const std::size_t rec = this->recSize_;
+  if (rec == 0 || t <= 0.0)
+  {
+    return;
+  }
+  this->abuf_.resize(rec);
+  this->abuf2_.resize(rec);
+  if (t >= 1.0)
+  {
+    this->A_.GetRange(std::uint64_t(v) * rec, rec, this->abuf_.data());
+    this->A_.SetRange(std::uint64_t(u) * rec, rec, this->abuf_.data());
+    return;
+  }
+  this->A_.GetRange(std::uint64_t(u) * rec, rec, this->abuf_.data());
+  this->A_.GetRange(std::uint64_t(v) * rec, rec, this->abuf2_.data());
+  float* a = reinterpret_cast<float*>(this->abuf_.data());
+  const float* b = reinterpret_cast<const float*>(this->abuf2_.data());
+  for (std::size_t i = 0; i < this->nFloats_; ++i)
+  {
+    a[i] = float(double(a[i]) + t * (double(b[i]) - double(a[i])));
+  }
+  if (this->layout_.normals)
+  {
+    double l = std::sqrt(double(a[0]) * a[0] + double(a[1]) * a[1] + double(a[2]) * a[2]);
+    if (l > 0)
+    {
+      for (int i = 0; i < 3; ++i)
+      {
+        a[i] = float(a[i] / l);
+      }
+    }
+  }
+  if (this->layout_.colors)
+  {
+    std::uint8_t* ca = this->abuf_.data() + this->nFloats_ * sizeof(float);
+    const std::uint8_t* cb = this->abuf2_.data() + this->nFloats_ * sizeof(float);
+    for (int i = 0; i < 4; ++i)
+    {
+      double x = double(ca[i]) + t * (double(cb[i]) - double(ca[i]));
+      ca[i] = std::uint8_t(std::min(255.0, std::max(0.0, std::floor(x + 0.5))));
+    }
+  }
+  this->A_.SetRange(std::uint64_t(u) * rec, rec, this->abuf_.data());
+}
+
+// Collapses u and c.partner (rings loaded in ru_ and rv_ by Legal) into u at c.p.
+void Decimator::Collapse(std::uint32_t u, const Cand& c)
+{
+  const std::uint32_t v = c.partner;
+  const Ring& ru = this->ru_;
+  const Ring& rv = this->rv_;
+  const std::uint8_t su = this->S_.Get(u), sv = this->S_.Get(v);
+  std::uint64_t removed = 0;
+  for (const RingFace& f : ru.faces)
+  {
+    if (Has(f.t, v))
+    {
+      this->F_.Set(f.id, kDeadTri);
+      ++removed;
+    }
+  }
+  for (const RingFace& f : rv.faces)
+  {
+    if (!Has(f.t, u))
+    {
+      Tri t = f.t;
+      t.v[f.corner] = u;
+      this->F_.Set(f.id, t);
+    }
+  }
+  // Mark every vertex of the faces around u and v: no later collapse of this pass touches them.
+  for (const Ring* r : { &ru, &rv })
+  {
+    for (const Nb& n : r->nbs)
+    {
+      this->S_.Set(n.v, std::uint8_t(this->S_.Get(n.v) | kMarked));
+    }
+  }
+  this->P_.Set(u, { c.p[0], c.p[1], c.p[2] });
+  Quadric Q = this->Q_.Get(u);
+  AddTo(Q, this->Q_.Get(v));
+  this->Q_.Set(u, Q);
+  this->InterpolateAttributes(u, v, double(c.t));
+  this->S_.Set(v, std::uint8_t(kRemoved | kMarked));
+  this->S_.Set(u, std::uint8_t(su | kMarked | (sv & (kBoundary | kFixed))));
+  this->liveFaces_ -= removed;
+}
+
+inline std::uint32_t CostBin(double cost)
+{
+  float f = float(cost);
+  std::uint32_t bits;
+  std::memcpy(&bits, &f, 4);
+  return bits >> 16; // non-negative floats order like their bits; 15 bits: ~0.8% wide bins
+}
+
+bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpan)
+{
+  const std::uint64_t nv = this->nv_;
+  this->BindViews();
+  // 1. Every vertex's cheapest collapse.
+  this->progress_.BeginPhase("collapse", progressBase, progressBase + 0.6 * progressSpan);
+  for (std::uint64_t u = 0; u < nv; ++u)
+  {
+    this->Tick(u, nv);
+    this->Evaluate(std::uint32_t(u));
+  }
+  // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
+  // about four times the collapses the goal needs (a collapse removes 2 faces, and both
+  // endpoints may propose it). Ties in order of vertex index.
+  std::fill(this->hist_.begin(), this->hist_.end(), 0u);
+  std::uint64_t candidates = 0;
+  for (std::uint64_t u = 0; u < nv; ++u)
+  {
+    const Cand c = this->C_.Get(u);
+    if (c.partner != kNone)
+    {
+      ++this->hist_[CostBin(c.cost)];
+      ++candidates;
+    }
+  }
+  if (candidates == 0)
+  {
+    return false;
+  }
+  static const double wantFactor = std::getenv("WANT") ? std::atof(std::getenv("WANT")) : 2.0;
+  const std::uint64_t want = std::uint64_t(wantFactor * double(this->liveFaces_ - goal)) + 16;
+  std::uint64_t taken = 0;
+  std::uint32_t lastBin = 0;
+  for (std::uint32_t b = 0; b < std::uint32_t(kCostBins); ++b)
+  {
+    const std::uint32_t n = this->hist_[b];
+    this->hist_[b] = std::uint32_t(taken); // start of the bin
+    taken += n;
+    lastBin = b;
+    if (taken >= want)
+    {
+      break;
+    }
+  }
+  this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(taken, 1));
+  this->BindViews();
+  this->progress_.BeginPhase(
+    "collapse", progressBase + 0.6 * progressSpan, progressBase + 0.7 * progressSpan);
+  for (std::uint64_t u = 0; u < nv; ++u)
+  {
+    this->Tick(u, nv);
+    const Cand c = this->C_.Get(u);
+    if (c.partner == kNone)
+    {
+      continue;
+    }
+    const std::uint32_t b = CostBin(c.cost);
+    if (b <= lastBin)
+    {
+      this->O_.Set(this->hist_[b]++, std::uint32_t(u));
+    }
+  }
+  // 3. Collapse in cost order, independent collapses only. Legality is checked here: the faces
+  // around an unmarked pair are as they were in step 1. A vertex whose cheapest collapse is
+  // illegal evaluates all its edges with legality in the next passes.
+  this->progress_.BeginPhase(
+    "collapse", progressBase + 0.7 * progressSpan, progressBase + 0.85 * progressSpan);
+  std::uint64_t done = 0, illegal = 0;
+  for (std::uint64_t i = 0; i < taken && this->liveFaces_ > goal; ++i)
+  {
+    this->Tick(i, taken);
+    const std::uint32_t u = this->O_.Get(i);
+    const std::uint8_t su = this->S_.Get(u);
+    if (su & kMarked)
+    {
+      continue;
+    }
+    const Cand c = this->C_.Get(u);
+    if (this->S_.Get(c.partner) & kMarked)
+    {
+      continue;
+    }
+    this->LoadRing(u, this->ru_, true);
+    const Nb* nb = this->ru_.Find(c.partner);
+    if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }))
+    {
+      this->S_.Set(u, std::uint8_t(su | kNeedsLegal));
+      ++illegal;
+      continue;
+    }
+    this->Collapse(u, c);
+    ++done;
+  }
+  if (std::getenv("SIPMSS_DECIMATE_DEBUG"))
+  {
+    std::uint64_t marked = 0;
+    for (std::uint64_t u = 0; u < nv; ++u)
+    {
+      marked += (this->S_.Get(u) & kMarked) != 0;
+    }
+    std::fprintf(stderr, "marked %.3f ", double(marked) / double(nv));
+    std::fprintf(stderr,
+      "pass: nv %llu faces %llu -> %llu goal %llu candidates %llu ordered %llu collapses %llu "
+      "illegal %llu\n",
+      (unsigned long long)nv, (unsigned long long)this->nf_, (unsigned long long)this->liveFaces_,
+      (unsigned long long)goal, (unsigned long long)candidates, (unsigned long long)taken,
+      (unsigned long long)done, (unsigned long long)illegal);
+  }
+  this->order_.Close();
+  // 4. Compact into fresh blocks.
+  this->progress_.BeginPhase(
+    "collapse", progressBase + 0.85 * progressSpan, progressBase + progressSpan);
+  this->Compact();
+  // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
+  // as long as some candidate exists.
+  return done > 0 || illegal > 0;
+}
+
+void Decimator::Compact()
+{
+  const std::uint64_t nv = this->nv_, nf = this->nf_;
+  Array<std::uint32_t> remap(this->dml_, std::max<std::uint64_t>(nv, 1));
+  FillBlock(this->dml_, remap, std::uint32_t(0));
+  this->BindViews();
+  View<std::uint32_t> R(this->dml_, remap);
+  // Degrees of the live faces.
+  for (std::uint64_t f = 0; f < nf; ++f)
+  {
+    this->Tick(f, 3 * nf + 2 * nv);
+    Tri t = this->F_.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      R.Set(t.v[k], R.Get(t.v[k]) + 1);
+    }
+  }
+  std::uint64_t nv2 = 0;
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    if (R.Get(v) > 0)
+    {
+      ++nv2;
+    }
+  }
+  const std::uint64_t nf2 = this->liveFaces_;
+  Array<Vec3> pos2(this->dml_, std::max<std::uint64_t>(nv2, 1));
+  Array<Quadric> quad2(this->dml_, std::max<std::uint64_t>(nv2, 1));
+  Array<std::uint8_t> attr2;
+  if (this->recSize_)
+  {
+    attr2 = Array<std::uint8_t>(this->dml_, std::max<std::uint64_t>(nv2, 1) * this->recSize_);
+  }
+  Array<std::uint8_t> state2(this->dml_, std::max<std::uint64_t>(nv2, 1));
+  Array<Cand> cand2(this->dml_, std::max<std::uint64_t>(nv2, 1));
+  Array<Tri> faces2(this->dml_, std::max<std::uint64_t>(nf2, 1));
+  Array<std::uint32_t> off2(this->dml_, nv2 + 1);
+  Array<std::uint32_t> ring2(this->dml_, std::max<std::uint64_t>(3 * nf2, 1));
+  this->BindViews();
+  R.Refresh();
+  View<Vec3> P2(this->dml_, pos2);
+  View<Quadric> Q2(this->dml_, quad2);
+  View<std::uint8_t> A2 = this->recSize_ ? View<std::uint8_t>(this->dml_, attr2) : View<std::uint8_t>();
+  View<std::uint8_t> S2(this->dml_, state2);
+  View<Cand> C2(this->dml_, cand2);
+  View<Tri> F2(this->dml_, faces2);
+  View<std::uint32_t> O2(this->dml_, off2), RF2(this->dml_, ring2);
+  // New vertex numbers (order kept); O2[k] = end of k's ring (filled backwards below).
+  std::uint64_t k = 0;
+  std::uint32_t end = 0;
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    this->Tick(nf + v, 3 * nf + 2 * nv);
+    const std::uint32_t deg = R.Get(v);
+    if (deg == 0)
+    {
+      R.Set(v, kNone);
+      continue;
+    }
+    end += deg;
+    O2.Set(k, end);
+    R.Set(v, std::uint32_t(k));
+    ++k;
+  }
+  // Vertex data. A vertex touched by the pass is evaluated again (kDirty); an untouched one keeps
+  // its candidate: its edges, their quadrics and positions are unchanged.
+  const std::size_t rec = this->recSize_;
+  this->abuf_.resize(rec);
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    this->Tick(nf + nv + v, 3 * nf + 2 * nv);
+    const std::uint32_t w = R.Get(v);
+    if (w == kNone)
+    {
+      continue;
+    }
+    P2.Set(w, this->P_.Get(v));
+    Q2.Set(w, this->Q_.Get(v));
+    if (rec)
+    {
+      this->A_.GetRange(v * rec, rec, this->abuf_.data());
+      A2.SetRange(std::uint64_t(w) * rec, rec, this->abuf_.data());
+    }
+    const std::uint8_t sv = this->S_.Get(v);
+    std::uint8_t flags = std::uint8_t(sv & (kBoundary | kLocked | kFixed | kNeedsLegal));
+    Cand c = this->none_;
+    if (sv & kMarked)
+    {
+      flags = std::uint8_t((flags & ~kNeedsLegal) | kDirty);
+    }
+    else
+    {
+      c = this->C_.Get(v);
+      if (c.partner != kNone)
+      {
+        c.partner = R.Get(c.partner);
+        if (c.partner == kNone)
+        {
+          c = this->none_;
+          flags |= kDirty;
+        }
+      }
+    }
+    S2.Set(w, flags);
+    C2.Set(w, c);
+  }
+  O2.Set(nv2, end);
+  // Faces in reverse order: new index, remapped corners, ring entries.
+  std::uint64_t f2 = nf2;
+  for (std::uint64_t f = nf; f-- > 0;)
+  {
+    this->Tick(nf + 2 * nv + (nf - f), 3 * nf + 2 * nv);
+    Tri t = this->F_.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    --f2;
+    Tri w;
+    for (int c = 0; c < 3; ++c)
+    {
+      w.v[c] = R.Get(t.v[c]);
+      std::uint32_t e = O2.Get(w.v[c]) - 1;
+      O2.Set(w.v[c], e);
+      RF2.Set(e, std::uint32_t(f2));
+    }
+    F2.Set(f2, w);
+  }
+  remap.Close();
+  this->pos_ = std::move(pos2);
+  this->quad_ = std::move(quad2);
+  if (rec)
+  {
+    this->attr_ = std::move(attr2);
+  }
+  this->state_ = std::move(state2);
+  this->cand_ = std::move(cand2);
+  this->faces_ = std::move(faces2);
+  this->ringOff_ = std::move(off2);
+  this->ringFace_ = std::move(ring2);
+  this->nv_ = nv2;
+  this->nf_ = nf2;
+  this->dml_.Reconfigure();
+  this->BindViews();
+}
+
+// ---------------------------------------------------------------------------------------------
+// output
+
+void Decimator::Emit(io::MeshSink& sink)
+{
+  io::MeshHeader h;
+  h.format = io::Format::Unknown;
+  h.vertexCount = this->nv_;
+  h.faceCount = this->nf_;
+  h.layout = this->layout_;
+  sink.Begin(h);
+  this->BindViews();
+  const std::size_t chunk = 1 << 14;
+  const std::size_t rec = this->recSize_;
+  const std::size_t ns = this->layout_.scalars.size();
+  std::vector<Vec3> p(chunk);
+  std::vector<float> xyz(3 * chunk), normals, tex, scalars;
+  std::vector<std::uint8_t> raw, rgba;
+  if (this->layout_.normals)
+  {
+    normals.resize(3 * chunk);
+  }
+  if (this->layout_.texcoords)
+  {
+    tex.resize(2 * chunk);
+  }
+  if (ns)
+  {
+    scalars.resize(ns * chunk);
+  }
+  if (this->layout_.colors)
+  {
+    rgba.resize(4 * chunk);
+  }
+  raw.resize(rec * chunk);
+  const std::uint64_t total = this->nv_ + this->nf_;
+  for (std::uint64_t first = 0; first < this->nv_; first += chunk)
+  {
+    this->progress_.Tick(total ? double(first) / double(total) : 1.0);
+    const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->nv_ - first));
+    this->P_.GetRange(first, n, p.data());
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      xyz[3 * i] = float(p[i].x + this->origin_.x);
+      xyz[3 * i + 1] = float(p[i].y + this->origin_.y);
+      xyz[3 * i + 2] = float(p[i].z + this->origin_.z);
+    }
+    io::VertexChunk vc;
+    vc.first = first;
+    vc.count = n;
+    vc.xyz = xyz.data();
+    if (rec)
+    {
+      this->A_.GetRange(first * rec, n * rec, raw.data());
+      for (std::size_t i = 0; i < n; ++i)
+      {
+        const float* f = reinterpret_cast<const float*>(raw.data() + i * rec);
+        std::size_t k = 0;
+        if (this->layout_.normals)
+        {
+          for (int j = 0; j < 3; ++j)
+          {
+            normals[3 * i + j] = f[k++];
+          }
+        }
+        if (this->layout_.texcoords)
+        {
+          for (int j = 0; j < 2; ++j)
+          {
+            tex[2 * i + j] = f[k++];
+          }
+        }
+        for (std::size_t j = 0; j < ns; ++j)
+        {
+          scalars[ns * i + j] = f[k++];
+        }
+        if (this->layout_.colors)
+        {
+          std::memcpy(&rgba[4 * i], raw.data() + i * rec + this->nFloats_ * sizeof(float), 4);
+        }
+      }
+      vc.normals = this->layout_.normals ? normals.data() : nullptr;
+      vc.texcoords = this->layout_.texcoords ? tex.data() : nullptr;
+      vc.scalars = ns ? scalars.data() : nullptr;
+      vc.rgba = this->layout_.colors ? rgba.data() : nullptr;
+    }
+    sink.Vertices(vc);
+  }
+  std::vector<Tri> tris(chunk);
+  for (std::uint64_t first = 0; first < this->nf_; first += chunk)
+  {
+    this->progress_.Tick(total ? double(this->nv_ + first) / double(total) : 1.0);
+    const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->nf_ - first));
+    this->F_.GetRange(first, n, tris.data());
+    sink.Triangles(reinterpret_cast<const std::uint32_t*>(tris.data()), n);
+  }
+  io::ReadStats rs;
+  rs.vertices = this->nv_;
+  rs.triangles = this->nf_;
+  rs.polygons = this->nf_;
+  sink.End(rs);
+}
+
+// ---------------------------------------------------------------------------------------------
+
+void Decimator::Run(const MeshSource& input, io::MeshSink& output,
+  const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel)
+{
+  this->Read(input);
+  if (this->opt_.weldDistance >= 0)
+  {
+    PhaseTimer timer(this->stats_, this->dml_, "weld");
+    this->progress_.BeginPhase("weld", 0.25, 0.25);
+    this->Weld();
+  }
+  this->BuildRings();
+  this->BuildQuadrics();
+
+  const std::uint64_t F0 = this->liveFaces_;
+  std::uint64_t target = this->opt_.targetTriangles;
+  if (target == 0)
+  {
+    double r = std::min(1.0, std::max(0.0, this->opt_.targetReduction));
+    target = std::uint64_t(std::llround(double(F0) * (1.0 - r)));
+  }
+  const int K = std::max(1, this->opt_.levelsOfDetail);
+  std::vector<std::uint64_t> levels(K);
+  for (int i = 0; i < K; ++i)
+  {
+    if (i == K - 1 || F0 <= target || target == 0)
+    {
+      levels[i] = target;
+    }
+    else
+    {
+      double x = double(F0) * std::pow(double(target) / double(F0), double(i + 1) / double(K));
+      levels[i] = std::max<std::uint64_t>(target, std::uint64_t(std::llround(x)));
+    }
+  }
+  const double fraction = std::min(0.9, std::max(0.01, this->opt_.passFraction));
+  auto emitLevel = [&](int level) {
+    if (onLevel)
+    {
+      onLevel(level, [this](io::MeshSink& sink) { this->Emit(sink); });
+    }
+  };
+  {
+    PhaseTimer timer(this->stats_, this->dml_, "collapse");
+    this->progress_.BeginPhase("collapse", 0.35, 0.35);
+    int level = 0;
+    bool compacted = false;
+    while (level < K)
+    {
+      if (this->liveFaces_ <= levels[level])
+      {
+        if (!compacted)
+        {
+          this->Compact();
+          compacted = true;
+        }
+        emitLevel(level);
+        ++level;
+        continue;
+      }
+      const std::uint64_t T = this->liveFaces_;
+      const std::uint64_t step = std::max<std::uint64_t>(1, std::uint64_t(double(T) * fraction));
+      const std::uint64_t goal = std::max(levels[level], T > step ? T - step : 0);
+      const double done = F0 > target ? double(F0 - T) / double(F0 - target) : 1.0;
+      if (!this->Pass(goal, 0.35 + 0.6 * done, 0.6 * (1.0 - done) * fraction))
+      {
+        // No legal collapse under maximumError remains: this is the final level.
+        if (!compacted)
+        {
+          this->Compact();
+        }
+        emitLevel(level);
+        break;
+      }
+      compacted = true;
+    }
+  }
+  {
+    PhaseTimer timer(this->stats_, this->dml_, "write");
+    this->progress_.BeginPhase("write", 0.95, 1.0);
+    this->Emit(output);
+  }
+  this->stats_.outputVertices = this->nv_;
+  this->stats_.outputTriangles = this->nf_;
+  this->stats_.droppedInputFaces = this->dropped_ + this->readerDropped_;
+  this->stats_.storage = this->dml_.GetStats();
+}
+
+} // namespace
+
+RunStats Decimate(const MeshSource& input, io::MeshSink& output, const DecimateOptions& options,
+  Progress& progress,
+  const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
+{
+  RunStats stats;
+  Decimator d(options, progress, stats);
+  d.Run(input, output, onLevel);
+  return stats;
+}
+
+} // namespace sipmss::algorithms

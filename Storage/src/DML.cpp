@@ -1,0 +1,1140 @@
+// The DML primitives: configuration, block allocation, element access and mode switches.
+//
+// Each block is either in core (one contiguous allocation) or on a file (served by the page
+// cache, PageCache.cpp). Normally all blocks share the mode of the DML; after an operation failed
+// half way through a mode switch some blocks may still be in the other mode, which every
+// primitive handles (they dispatch per block), so the DML stays usable and destructible.
+#include "DMLImpl.h"
+
+#include <algorithm>
+#include <cerrno>
+#include <cstdlib>
+#include <cstring>
+#include <string_view>
+#include <sys/stat.h>
+#include <unistd.h>
+
+namespace sipmss::storage
+{
+
+using detail::Block;
+using detail::HeapCost;
+using detail::Kind;
+
+namespace
+{
+bool AllZero(const unsigned char* p, std::size_t n)
+{
+  return n == 0 || (p[0] == 0 && std::memcmp(p, p + 1, n - 1) == 0);
+}
+
+std::uint64_t CheckedBytes(std::uint64_t count, std::size_t elementSize)
+{
+  if (elementSize == 0)
+  {
+    throw std::invalid_argument("sipmss::storage: element size must be positive");
+  }
+  if (count > (std::uint64_t(1) << 62) / elementSize)
+  {
+    throw std::invalid_argument("sipmss::storage: block size overflows");
+  }
+  return count * elementSize;
+}
+} // namespace
+
+void detail::Accountant::Charge(std::uint64_t n)
+{
+  if (!this->Fits(n) && this->owner)
+  {
+    this->owner->ReleaseFrames(n);
+  }
+  if (!this->Fits(n))
+  {
+    throw BudgetError("sipmss::storage: memory budget exceeded (need " + std::to_string(n) +
+      " bytes, holding " + std::to_string(this->held) + " of " + std::to_string(this->budget) +
+      ")");
+  }
+  this->Add(n);
+}
+
+// ------------------------------------------------------------------------------------------------
+DML::Impl::Impl(std::unique_ptr<FileBackend> b)
+  : backend(std::move(b))
+  , blocks(detail::Counted<Block>(&this->acc))
+  , lists(detail::Counted<detail::ListInfo>(&this->acc))
+  , dirs(detail::Counted<detail::PrivateDir>(&this->acc))
+  , bases(detail::Counted<void*>(&this->acc))
+  , cache(&this->acc)
+{
+  this->acc.owner = this;
+  // The instance itself, the backend object and the scratch reserve (see kScratchReserve).
+  this->acc.Add(HeapCost(sizeof(Impl)) + HeapCost(64) + detail::kScratchReserve);
+}
+
+DML::Impl::~Impl()
+{
+  this->Shutdown();
+}
+
+void DML::Impl::Shutdown() noexcept
+{
+  // Pages are discarded: the files are removed anyway.
+  for (auto& f : this->cache.frames)
+  {
+    std::free(f.data);
+    f.data = nullptr;
+  }
+  for (auto& b : this->blocks)
+  {
+    std::free(b.mem);
+    b.mem = nullptr;
+    if (b.fd >= 0)
+    {
+      try
+      {
+        this->backend->Close(b.fd);
+      }
+      catch (...)
+      {
+      }
+      b.fd = -1;
+      try
+      {
+        const std::string path = this->FilePath(b);
+        try
+        {
+          this->backend->Remove(path);
+        }
+        catch (...)
+        {
+          ::unlink(path.c_str());
+        }
+      }
+      catch (...)
+      {
+      }
+    }
+  }
+  for (const auto& d : this->dirs)
+  {
+    if (!d.path.empty())
+    {
+      const std::string p(d.path.data(), d.path.size());
+      if (::rmdir(p.c_str()) != 0 && errno != ENOENT)
+      {
+        // Files the backend failed to remove: everything in the private directory is ours.
+        detail::RemoveTree(p);
+      }
+    }
+  }
+}
+
+void DML::Impl::SyncBases() noexcept
+{
+  // Within capacity (reserved in NewSlot): resize does not allocate.
+  this->bases.resize(std::min(this->blocks.size(), this->bases.capacity()));
+  for (std::size_t i = 0; i < this->bases.size(); ++i)
+  {
+    const Block& b = this->blocks[i];
+    this->bases[i] = b.kind == Kind::Plain ? b.mem : nullptr;
+  }
+  this->owner->bases_ = this->bases.data();
+  this->owner->baseCount_ = this->bases.size();
+}
+
+Block& DML::Impl::Get(BlockId id, Kind kind)
+{
+  if (id < 0 || static_cast<std::size_t>(id) >= this->blocks.size() ||
+    this->blocks[static_cast<std::size_t>(id)].kind != kind)
+  {
+    throw std::invalid_argument("sipmss::storage: invalid block id " + std::to_string(id));
+  }
+  return this->blocks[static_cast<std::size_t>(id)];
+}
+
+const Block& DML::Impl::Get(BlockId id, Kind kind) const
+{
+  return const_cast<Impl*>(this)->Get(id, kind);
+}
+
+BlockId DML::Impl::NewSlot(Kind kind, std::size_t elementSize, double weight)
+{
+  std::size_t i = 0;
+  while (i < this->blocks.size() && this->blocks[i].kind != Kind::Closed)
+  {
+    ++i;
+  }
+  if (i == this->blocks.size())
+  {
+    if (i >= static_cast<std::size_t>(std::numeric_limits<BlockId>::max()))
+    {
+      throw std::length_error("sipmss::storage: too many blocks");
+    }
+    // Grow explicitly so the cache releases pages before (not during) the reallocation.
+    if (this->blocks.size() == this->blocks.capacity())
+    {
+      const std::size_t cap = std::max<std::size_t>(8, this->blocks.capacity() * 2);
+      this->ReleaseFrames(HeapCost(cap * sizeof(Block)) + HeapCost(cap * sizeof(void*)));
+      this->bases.reserve(cap);
+      this->blocks.reserve(cap);
+    }
+    this->blocks.emplace_back();
+  }
+  Block& b = this->blocks[i];
+  b = Block{};
+  b.kind = kind;
+  b.elementSize = elementSize;
+  b.weight = weight > 0.0 ? weight : 0.0;
+  return static_cast<BlockId>(i);
+}
+
+bool DML::Impl::NeedsSpill(std::uint64_t extraBytes) const
+{
+  return this->acc.budget != 0 && !this->acc.Fits(extraBytes);
+}
+
+BlockId DML::Impl::OpenRaw(Kind kind, std::size_t elementSize, std::uint64_t count, double weight)
+{
+  const std::uint64_t bytes = CheckedBytes(count, elementSize);
+  const BlockId id = this->NewSlot(kind, elementSize, weight);
+  try
+  {
+    if (this->mode == Mode::InCore && this->NeedsSpill(HeapCost(std::max<std::uint64_t>(bytes, 1))))
+    {
+      // The budget is hard: opening this block in core would exceed it.
+      if (this->profile.policy == ModePolicy::InCore)
+      {
+        throw BudgetError("sipmss::storage: block of " + std::to_string(bytes) +
+          " bytes exceeds the memory budget and the mode is forced in core");
+      }
+      this->SwitchTo(Mode::OutOfCore);
+      ++this->stats.reconfigurations;
+    }
+    Block& b = this->blocks[static_cast<std::size_t>(id)];
+    if (this->mode == Mode::InCore)
+    {
+      const std::uint64_t cap = std::max<std::uint64_t>(bytes, 1);
+      this->acc.Charge(HeapCost(cap));
+      b.mem = static_cast<unsigned char*>(std::calloc(cap, 1));
+      if (!b.mem)
+      {
+        this->acc.Release(HeapCost(cap));
+        throw std::bad_alloc();
+      }
+      b.capacityBytes = cap;
+      b.count = count;
+    }
+    else
+    {
+      b.count = count;
+      this->CreateFile(id);
+    }
+  }
+  catch (...)
+  {
+    this->blocks[static_cast<std::size_t>(id)] = Block{};
+    throw;
+  }
+  return id;
+}
+
+std::string DML::Impl::FilePath(const Block& b) const
+{
+  const auto& d = this->dirs[static_cast<std::size_t>(b.dir)].path;
+  std::string p(d.data(), d.size());
+  p += '/';
+  p += std::to_string(b.fileSeq);
+  p += ".blk";
+  return p;
+}
+
+void DML::Impl::Rethrow(const StorageError& e, const Block& b) const
+{
+  if (!e.Path().empty())
+  {
+    throw e;
+  }
+  // The backend does not know paths: add the block's file and keep the backend's message.
+  std::string message = e.what();
+  if (e.OsError() != 0)
+  {
+    const std::string suffix = ": " + detail::ErrnoText(e.OsError());
+    if (message.size() >= suffix.size() &&
+      message.compare(message.size() - suffix.size(), suffix.size(), suffix) == 0)
+    {
+      message.resize(message.size() - suffix.size());
+    }
+  }
+  throw StorageError("block file " + message, this->FilePath(b), e.OsError());
+}
+
+void DML::Impl::BackendRead(const Block& b, void* dst, std::uint64_t n, std::uint64_t off)
+{
+  try
+  {
+    this->backend->ReadAt(b.fd, dst, n, off);
+  }
+  catch (const StorageError& e)
+  {
+    this->Rethrow(e, b);
+  }
+  this->stats.bytesRead += n;
+}
+
+void DML::Impl::BackendWrite(const Block& b, const void* src, std::uint64_t n, std::uint64_t off)
+{
+  try
+  {
+    this->backend->WriteAt(b.fd, src, n, off);
+  }
+  catch (const StorageError& e)
+  {
+    this->Rethrow(e, b);
+  }
+  this->stats.bytesWritten += n;
+}
+
+void DML::Impl::BackendTruncate(const Block& b, std::uint64_t n)
+{
+  try
+  {
+    this->backend->Truncate(b.fd, n);
+  }
+  catch (const StorageError& e)
+  {
+    this->Rethrow(e, b);
+  }
+}
+
+// Creates the block's file (size count * elementSize, sparse) in the next directory.
+void DML::Impl::CreateFile(BlockId id)
+{
+  std::string parent = this->profile.directories.empty()
+    ? detail::DefaultDirectory()
+    : this->profile.directories[this->nextDir++ % this->profile.directories.size()];
+  std::size_t di = 0;
+  while (di < this->dirs.size() &&
+    std::string_view(this->dirs[di].parent.data(), this->dirs[di].parent.size()) != parent)
+  {
+    ++di;
+  }
+  if (di == this->dirs.size())
+  {
+    this->dirs.emplace_back(&this->acc);
+    try
+    {
+      this->dirs.back().parent.assign(parent.data(), parent.size());
+    }
+    catch (...)
+    {
+      this->dirs.pop_back();
+      throw;
+    }
+  }
+  if (this->dirs[di].path.empty())
+  {
+    const std::string path = detail::MakePrivateDirectory(parent);
+    try
+    {
+      this->dirs[di].path.assign(path.data(), path.size());
+    }
+    catch (...)
+    {
+      ::rmdir(path.c_str());
+      throw;
+    }
+  }
+  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  b.dir = static_cast<std::int32_t>(di);
+  b.fileSeq = this->nextFileSeq++;
+  const std::string path = this->FilePath(b);
+  int fd = -1;
+  try
+  {
+    fd = this->backend->Create(path);
+  }
+  catch (const StorageError& e)
+  {
+    if (!e.Path().empty())
+    {
+      throw;
+    }
+    throw StorageError(e.what(), path, e.OsError());
+  }
+  b.fd = fd;
+  try
+  {
+    this->BackendTruncate(b, b.Bytes());
+    if (this->cache.built)
+    {
+      if (b.elementSize > this->cache.pageSize)
+      {
+        // Elements larger than the page: rebuild the cache with larger pages.
+        if (this->cache.pinnedFrames > 0)
+        {
+          throw BudgetError("sipmss::storage: cannot enlarge pages while pages are pinned");
+        }
+        this->DestroyCache(true);
+      }
+      else
+      {
+        b.perPage = this->cache.pageSize / b.elementSize;
+      }
+    }
+  }
+  catch (...)
+  {
+    this->RemoveFile(b);
+    throw;
+  }
+  this->cache.quotasDirty = true;
+}
+
+// Closes and removes the block's file (the block keeps its other state).
+void DML::Impl::RemoveFile(Block& b)
+{
+  if (b.fd < 0)
+  {
+    return;
+  }
+  this->backend->Close(b.fd);
+  b.fd = -1;
+  const std::string path = this->FilePath(b);
+  this->backend->Remove(path);
+}
+
+void DML::Impl::CloseRaw(BlockId id)
+{
+  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  if (b.kind == Kind::List)
+  {
+    detail::ListInfo& L = this->lists[static_cast<std::size_t>(b.list)];
+    const BlockId heads = L.heads;
+    const BlockId pool = L.pool;
+    L = detail::ListInfo{};
+    b = Block{};
+    this->CloseRaw(heads);
+    this->CloseRaw(pool);
+    return;
+  }
+  if (b.mem)
+  {
+    std::free(b.mem);
+    b.mem = nullptr;
+    this->acc.Release(HeapCost(b.capacityBytes));
+  }
+  if (b.fd >= 0)
+  {
+    this->DropBlockPages(id, 0);
+    Block copy = b; // the slot is closed first so a failing Remove leaves a consistent DML
+    b = Block{};
+    this->cache.quotasDirty = true;
+    this->RemoveFile(copy); // leftovers are removed with the private directory
+    return;
+  }
+  b = Block{};
+}
+
+// In core: grows by realloc (the old and new buffers are both charged while realloc may copy).
+// Returns false when the new size does not fit the budget.
+void DML::Impl::ResizeInCore(Block& b, std::uint64_t count)
+{
+  const std::uint64_t newBytes = CheckedBytes(count, b.elementSize);
+  const std::uint64_t oldBytes = b.Bytes();
+  if (newBytes <= b.capacityBytes)
+  {
+    if (newBytes > oldBytes)
+    {
+      std::memset(b.mem + oldBytes, 0, newBytes - oldBytes);
+    }
+    else if (b.capacityBytes > 4096 && newBytes < b.capacityBytes / 4)
+    {
+      const std::uint64_t cap = std::max<std::uint64_t>(newBytes, 1);
+      if (void* p = std::realloc(b.mem, cap)) // shrinking realloc does not copy
+      {
+        this->acc.Release(HeapCost(b.capacityBytes));
+        this->acc.Add(HeapCost(cap));
+        b.mem = static_cast<unsigned char*>(p);
+        b.capacityBytes = cap;
+      }
+    }
+    b.count = count;
+    return;
+  }
+  std::uint64_t cap = std::max(newBytes, b.capacityBytes + b.capacityBytes / 2);
+  if (!this->acc.Fits(HeapCost(cap)))
+  {
+    cap = newBytes;
+  }
+  this->acc.Charge(HeapCost(cap)); // throws BudgetError when it does not fit
+  void* p = std::realloc(b.mem, cap);
+  if (!p)
+  {
+    this->acc.Release(HeapCost(cap));
+    throw std::bad_alloc();
+  }
+  this->acc.Release(HeapCost(b.capacityBytes));
+  b.mem = static_cast<unsigned char*>(p);
+  b.capacityBytes = cap;
+  std::memset(b.mem + oldBytes, 0, newBytes - oldBytes);
+  b.count = count;
+}
+
+void DML::Impl::ResizeRaw(BlockId id, std::uint64_t count)
+{
+  Block* b = &this->blocks[static_cast<std::size_t>(id)];
+  if (b->kind == Kind::List)
+  {
+    this->ResizeList(*b, count);
+    return;
+  }
+  const std::uint64_t newBytes = CheckedBytes(count, b->elementSize);
+  if (b->mem)
+  {
+    const std::uint64_t grow = newBytes > b->capacityBytes ? HeapCost(newBytes) : 0;
+    if (!this->NeedsSpill(grow))
+    {
+      this->ResizeInCore(*b, count);
+      return;
+    }
+    if (this->profile.policy == ModePolicy::InCore)
+    {
+      throw BudgetError("sipmss::storage: growing the block to " + std::to_string(newBytes) +
+        " bytes exceeds the memory budget and the mode is forced in core");
+    }
+    if (this->mode == Mode::InCore)
+    {
+      this->SwitchTo(Mode::OutOfCore);
+      ++this->stats.reconfigurations;
+    }
+    else
+    {
+      this->SpillBlock(id);
+    }
+    b = &this->blocks[static_cast<std::size_t>(id)];
+  }
+  // On file: truncate first (a failure changes nothing), then drop or clear cached pages
+  // beyond the new end so regrown elements read as zeros.
+  this->BackendTruncate(*b, newBytes);
+  if (count < b->count && this->cache.built)
+  {
+    const std::uint64_t per = b->perPage;
+    this->DropBlockPages(id, (count + per - 1) / per);
+    if (count % per != 0)
+    {
+      const std::int32_t fi = this->Lookup(id, count / per);
+      if (fi >= 0)
+      {
+        const std::uint64_t keep = (count % per) * b->elementSize;
+        std::memset(this->cache.frames[static_cast<std::size_t>(fi)].data + keep, 0,
+          this->PageBytes(*b) - keep);
+      }
+    }
+  }
+  b->count = count;
+  this->cache.quotasDirty = true;
+}
+
+// Moves an in-core block to a new file. All-zero runs are not written: the file stays sparse.
+void DML::Impl::SpillBlock(BlockId id)
+{
+  this->CreateFile(id);
+  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  try
+  {
+    constexpr std::uint64_t kChunk = 1 << 16;
+    const std::uint64_t bytes = b.Bytes();
+    for (std::uint64_t off = 0; off < bytes; off += kChunk)
+    {
+      const std::uint64_t n = std::min(kChunk, bytes - off);
+      if (!AllZero(b.mem + off, n))
+      {
+        this->BackendWrite(b, b.mem + off, n, off);
+      }
+    }
+  }
+  catch (...)
+  {
+    try
+    {
+      this->RemoveFile(b);
+    }
+    catch (...)
+    {
+    }
+    throw;
+  }
+  std::free(b.mem);
+  b.mem = nullptr;
+  this->acc.Release(HeapCost(b.capacityBytes));
+  b.capacityBytes = 0;
+}
+
+// Reads a file-backed block (whose pages are not cached) into memory and removes its file.
+void DML::Impl::LoadBlock(BlockId id)
+{
+  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  const std::uint64_t cap = std::max<std::uint64_t>(b.Bytes(), 1);
+  this->acc.Charge(HeapCost(cap));
+  auto* mem = static_cast<unsigned char*>(std::malloc(cap));
+  if (!mem)
+  {
+    this->acc.Release(HeapCost(cap));
+    throw std::bad_alloc();
+  }
+  try
+  {
+    this->BackendRead(b, mem, b.Bytes(), 0);
+  }
+  catch (...)
+  {
+    std::free(mem);
+    this->acc.Release(HeapCost(cap));
+    throw;
+  }
+  b.mem = mem;
+  b.capacityBytes = cap;
+  b.lastFrame = -1;
+  this->RemoveFile(b);
+}
+
+// Cost of holding every open block in core now: metadata plus the blocks' bytes.
+std::uint64_t DML::Impl::CostInCore() const
+{
+  std::uint64_t c = this->acc.held - this->CacheCost();
+  for (const auto& b : this->blocks)
+  {
+    if (b.kind == Kind::Plain || b.kind == Kind::Internal)
+    {
+      c += HeapCost(std::max<std::uint64_t>(b.Bytes(), 1));
+      if (b.mem)
+      {
+        c -= HeapCost(b.capacityBytes);
+      }
+    }
+  }
+  return c;
+}
+
+void DML::Impl::SwitchTo(Mode target)
+{
+  if (target == Mode::OutOfCore)
+  {
+    this->mode = Mode::OutOfCore; // new blocks go to files even if a spill below fails
+    this->stats.usedOutOfCore = true;
+    for (std::size_t i = 0; i < this->blocks.size(); ++i)
+    {
+      if (this->blocks[i].mem &&
+        (this->blocks[i].kind == Kind::Plain || this->blocks[i].kind == Kind::Internal))
+      {
+        this->SpillBlock(static_cast<BlockId>(i));
+      }
+    }
+    return;
+  }
+  this->DestroyCache(true); // writes dirty pages back, frees every frame
+  for (std::size_t i = 0; i < this->blocks.size(); ++i)
+  {
+    if (this->blocks[i].fd >= 0)
+    {
+      this->LoadBlock(static_cast<BlockId>(i));
+    }
+  }
+  this->mode = Mode::InCore;
+  this->stats.usedInCore = true;
+}
+
+void DML::Impl::Transfer(BlockId id, Block& b, std::uint64_t off, std::uint64_t n,
+  unsigned char* buf, bool write)
+{
+  if (n == 0)
+  {
+    return; // buf may be null (an empty vector's data())
+  }
+  if (b.mem)
+  {
+    if (write)
+    {
+      std::memcpy(b.mem + off, buf, n);
+    }
+    else
+    {
+      std::memcpy(buf, b.mem + off, n);
+    }
+    return;
+  }
+  this->EnsureCache();
+  const std::uint64_t pb = this->PageBytes(b);
+  const std::uint64_t end = off + n;
+  while (off < end)
+  {
+    const std::uint64_t page = off / pb;
+    const std::uint64_t pageEnd = (page + 1) * pb;
+    const bool full = off == page * pb && end >= pageEnd;
+    if (full && this->Lookup(id, page) < 0)
+    {
+      // Runs of at least two whole pages that are not cached go straight to the file: streaming
+      // does not flush the cache, and the file is authoritative for pages that are not cached.
+      std::uint64_t last = page + 1;
+      while ((last + 1) * pb <= end && this->Lookup(id, last) < 0)
+      {
+        ++last;
+      }
+      if (last - page >= 2)
+      {
+        const std::uint64_t bytes = (last - page) * pb;
+        if (write)
+        {
+          this->BackendWrite(b, buf, bytes, off);
+        }
+        else
+        {
+          this->BackendRead(b, buf, bytes, off);
+        }
+        this->stats.misses += last - page;
+        off += bytes;
+        buf += bytes;
+        continue;
+      }
+    }
+    const std::uint64_t chunk = std::min(end, pageEnd) - off;
+    unsigned char* data = this->PageFor(id, b, page, write, !(write && full)) + (off - page * pb);
+    if (write)
+    {
+      std::memcpy(data, buf, chunk);
+    }
+    else
+    {
+      std::memcpy(buf, data, chunk);
+    }
+    off += chunk;
+    buf += chunk;
+  }
+}
+
+// ------------------------------------------------------------------------------------------------
+DML::DML()
+  : DML(FileBackend::CreatePosix())
+{
+}
+
+DML::DML(std::unique_ptr<FileBackend> backend)
+  : impl_(std::make_unique<Impl>(backend ? std::move(backend) : FileBackend::CreatePosix()))
+{
+  this->impl_->owner = this; // DML is neither copyable nor movable: the pointer stays valid
+}
+
+DML::~DML() = default;
+
+Mode DML::Config(const Profile& profile)
+{
+  Impl& I = *this->impl_;
+  detail::BaseSync sync(I);
+  if (I.cache.pinnedFrames > 0)
+  {
+    throw std::logic_error("sipmss::storage: Config while pages are pinned");
+  }
+  // Replace the stored profile (its heap bytes are metadata).
+  const std::uint64_t estimate = detail::ProfileHeapCost(profile);
+  I.acc.Charge(estimate);
+  try
+  {
+    I.profile = profile;
+  }
+  catch (...)
+  {
+    I.acc.Release(estimate);
+    throw;
+  }
+  I.acc.Release(I.profileCost + estimate);
+  I.profileCost = detail::ProfileHeapCost(I.profile);
+  I.acc.Add(I.profileCost);
+
+  // C = sum(elementSize * maxCount) + metadata; never less than what is open now.
+  std::uint64_t c = I.acc.held - I.CacheCost() +
+    HeapCost(sizeof(Block) * (profile.structures.size() + 1));
+  for (const auto& b : I.blocks)
+  {
+    if (b.mem)
+    {
+      c -= HeapCost(b.capacityBytes);
+    }
+  }
+  for (const auto& s : profile.structures)
+  {
+    c += HeapCost(CheckedBytes(s.maxCount, std::max<std::size_t>(s.elementSize, 1)));
+  }
+  c = std::max(c, I.CostInCore());
+  const std::uint64_t B = profile.memoryBudget;
+  Mode target = Mode::InCore;
+  if (profile.policy == ModePolicy::OutOfCore ||
+    (profile.policy == ModePolicy::Automatic && B != 0 && c > B))
+  {
+    target = Mode::OutOfCore;
+  }
+
+  // Drop the cache (its size and page size follow the budget and policy), move the blocks
+  // without a limit (moving out frees memory), then apply the new budget, also on failure.
+  I.DestroyCache(true);
+  struct ApplyBudget
+  {
+    detail::Accountant& acc;
+    std::uint64_t budget;
+    ~ApplyBudget() { this->acc.budget = this->budget; }
+  } apply{ I.acc, B };
+  I.acc.budget = 0;
+  if (target == Mode::OutOfCore)
+  {
+    I.SwitchTo(Mode::OutOfCore);
+  }
+  else if (B == 0 || I.CostInCore() <= B)
+  {
+    I.SwitchTo(Mode::InCore);
+  }
+  else
+  {
+    throw BudgetError("sipmss::storage: the open blocks exceed the budget and the mode is "
+                      "forced in core");
+  }
+  I.acc.budget = B;
+  if (B != 0 && I.acc.held > B)
+  {
+    throw BudgetError("sipmss::storage: memory budget " + std::to_string(B) +
+      " is below the DML's metadata (" + std::to_string(I.acc.held) + " bytes)");
+  }
+  I.acc.peak = I.acc.held;
+  I.stats.reconfigurations = 0;
+  I.stats.usedInCore = I.mode == Mode::InCore;
+  I.stats.usedOutOfCore = I.mode == Mode::OutOfCore;
+  return I.mode;
+}
+
+Mode DML::Reconfigure()
+{
+  Impl& I = *this->impl_;
+  detail::BaseSync sync(I);
+  if (I.cache.pinnedFrames > 0)
+  {
+    return I.mode; // pinned pages cannot move
+  }
+  const std::uint64_t B = I.acc.budget;
+  const std::uint64_t c = I.CostInCore();
+  const ModePolicy policy = I.profile.policy;
+  const Mode before = I.mode;
+  if (policy != ModePolicy::OutOfCore && (B == 0 || c <= B))
+  {
+    bool anyOnFile = false;
+    for (const auto& b : I.blocks)
+    {
+      anyOnFile = anyOnFile || b.fd >= 0;
+    }
+    if (before == Mode::OutOfCore || anyOnFile)
+    {
+      I.SwitchTo(Mode::InCore);
+    }
+  }
+  else if (policy != ModePolicy::InCore && B != 0 && c > B)
+  {
+    I.SwitchTo(Mode::OutOfCore);
+  }
+  if (I.mode != before)
+  {
+    ++I.stats.reconfigurations;
+  }
+  return I.mode;
+}
+
+Mode DML::GetMode() const
+{
+  return this->impl_->mode;
+}
+
+Stats DML::GetStats() const
+{
+  Stats s = this->impl_->stats;
+  s.mode = this->impl_->mode;
+  s.bytesHeld = this->impl_->acc.held;
+  s.peakBytes = this->impl_->acc.peak;
+  return s;
+}
+
+const Profile& DML::GetProfile() const
+{
+  return this->impl_->profile;
+}
+
+BlockId DML::OpenBlock(std::size_t elementSize, std::uint64_t count, double weight)
+{
+  detail::BaseSync sync(*this->impl_);
+  return this->impl_->OpenRaw(Kind::Plain, elementSize, count, weight);
+}
+
+void DML::CloseBlock(BlockId id)
+{
+  Impl& I = *this->impl_;
+  detail::BaseSync sync(I);
+  if (id < 0 || static_cast<std::size_t>(id) >= I.blocks.size() ||
+    (I.blocks[static_cast<std::size_t>(id)].kind != Kind::Plain &&
+      I.blocks[static_cast<std::size_t>(id)].kind != Kind::List))
+  {
+    throw std::invalid_argument("sipmss::storage: invalid block id " + std::to_string(id));
+  }
+  I.CloseRaw(id);
+}
+
+void DML::Resize(BlockId id, std::uint64_t count)
+{
+  Impl& I = *this->impl_;
+  detail::BaseSync sync(I);
+  if (id >= 0 && static_cast<std::size_t>(id) < I.blocks.size() &&
+    I.blocks[static_cast<std::size_t>(id)].kind == Kind::List)
+  {
+    I.ResizeRaw(id, count);
+    return;
+  }
+  I.Get(id, Kind::Plain);
+  I.ResizeRaw(id, count);
+}
+
+std::uint64_t DML::Count(BlockId id) const
+{
+  const Impl& I = *this->impl_;
+  if (id >= 0 && static_cast<std::size_t>(id) < I.blocks.size() &&
+    I.blocks[static_cast<std::size_t>(id)].kind == Kind::List)
+  {
+    return I.blocks[static_cast<std::size_t>(id)].count;
+  }
+  return I.Get(id, Kind::Plain).count;
+}
+
+std::size_t DML::ElementSize(BlockId id) const
+{
+  const Impl& I = *this->impl_;
+  if (id >= 0 && static_cast<std::size_t>(id) < I.blocks.size() &&
+    I.blocks[static_cast<std::size_t>(id)].kind == Kind::List)
+  {
+    return I.blocks[static_cast<std::size_t>(id)].elementSize;
+  }
+  return I.Get(id, Kind::Plain).elementSize;
+}
+
+namespace
+{
+Block& CheckElement(DML::Impl& I, BlockId id, std::size_t elementSize, std::uint64_t index)
+{
+  Block& b = I.Get(id, Kind::Plain);
+  if (elementSize != b.elementSize)
+  {
+    throw std::invalid_argument("sipmss::storage: element size " + std::to_string(elementSize) +
+      " does not match block " + std::to_string(id) + " (" + std::to_string(b.elementSize) + ")");
+  }
+  if (index >= b.count)
+  {
+    throw std::out_of_range("sipmss::storage: index " + std::to_string(index) +
+      " out of range of block " + std::to_string(id));
+  }
+  return b;
+}
+
+Block& CheckRange(DML::Impl& I, BlockId id, std::uint64_t first, std::uint64_t count)
+{
+  Block& b = I.Get(id, Kind::Plain);
+  if (first > b.count || count > b.count - first)
+  {
+    throw std::out_of_range("sipmss::storage: range out of bounds of block " + std::to_string(id));
+  }
+  return b;
+}
+} // namespace
+
+void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
+{
+  Impl& I = *this->impl_;
+  Block& b = CheckElement(I, id, elementSize, index);
+  if (b.mem)
+  {
+    std::memcpy(dst, b.mem + index * elementSize, elementSize);
+    return;
+  }
+  I.EnsureCache();
+  const std::uint64_t page = index / b.perPage;
+  const unsigned char* data = I.PageFor(id, b, page, false, true);
+  std::memcpy(dst, data + (index - page * b.perPage) * elementSize, elementSize);
+}
+
+void DML::Write(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
+{
+  Impl& I = *this->impl_;
+  Block& b = CheckElement(I, id, elementSize, index);
+  if (b.mem)
+  {
+    std::memcpy(b.mem + index * elementSize, src, elementSize);
+    return;
+  }
+  I.EnsureCache();
+  const std::uint64_t page = index / b.perPage;
+  unsigned char* data = I.PageFor(id, b, page, true, true);
+  std::memcpy(data + (index - page * b.perPage) * elementSize, src, elementSize);
+}
+
+void DML::ReadRange(BlockId id, std::uint64_t first, std::uint64_t count, void* dst)
+{
+  Impl& I = *this->impl_;
+  Block& b = CheckRange(I, id, first, count);
+  I.Transfer(id, b, first * b.elementSize, count * b.elementSize, static_cast<unsigned char*>(dst),
+    false);
+}
+
+void DML::WriteRange(BlockId id, std::uint64_t first, std::uint64_t count, const void* src)
+{
+  Impl& I = *this->impl_;
+  Block& b = CheckRange(I, id, first, count);
+  I.Transfer(id, b, first * b.elementSize, count * b.elementSize,
+    static_cast<unsigned char*>(const_cast<void*>(src)), true);
+}
+
+void DML::Fill(BlockId id, const void* element)
+{
+  Impl& I = *this->impl_;
+  Block& b = I.Get(id, Kind::Plain);
+  const std::size_t es = b.elementSize;
+  const auto* e = static_cast<const unsigned char*>(element);
+  const bool zero = AllZero(e, es);
+  const auto fillPattern = [&](unsigned char* dst, std::uint64_t elements)
+  {
+    if (zero || elements == 0)
+    {
+      std::memset(dst, 0, elements * es);
+      return;
+    }
+    std::memcpy(dst, e, es);
+    for (std::uint64_t done = 1; done < elements;) // doubling copies
+    {
+      const std::uint64_t n = std::min(done, elements - done);
+      std::memcpy(dst + done * es, dst, n * es);
+      done += n;
+    }
+  };
+  if (b.mem)
+  {
+    fillPattern(b.mem, b.count);
+    return;
+  }
+  if (b.count == 0)
+  {
+    return;
+  }
+  if (zero)
+  {
+    // Zero fill of a file: drop its pages and punch everything out by truncation.
+    I.DropBlockPages(id, 0);
+    I.BackendTruncate(b, 0);
+    I.BackendTruncate(b, b.Bytes());
+    return;
+  }
+  I.EnsureCache();
+  const std::uint64_t per = b.perPage;
+  const std::uint64_t pages = (b.count + per - 1) / per;
+  const auto valid = [&](std::uint64_t page) { return std::min(per, b.count - page * per); };
+  // Fill resident pages in place (page 0 is made resident and becomes the pattern), then write
+  // the pattern page directly to every page that is not cached.
+  const std::int32_t pattern = I.PinPage(id, b, 0, true);
+  try
+  {
+    for (auto& f : I.cache.frames)
+    {
+      if (f.block == id)
+      {
+        fillPattern(f.data, valid(f.page));
+        f.dirty = true;
+      }
+    }
+    const unsigned char* src = I.cache.frames[static_cast<std::size_t>(pattern)].data;
+    for (std::uint64_t p = 1; p < pages; ++p)
+    {
+      if (I.Lookup(id, p) < 0)
+      {
+        I.BackendWrite(b, src, valid(p) * es, p * per * es);
+      }
+    }
+  }
+  catch (...)
+  {
+    I.UnpinPage(id, 0);
+    throw;
+  }
+  I.UnpinPage(id, 0);
+}
+
+Span DML::Pin(BlockId id, std::uint64_t index, Access access)
+{
+  Impl& I = *this->impl_;
+  Block& b = I.Get(id, Kind::Plain);
+  if (index >= b.count)
+  {
+    throw std::out_of_range("sipmss::storage: pin index out of range of block " + std::to_string(id));
+  }
+  if (b.mem)
+  {
+    return Span{ b.mem + index * b.elementSize, index, b.count - index };
+  }
+  I.EnsureCache();
+  const std::uint64_t page = index / b.perPage;
+  const std::int32_t fi = I.PinPage(id, b, page, access == Access::Write);
+  const std::uint64_t end = std::min((page + 1) * b.perPage, b.count);
+  return Span{ I.cache.frames[static_cast<std::size_t>(fi)].data +
+      (index - page * b.perPage) * b.elementSize,
+    index, end - index };
+}
+
+void DML::Unpin(BlockId id, const Span& span)
+{
+  Impl& I = *this->impl_;
+  Block& b = I.Get(id, Kind::Plain);
+  if (b.mem || !I.cache.built || span.data == nullptr)
+  {
+    return; // in core pins are free
+  }
+  I.UnpinPage(id, span.first / b.perPage);
+}
+
+std::string DML::PrivateDirectory() const
+{
+  for (const auto& d : this->impl_->dirs)
+  {
+    if (!d.path.empty())
+    {
+      return std::string(d.path.data(), d.path.size());
+    }
+  }
+  return std::string();
+}
+
+// ------------------------------------------------------------------------------------------------
+void DMLTestAccess::SetReplacement(DML& dml, Replacement r)
+{
+  dml.impl_->replacement = r;
+}
+
+std::size_t DMLTestAccess::PageSize(const DML& dml)
+{
+  return dml.impl_->cache.built ? dml.impl_->cache.pageSize : 0;
+}
+
+std::uint32_t DMLTestAccess::FrameSlots(const DML& dml)
+{
+  return static_cast<std::uint32_t>(dml.impl_->cache.frames.size());
+}
+
+std::uint64_t DMLTestAccess::FileBytes(const DML& dml, BlockId id)
+{
+  const Block& b = dml.impl_->Get(id, Kind::Plain);
+  struct stat st{};
+  if (b.fd < 0 || ::fstat(b.fd, &st) != 0)
+  {
+    return 0;
+  }
+  return static_cast<std::uint64_t>(st.st_size);
+}
+
+} // namespace sipmss::storage
