@@ -7,12 +7,15 @@
 //   triHash   : open-addressing set of output triangles (dedup), triangles in first-seen order
 #include "sipmss/algorithms/Cluster.h"
 
+#include "sipmss/algorithms/Prefetch.h"
+
 #include <Eigen/Dense>
 
 #include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <thread>
 
 namespace sipmss::algorithms
 {
@@ -298,11 +301,20 @@ public:
       std::uint32_t cell = lastCell;
       if (key != lastKey)
       {
-        bool inserted = false;
-        cell = this->cellMap_.FindOrInsert(key, this->numCells_, &inserted);
-        if (inserted)
+        KeySlot& cached = this->recent_[Mix(key) & (kRecent - 1)];
+        if (cached.key == key + 1)
         {
-          this->AddCell(p);
+          cell = static_cast<std::uint32_t>(cached.cell);
+        }
+        else
+        {
+          bool inserted = false;
+          cell = this->cellMap_.FindOrInsert(key, this->numCells_, &inserted);
+          if (inserted)
+          {
+            this->AddCell(p);
+          }
+          cached = KeySlot{ key + 1, cell };
         }
         lastKey = key;
         lastCell = cell;
@@ -730,6 +742,11 @@ private:
   Array<CellRec> cells_;
   storage::BlockId attrBlock_ = -1;
   CellMap cellMap_;
+  // Direct-mapped cache of recent key -> cell lookups in front of the cell map (a fixed 128 KiB
+  // working set): scanner-ordered input revisits the cells of the sweep front all the time, and
+  // this keeps those lookups off the DML's pages.
+  static constexpr std::size_t kRecent = 8192;
+  std::vector<KeySlot> recent_ = std::vector<KeySlot>(kRecent, KeySlot{ 0, 0 });
   TriangleSet triangles_;
   Array<TriSlot> deferred_;
   std::uint64_t deferredCount_ = 0;
@@ -782,9 +799,12 @@ std::uint64_t ClusterGrid::Key(double x, double y, double z) const
   return (idx[0] * this->dims[1] + idx[1]) * this->dims[2] + idx[2];
 }
 
-RunStats Cluster(const MeshSource& input, io::MeshSink& output, const ClusterOptions& options,
+RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
   Progress& progress)
 {
+  const int threads =
+    options.threads > 0 ? options.threads : static_cast<int>(std::thread::hardware_concurrency());
+  const MeshSource input = threads > 1 ? Prefetched(source) : source;
   RunStats stats;
   DML dml;
   {

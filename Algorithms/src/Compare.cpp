@@ -8,6 +8,7 @@
 #include <limits>
 #include <stdexcept>
 #include <string>
+#include <system_error>
 #include <thread>
 
 namespace sipmss::algorithms
@@ -323,7 +324,14 @@ void ParallelChunks(std::uint64_t count, int threads, const Body& body)
   pool.reserve(extra);
   for (std::uint64_t i = 0; i < extra; ++i)
   {
-    pool.emplace_back(worker);
+    try
+    {
+      pool.emplace_back(worker);
+    }
+    catch (const std::system_error&)
+    {
+      break; // no more threads: the others share the work
+    }
   }
   worker();
   for (auto& t : pool)
@@ -595,7 +603,8 @@ struct MeshDistanceIndex::Builder
 
   float Centroid(std::uint32_t t, int axis) const
   {
-    return 0.5f * (this->boxes[6 * std::size_t(t) + axis] + this->boxes[6 * std::size_t(t) + 3 + axis]);
+    const float* b = this->boxes + 6 * std::size_t(t);
+    return 0.5f * (b[axis] + b[3 + axis]);
   }
 
   // Chooses the split of order[begin, end) and partitions it; returns the first of the right
@@ -634,7 +643,8 @@ struct MeshDistanceIndex::Builder
       const double scale = kBins / extent;
       const float lo = clo[axis];
       auto binOf = [this, axis, scale, lo](std::uint32_t t) {
-        return std::min(kBins - 1, static_cast<int>((double(this->Centroid(t, axis)) - lo) * scale));
+        const double x = (double(this->Centroid(t, axis)) - lo) * scale;
+        return std::min(kBins - 1, static_cast<int>(x));
       };
       Box bins[kBins];
       std::uint32_t counts[kBins] = {};
@@ -818,22 +828,33 @@ struct MeshDistanceIndex::Builder
     const std::size_t self = nodes.size();
     nodes.emplace_back();
     Built kids[2];
+    // The right subtree on another thread into its own node array, spliced after the left one:
+    // the same layout as the serial build.
+    std::vector<Node> rightNodes;
+    std::exception_ptr failure;
+    std::thread worker;
     if (parallelDepth > 0 && n >= kParallelMinimum)
     {
-      // The right subtree on another thread into its own node array, spliced after the left
-      // one: the same layout as the serial build.
-      std::vector<Node> rightNodes;
-      std::exception_ptr failure;
-      std::thread worker([&]() {
-        try
-        {
-          kids[1] = this->Build(mid, end, rightNodes, depth + 1, parallelDepth - 1);
-        }
-        catch (...)
-        {
-          failure = std::current_exception();
-        }
-      });
+      try
+      {
+        worker = std::thread([&]() {
+          try
+          {
+            kids[1] = this->Build(mid, end, rightNodes, depth + 1, parallelDepth - 1);
+          }
+          catch (...)
+          {
+            failure = std::current_exception();
+          }
+        });
+      }
+      catch (const std::system_error&)
+      {
+        // No thread available: build serially below.
+      }
+    }
+    if (worker.joinable())
+    {
       try
       {
         kids[0] = this->Build(begin, mid, nodes, depth + 1, parallelDepth - 1);

@@ -37,6 +37,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <ctime>
 #include <limits>
 #include <string>
 #include <vector>
@@ -50,23 +51,27 @@ using storage::BlockId;
 using storage::DML;
 
 constexpr std::uint32_t kNone = 0xffffffffu;
+double DbgCpu() { timespec t; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t); return t.tv_sec + 1e-9 * t.tv_nsec; }
+double g_dbg[8];
+std::uint64_t g_cnt[8];
+struct DbgDump { ~DbgDump() { if (std::getenv("SIPMSS_DECIMATE_DEBUG")) std::fprintf(stderr, "cpu: sweep %.3f hist %.3f collapse %.3f compact %.3f edges %llu survivors %llu recompute %llu\n", g_dbg[0], g_dbg[1], g_dbg[2], g_dbg[3], (unsigned long long)g_cnt[0], (unsigned long long)g_cnt[1], (unsigned long long)g_cnt[2]); } } g_dbgDump;
 constexpr int kCostBins = 1 << 15;
 
 // Per-vertex state bits.
-enum : std::uint8_t
+using State = std::uint16_t;
+constexpr State kRemoved = 1;      // collapsed into another vertex during this pass
+constexpr State kMarked = 2;       // touched by a collapse of this pass
+constexpr State kBoundary = 4;     // has boundary edges
+constexpr State kLocked = 8;       // non-manifold: never collapsed
+constexpr State kFixed = 16;       // lockBoundary: never moves, never removed (may absorb)
+constexpr State kNeedsLegal = 32;  // its cheapest collapse was illegal: evaluate with legality
+constexpr State kSurvivor = 64;    // survived a collapse of the last pass: all its edges changed
+constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edges
+constexpr State kCollapsed = 256;  // survived a collapse of this pass
+// Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
+inline bool Active(State s)
 {
-  kRemoved = 1,  // collapsed into another vertex during this pass
-  kMarked = 2,   // touched by a collapse of this pass
-  kBoundary = 4, // has boundary edges
-  kLocked = 8,   // non-manifold: never collapsed
-  kFixed = 16,   // lockBoundary: never moves, never removed (may absorb an interior neighbour)
-  kNeedsLegal = 32, // its cheapest collapse was illegal: evaluate with legality until touched
-  kDirty = 64        // touched by the last pass: its candidate is evaluated again
-};
-// A vertex evaluated on the light path of the sweep.
-inline bool Light(std::uint8_t s)
-{
-  return (s & (kDirty | kNeedsLegal | kLocked)) == kDirty;
+  return (s & (kSurvivor | kRecompute)) != 0 && (s & (kNeedsLegal | kLocked)) == 0;
 }
 
 struct Vec3
@@ -231,6 +236,16 @@ private:
   BlockId id_ = -1;
   T* base_ = nullptr;
 };
+
+template <class T>
+inline void Prefetch(const T* p)
+{
+#if defined(__GNUC__)
+  __builtin_prefetch(static_cast<const void*>(p));
+#else
+  (void)p;
+#endif
+}
 
 template <class T>
 void FillBlock(DML& dml, const Array<T>& a, const T& value)
@@ -403,14 +418,13 @@ private:
   void BindViews();
   void LoadRing(std::uint32_t x, Ring& r, bool positions);
   void Evaluate(std::uint32_t u);
-  void EvaluateEdge(std::uint32_t u, std::uint8_t su, const Quadric& Qu, const Vec3& pu,
+  void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
     std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n);
-  void EvaluateFull(std::uint32_t u, std::uint8_t su);
+  void EvaluateFull(std::uint32_t u, State su);
   void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
   bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p);
   bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
-  Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, std::uint8_t su,
-    std::uint8_t sv) const;
+  Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const;
   void Collapse(std::uint32_t u, const Cand& c);
   void InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t);
   void EnsureVertexCapacity(std::uint64_t n);
@@ -446,7 +460,7 @@ private:
   Array<Vec3> pos_;
   Array<Quadric> quad_;
   Array<std::uint8_t> attr_; // nv_ * recSize_ bytes
-  Array<std::uint8_t> state_;
+  Array<State> state_;
   Array<Tri> faces_;
   Array<std::uint32_t> ringOff_;  // nv_ + 1
   Array<std::uint32_t> ringFace_; // ringOff_[nv_]
@@ -456,7 +470,7 @@ private:
   View<Vec3> P_;
   View<Quadric> Q_;
   View<std::uint8_t> A_;
-  View<std::uint8_t> S_;
+  View<State> S_;
   View<Tri> F_;
   View<std::uint32_t> RO_, RF_;
   View<Cand> C_;
@@ -973,8 +987,7 @@ void Decimator::BindViews()
   this->P_ = View<Vec3>(this->dml_, this->pos_);
   this->Q_ = this->quad_.IsOpen() ? View<Quadric>(this->dml_, this->quad_) : View<Quadric>();
   this->A_ = this->recSize_ ? View<std::uint8_t>(this->dml_, this->attr_) : View<std::uint8_t>();
-  this->S_ = this->state_.IsOpen() ? View<std::uint8_t>(this->dml_, this->state_)
-                                   : View<std::uint8_t>();
+  this->S_ = this->state_.IsOpen() ? View<State>(this->dml_, this->state_) : View<State>();
   this->F_ = View<Tri>(this->dml_, this->faces_);
   this->RO_ = View<std::uint32_t>(this->dml_, this->ringOff_);
   this->RF_ = View<std::uint32_t>(this->dml_, this->ringFace_);
@@ -992,6 +1005,13 @@ void Decimator::LoadRing(std::uint32_t x, Ring& r, bool positions)
   const std::uint32_t b = this->RO_.Get(x), e = this->RO_.Get(x + 1);
   r.ids.resize(e - b);
   this->RF_.GetRange(b, e - b, r.ids.data());
+  if (const Tri* fp = this->F_.Ptr(0))
+  {
+    for (std::uint32_t id : r.ids)
+    {
+      Prefetch(fp + id);
+    }
+  }
   for (std::uint32_t id : r.ids)
   {
     const Tri t = this->F_.Get(id);
@@ -1031,6 +1051,13 @@ void Decimator::LoadRing(std::uint32_t x, Ring& r, bool positions)
   }
   if (positions)
   {
+    if (const Vec3* pp = this->P_.Ptr(0))
+    {
+      for (const Nb& n : r.nbs)
+      {
+        Prefetch(pp + n.v);
+      }
+    }
     r.px = this->P_.Get(x);
     for (Nb& n : r.nbs)
     {
@@ -1048,7 +1075,7 @@ void Decimator::BuildQuadrics()
   this->progress_.BeginPhase("quadrics", 0.3, 0.35);
   const std::uint64_t nv = this->nv_;
   this->quad_ = Array<Quadric>(this->dml_, std::max<std::uint64_t>(nv, 1));
-  this->state_ = Array<std::uint8_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->state_ = Array<State>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->cand_ = Array<Cand>(this->dml_, std::max<std::uint64_t>(nv, 1));
   FillBlock(this->dml_, this->cand_, this->none_);
   this->BindViews();
@@ -1060,7 +1087,7 @@ void Decimator::BuildQuadrics()
     this->LoadRing(std::uint32_t(u), r, true);
     Quadric Q;
     std::fill(Q.q, Q.q + 10, 0.0);
-    std::uint8_t flags = kDirty;
+    State flags = kRecompute;
     // Face plane quadrics, weighted by area.
     Vec3 un[64];
     std::vector<Vec3> unBig;
@@ -1147,7 +1174,7 @@ void Decimator::BuildQuadrics()
 // collapse
 
 Placement Decimator::Place(
-  const Quadric& Q, const Vec3& pu, const Vec3& pv, std::uint8_t su, std::uint8_t sv) const
+  const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const
 {
   if (su & kFixed)
   {
@@ -1335,7 +1362,7 @@ void Decimator::Offer(std::uint32_t x, std::uint32_t partner, const Placement& p
 // (or inconsistently oriented) and is taken from there.
 void Decimator::Evaluate(std::uint32_t u)
 {
-  const std::uint8_t su = this->S_.Get(u);
+  const State su = this->S_.Get(u);
   if (su & kLocked)
   {
     return;
@@ -1345,10 +1372,11 @@ void Decimator::Evaluate(std::uint32_t u)
     this->EvaluateFull(u, su);
     return;
   }
-  if (!(su & kDirty))
+  if (!Active(su))
   {
-    return; // untouched by the last pass: its candidate is still exact
+    return; // its candidate is exact (and adjacent survivors offer their new edges)
   }
+  ++g_cnt[(su & kSurvivor) ? 1 : 2];
   const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
   const std::uint32_t* ids = this->RF_.Ptr(b);
   if (!ids)
@@ -1413,19 +1441,22 @@ void Decimator::Evaluate(std::uint32_t u)
   }
 }
 
-void Decimator::EvaluateEdge(std::uint32_t u, std::uint8_t su, const Quadric& Qu, const Vec3& pu,
+void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
   std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n)
 {
-  const std::uint8_t sv = this->S_.Get(v);
+  const State sv = this->S_.Get(v);
   if (sv & kLocked) // also every vertex of an edge with > 2 faces
   {
     return;
   }
-  const bool lightV = Light(sv);
-  if (lightV && v < u)
+  const bool activeV = Active(sv);
+  if (activeV && v < u)
   {
     return; // done in v's sweep, and offered to u
   }
+  // v needs the edge when its candidate is being recomputed, or when the edge changed (u
+  // survived a collapse) and v keeps its cached candidate; kNeedsLegal vertices do their own.
+  const bool offerV = !(sv & kNeedsLegal) && (activeV || (su & kSurvivor));
   if ((su & kFixed) && (sv & kFixed))
   {
     return;
@@ -1444,6 +1475,7 @@ void Decimator::EvaluateEdge(std::uint32_t u, std::uint8_t su, const Quadric& Qu
   }
   Quadric Q = this->Q_.Get(v);
   AddTo(Q, Qu);
+  ++g_cnt[0];
   const Placement pl = this->Place(Q, pu, this->P_.Get(v), su, sv);
   if (!std::isfinite(pl.cost) ||
     (std::isfinite(this->opt_.maximumError) && pl.cost > this->opt_.maximumError * Trace(Q)))
@@ -1451,7 +1483,7 @@ void Decimator::EvaluateEdge(std::uint32_t u, std::uint8_t su, const Quadric& Qu
     return;
   }
   this->Offer(u, v, pl, false);
-  if (lightV)
+  if (offerV)
   {
     this->Offer(v, u, pl, true);
   }
@@ -1460,7 +1492,7 @@ void Decimator::EvaluateEdge(std::uint32_t u, std::uint8_t su, const Quadric& Qu
 // The heavy path for a vertex whose cheapest collapse was illegal: all its edges, in cost
 // order, the first legal one is its candidate. Edges to higher neighbours are still offered to
 // them.
-void Decimator::EvaluateFull(std::uint32_t u, std::uint8_t su)
+void Decimator::EvaluateFull(std::uint32_t u, State su)
 {
   this->C_.Set(u, this->none_);
   Ring& ru = this->ru_;
@@ -1480,7 +1512,7 @@ void Decimator::EvaluateFull(std::uint32_t u, std::uint8_t su)
     {
       continue;
     }
-    const std::uint8_t sv = this->S_.Get(nb.v);
+    const State sv = this->S_.Get(nb.v);
     if (sv & kLocked)
     {
       continue;
@@ -1500,11 +1532,9 @@ void Decimator::EvaluateFull(std::uint32_t u, std::uint8_t su)
     {
       continue;
     }
+    // (Its neighbours get this edge from their own evaluation: u is neither active nor a
+    // survivor.)
     this->edges_.push_back({ pl.cost, nb.v, k, pl });
-    if (nb.v > u && Light(sv))
-    {
-      this->Offer(nb.v, u, pl, true);
-    }
   }
   std::sort(this->edges_.begin(), this->edges_.end(), [](const EdgeCand& a, const EdgeCand& b) {
     return a.cost < b.cost || (a.cost == b.cost && a.v < b.v);
@@ -1579,7 +1609,7 @@ void Decimator::Collapse(std::uint32_t u, const Cand& c)
   const std::uint32_t v = c.partner;
   const Ring& ru = this->ru_;
   const Ring& rv = this->rv_;
-  const std::uint8_t su = this->S_.Get(u), sv = this->S_.Get(v);
+  const State su = this->S_.Get(u), sv = this->S_.Get(v);
   std::uint64_t removed = 0;
   for (const RingFace& f : ru.faces)
   {
@@ -1603,7 +1633,7 @@ void Decimator::Collapse(std::uint32_t u, const Cand& c)
   {
     for (const Nb& n : r->nbs)
     {
-      this->S_.Set(n.v, std::uint8_t(this->S_.Get(n.v) | kMarked));
+      this->S_.Set(n.v, State(this->S_.Get(n.v) | kMarked));
     }
   }
   this->P_.Set(u, { c.p[0], c.p[1], c.p[2] });
@@ -1611,8 +1641,8 @@ void Decimator::Collapse(std::uint32_t u, const Cand& c)
   AddTo(Q, this->Q_.Get(v));
   this->Q_.Set(u, Q);
   this->InterpolateAttributes(u, v, double(c.t));
-  this->S_.Set(v, std::uint8_t(kRemoved | kMarked));
-  this->S_.Set(u, std::uint8_t(su | kMarked | (sv & (kBoundary | kFixed))));
+  this->S_.Set(v, State(kRemoved | kMarked));
+  this->S_.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed))));
   this->liveFaces_ -= removed;
 }
 
@@ -1629,6 +1659,7 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
   const std::uint64_t nv = this->nv_;
   this->BindViews();
   // 1. Every vertex's cheapest collapse.
+  double t0 = DbgCpu();
   this->progress_.BeginPhase("collapse", progressBase, progressBase + 0.6 * progressSpan);
   for (std::uint64_t u = 0; u < nv; ++u)
   {
@@ -1638,6 +1669,7 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
   // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
   // about four times the collapses the goal needs (a collapse removes 2 faces, and both
   // endpoints may propose it). Ties in order of vertex index.
+  double t1 = DbgCpu(); g_dbg[0] += t1 - t0;
   std::fill(this->hist_.begin(), this->hist_.end(), 0u);
   std::uint64_t candidates = 0;
   for (std::uint64_t u = 0; u < nv; ++u)
@@ -1668,6 +1700,50 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
       break;
     }
   }
+  // Coarse groups (quantiles of the ordered candidates), each in vertex order.
+  static const int kGroups = std::getenv("NGRP") ? std::atoi(std::getenv("NGRP")) : 0;
+  if (kGroups > 0)
+  {
+    std::vector<std::uint64_t> gstart(kGroups + 1, 0);
+    std::uint64_t prevStart = 0;
+    std::vector<std::uint32_t> counts(lastBin + 1);
+    for (std::uint32_t b = 0; b <= lastBin; ++b)
+    {
+      std::uint64_t next = b < lastBin ? this->hist_[b + 1] : taken;
+      counts[b] = std::uint32_t(next - this->hist_[b]);
+    }
+    (void)prevStart;
+    std::vector<std::uint64_t> gcount(kGroups, 0);
+    std::uint64_t cum = 0;
+    for (std::uint32_t b = 0; b <= lastBin; ++b)
+    {
+      int g = int(std::min<std::uint64_t>(kGroups - 1, cum * kGroups / std::max<std::uint64_t>(taken, 1)));
+      cum += counts[b];
+      gcount[g] += counts[b];
+      counts[b] = std::uint32_t(g);
+    }
+    std::uint64_t st = 0;
+    for (int g = 0; g < kGroups; ++g) { gstart[g] = st; st += gcount[g]; }
+    for (std::uint32_t b = 0; b <= lastBin; ++b)
+    {
+      this->hist_[b] = std::uint32_t(gstart[counts[b]]);
+      gstart[counts[b]] += 0;
+    }
+    // all bins of a group share one cursor: use gstart as the cursor
+    this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(taken, 1));
+    this->BindViews();
+    std::uint64_t st2 = 0;
+    for (int g = 0; g < kGroups; ++g) { gstart[g] = st2; st2 += gcount[g]; }
+    for (std::uint64_t u = 0; u < nv; ++u)
+    {
+      const Cand c = this->C_.Get(u);
+      if (c.partner == kNone) continue;
+      const std::uint32_t b = CostBin(c.cost);
+      if (b <= lastBin) this->O_.Set(gstart[counts[b]]++, std::uint32_t(u));
+    }
+  }
+  else
+  {
   this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(taken, 1));
   this->BindViews();
   this->progress_.BeginPhase(
@@ -1686,17 +1762,52 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
       this->O_.Set(this->hist_[b]++, std::uint32_t(u));
     }
   }
+  }
   // 3. Collapse in cost order, independent collapses only. Legality is checked here: the faces
   // around an unmarked pair are as they were in step 1. A vertex whose cheapest collapse is
   // illegal evaluates all its edges with legality in the next passes.
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.7 * progressSpan, progressBase + 0.85 * progressSpan);
+  double t2 = DbgCpu(); g_dbg[1] += t2 - t1;
   std::uint64_t done = 0, illegal = 0;
+  // In core: prefetch the data of the candidates ahead (two stages: their state, candidate and
+  // ring offsets; then, for those still unmarked, the partner's and the ring's first lines).
+  const std::uint32_t* Op = this->O_.Ptr(0);
+  const State* Sp = this->S_.Ptr(0);
+  const Cand* Cp = this->C_.Ptr(0);
+  const std::uint32_t* ROp = this->RO_.Ptr(0);
+  const std::uint32_t* RFp = this->RF_.Ptr(0);
+  const Vec3* Pp = this->P_.Ptr(0);
+  const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp;
+  constexpr std::uint64_t kAhead = 12;
   for (std::uint64_t i = 0; i < taken && this->liveFaces_ > goal; ++i)
   {
     this->Tick(i, taken);
+    if (prefetch)
+    {
+      if (i + 2 * kAhead < taken)
+      {
+        const std::uint32_t w = Op[i + 2 * kAhead];
+        Prefetch(Sp + w);
+        Prefetch(Cp + w);
+        Prefetch(ROp + w);
+      }
+      if (i + kAhead < taken)
+      {
+        const std::uint32_t w = Op[i + kAhead];
+        if (!(Sp[w] & kMarked))
+        {
+          const std::uint32_t x = Cp[w].partner;
+          Prefetch(Sp + x);
+          Prefetch(ROp + x);
+          Prefetch(RFp + ROp[w]);
+          Prefetch(Pp + w);
+          Prefetch(Pp + x);
+        }
+      }
+    }
     const std::uint32_t u = this->O_.Get(i);
-    const std::uint8_t su = this->S_.Get(u);
+    const State su = this->S_.Get(u);
     if (su & kMarked)
     {
       continue;
@@ -1710,7 +1821,7 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
     const Nb* nb = this->ru_.Find(c.partner);
     if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }))
     {
-      this->S_.Set(u, std::uint8_t(su | kNeedsLegal));
+      this->S_.Set(u, State(su | kNeedsLegal));
       ++illegal;
       continue;
     }
@@ -1733,10 +1844,12 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
       (unsigned long long)done, (unsigned long long)illegal);
   }
   this->order_.Close();
+  double t3 = DbgCpu(); g_dbg[2] += t3 - t2;
   // 4. Compact into fresh blocks.
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.85 * progressSpan, progressBase + progressSpan);
   this->Compact();
+  g_dbg[3] += DbgCpu() - t3;
   // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
   // as long as some candidate exists.
   return done > 0 || illegal > 0;
@@ -1779,7 +1892,7 @@ void Decimator::Compact()
   {
     attr2 = Array<std::uint8_t>(this->dml_, std::max<std::uint64_t>(nv2, 1) * this->recSize_);
   }
-  Array<std::uint8_t> state2(this->dml_, std::max<std::uint64_t>(nv2, 1));
+  Array<State> state2(this->dml_, std::max<std::uint64_t>(nv2, 1));
   Array<Cand> cand2(this->dml_, std::max<std::uint64_t>(nv2, 1));
   Array<Tri> faces2(this->dml_, std::max<std::uint64_t>(nf2, 1));
   Array<std::uint32_t> off2(this->dml_, nv2 + 1);
@@ -1789,7 +1902,7 @@ void Decimator::Compact()
   View<Vec3> P2(this->dml_, pos2);
   View<Quadric> Q2(this->dml_, quad2);
   View<std::uint8_t> A2 = this->recSize_ ? View<std::uint8_t>(this->dml_, attr2) : View<std::uint8_t>();
-  View<std::uint8_t> S2(this->dml_, state2);
+  View<State> S2(this->dml_, state2);
   View<Cand> C2(this->dml_, cand2);
   View<Tri> F2(this->dml_, faces2);
   View<std::uint32_t> O2(this->dml_, off2), RF2(this->dml_, ring2);
@@ -1810,8 +1923,7 @@ void Decimator::Compact()
     R.Set(v, std::uint32_t(k));
     ++k;
   }
-  // Vertex data. A vertex touched by the pass is evaluated again (kDirty); an untouched one keeps
-  // its candidate: its edges, their quadrics and positions are unchanged.
+  // Vertex data and the candidates carried to the next pass.
   const std::size_t rec = this->recSize_;
   this->abuf_.resize(rec);
   for (std::uint64_t v = 0; v < nv; ++v)
@@ -1829,23 +1941,34 @@ void Decimator::Compact()
       this->A_.GetRange(v * rec, rec, this->abuf_.data());
       A2.SetRange(std::uint64_t(w) * rec, rec, this->abuf_.data());
     }
-    const std::uint8_t sv = this->S_.Get(v);
-    std::uint8_t flags = std::uint8_t(sv & (kBoundary | kLocked | kFixed | kNeedsLegal));
+    const State sv = this->S_.Get(v);
+    State flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal));
     Cand c = this->none_;
-    if (sv & kMarked)
+    if (sv & kCollapsed)
     {
-      flags = std::uint8_t((flags & ~kNeedsLegal) | kDirty);
+      flags = State((flags & ~kNeedsLegal) | kSurvivor); // every edge changed
+    }
+    else if ((sv & kMarked) && (sv & kNeedsLegal))
+    {
+      flags = State((flags & ~kNeedsLegal) | kRecompute); // touched: a fresh start
     }
     else
     {
+      // The edges of an untouched vertex are unchanged; a touched one lost or changed only its
+      // edges to the collapsed pairs (the survivors offer the new ones): its candidate stays
+      // exact unless it pointed at one of them.
       c = this->C_.Get(v);
-      if (c.partner != kNone)
+      const std::uint32_t x = c.partner == kNone ? kNone : R.Get(c.partner);
+      if (x != kNone && !(this->S_.Get(c.partner) & kCollapsed))
       {
-        c.partner = R.Get(c.partner);
-        if (c.partner == kNone)
+        c.partner = x;
+      }
+      else
+      {
+        c = this->none_;
+        if (!(flags & kNeedsLegal))
         {
-          c = this->none_;
-          flags |= kDirty;
+          flags |= kRecompute;
         }
       }
     }

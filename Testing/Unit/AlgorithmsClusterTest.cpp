@@ -235,3 +235,20 @@ TEST(Cluster, BadInput)
   ClusterOptions o2;
   EXPECT_THROW(Cluster(FileSource("/nonexistent/missing.ply"), out2, o2, progress), std::exception);
 }
+
+TEST(Cluster, SameOutputForAnyThreadCount)
+{
+  const Mesh plane = Plane(90);
+  Collect outs[2];
+  for (int t = 1; t <= 2; ++t)
+  {
+    ClusterOptions o;
+    o.maximumGridDimension = 17;
+    o.threads = t;
+    NullProgress progress;
+    Cluster(MemorySource(plane), outs[t - 1], o, progress);
+  }
+  EXPECT_EQ(outs[0].m.p, outs[1].m.p);
+  EXPECT_EQ(outs[0].m.t, outs[1].m.t);
+  EXPECT_EQ(outs[0].m.scalar, outs[1].m.scalar);
+}

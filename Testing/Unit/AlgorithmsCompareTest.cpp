@@ -271,7 +271,8 @@ TEST(AlgorithmsCompare, PointTriangleDegenerate)
 
 // An independent formulation: projection onto the plane when it falls inside (barycentric
 // coordinates by Cramer's rule), otherwise the nearest of the three edges.
-double ReferenceDistance2(const double p[3], const double a[3], const double b[3], const double c[3])
+double ReferenceDistance2(
+  const double p[3], const double a[3], const double b[3], const double c[3])
 {
   auto seg = [](const double x[3], const double s[3], const double e[3]) {
     double d[3], w[3];

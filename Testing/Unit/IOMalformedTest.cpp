@@ -289,11 +289,11 @@ std::vector<BadCase> Corpus()
   return c;
 }
 
-class Malformed : public ::testing::TestWithParam<BadCase>
+class IOMalformedCorpus : public ::testing::TestWithParam<BadCase>
 {
 };
 
-TEST_P(Malformed, FailsWithPathElementAndPosition)
+TEST_P(IOMalformedCorpus, FailsWithPathElementAndPosition)
 {
   const BadCase& bc = GetParam();
   TempDir dir;
@@ -326,7 +326,7 @@ TEST_P(Malformed, FailsWithPathElementAndPosition)
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(Corpus, Malformed, ::testing::ValuesIn(Corpus()),
+INSTANTIATE_TEST_SUITE_P(IO, IOMalformedCorpus, ::testing::ValuesIn(Corpus()),
   [](const ::testing::TestParamInfo<BadCase>& info) {
     std::string n = info.param.name;
     for (char& ch : n)

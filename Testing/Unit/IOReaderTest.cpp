@@ -159,11 +159,11 @@ void ExpectMatrixMesh(const CollectSink& s, const std::string& what)
   EXPECT_EQ(s.stats.droppedFaces, 0u);
 }
 
-class PlyMatrix : public ::testing::TestWithParam<std::tuple<Enc, bool, bool>>
+class IOPlyMatrix : public ::testing::TestWithParam<std::tuple<Enc, bool, bool>>
 {
 };
 
-TEST_P(PlyMatrix, AllCountAndIndexTypes)
+TEST_P(IOPlyMatrix, AllCountAndIndexTypes)
 {
   const auto [enc, gz, crlf] = GetParam();
   TempDir dir;
@@ -206,9 +206,9 @@ TEST_P(PlyMatrix, AllCountAndIndexTypes)
     }
 }
 
-INSTANTIATE_TEST_SUITE_P(Encodings, PlyMatrix,
+INSTANTIATE_TEST_SUITE_P(IO, IOPlyMatrix,
   ::testing::Combine(::testing::Values(Enc::Ascii, Enc::LE, Enc::BE), ::testing::Bool(), ::testing::Bool()),
-  [](const ::testing::TestParamInfo<PlyMatrix::ParamType>& info) {
+  [](const ::testing::TestParamInfo<IOPlyMatrix::ParamType>& info) {
     const Enc e = std::get<0>(info.param);
     return std::string(e == Enc::Ascii ? "Ascii" : e == Enc::LE ? "BinaryLE" : "BinaryBE") +
       (std::get<1>(info.param) ? "Gzip" : "Plain") + (std::get<2>(info.param) ? "CRLF" : "LF");
@@ -818,11 +818,11 @@ struct SharedCase
   Format format;
 };
 
-class SharedData : public ::testing::TestWithParam<SharedCase>
+class IOSharedData : public ::testing::TestWithParam<SharedCase>
 {
 };
 
-TEST_P(SharedData, Counts)
+TEST_P(IOSharedData, Counts)
 {
   const SharedCase& c = GetParam();
   const std::string path = DataDir() + "/" + c.file;
@@ -857,7 +857,7 @@ TEST_P(SharedData, Counts)
   EXPECT_LT(extent, 1e6f);
 }
 
-INSTANTIATE_TEST_SUITE_P(Scans, SharedData,
+INSTANTIATE_TEST_SUITE_P(IO, IOSharedData,
   ::testing::Values(SharedCase{ "bunny.ply", 35947, 69451, Format::PlyAscii },
     SharedCase{ "horse.ply", 48485, 96966, Format::PlyBinaryBE },
     SharedCase{ "pepper.ply", 14980, 29956, Format::PlyBinaryLE },

@@ -101,11 +101,11 @@ struct WriterCase
   bool soup;       // STL: 3 fresh vertices per triangle
 };
 
-class RoundTrip : public ::testing::TestWithParam<WriterCase>
+class IORoundTrip : public ::testing::TestWithParam<WriterCase>
 {
 };
 
-TEST_P(RoundTrip, ExactThroughWriterAndReader)
+TEST_P(IORoundTrip, ExactThroughWriterAndReader)
 {
   const WriterCase& wc = GetParam();
   TempDir dir;
@@ -155,7 +155,7 @@ TEST_P(RoundTrip, ExactThroughWriterAndReader)
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(Writers, RoundTrip,
+INSTANTIATE_TEST_SUITE_P(IO, IORoundTrip,
   ::testing::Values(WriterCase{ "PlyBinary", ".ply", false, Format::PlyBinaryLE, true, false },
     WriterCase{ "PlyAscii", ".ply", true, Format::PlyAscii, true, false },
     WriterCase{ "StlBinary", ".stl", false, Format::StlBinary, false, true },

@@ -216,10 +216,14 @@ TEST(StorageDML, AutomaticSwitchAndReconfigure)
   b.Set(199999, 5);
   // Still too big: Reconfigure keeps the mode.
   EXPECT_EQ(dml.Reconfigure(), Mode::OutOfCore);
-  // Shrink below B: back in core, files gone, data intact.
+  // Shrink below B: back in core, files and private directory gone, data intact.
+  const std::string priv = dml.PrivateDirectory();
+  ASSERT_FALSE(priv.empty());
   b.Resize(1000);
   EXPECT_EQ(dml.Reconfigure(), Mode::InCore);
-  EXPECT_TRUE(ListDir(dml.PrivateDirectory()).empty());
+  EXPECT_NE(::access(priv.c_str(), F_OK), 0);
+  EXPECT_EQ(dml.PrivateDirectory(), "");
+  EXPECT_TRUE(ListDir(tmp.Path()).empty());
   const Stats st = dml.GetStats();
   EXPECT_EQ(st.reconfigurations, 2u);
   EXPECT_TRUE(st.usedInCore && st.usedOutOfCore);
@@ -276,6 +280,67 @@ TEST(StorageDML, ConfigEstimateAndForcedModes)
     EXPECT_EQ(dml.Config(p), Mode::InCore);
   }
   EXPECT_TRUE(ListDir(tmp.Path()).empty());
+}
+
+TEST(StorageDML, ConfigWithOpenBlocksMovesThem)
+{
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
+  Array<std::uint64_t> a(dml, 100000);
+  const BlockId l = dml.OpenListBlock(8, 1000);
+  for (std::uint64_t i = 0; i < 100000; ++i)
+  {
+    a.Set(i, i * i);
+    dml.Append(l, i % 1000, &i);
+  }
+  const auto check = [&] {
+    for (std::uint64_t i = 0; i < 100000; i += 37)
+    {
+      ASSERT_EQ(a.Get(i), i * i);
+    }
+    std::vector<unsigned char> out;
+    ASSERT_EQ(dml.ReadList(l, 999, out), 100u);
+    std::uint64_t last = 0;
+    std::memcpy(&last, out.data() + 99 * 8, 8);
+    ASSERT_EQ(last, 99999u);
+  };
+  EXPECT_EQ(dml.Config(MakeProfile(tmp.Path(), 0, ModePolicy::Automatic)), Mode::InCore);
+  EXPECT_NE(dml.BasePointer(a.Id()), nullptr);
+  check();
+  EXPECT_EQ(dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::Automatic)),
+    Mode::OutOfCore);
+  EXPECT_EQ(dml.BasePointer(a.Id()), nullptr);
+  check();
+  EXPECT_LE(dml.GetStats().peakBytes, 64u * 1024u);
+}
+
+TEST(StorageDML, BlocksSpreadOverDirectories)
+{
+  TempDir d1;
+  TempDir d2;
+  {
+    DML dml;
+    Profile p = MakeProfile(d1.Path(), 128 * 1024, ModePolicy::OutOfCore);
+    p.directories.push_back(d2.Path());
+    dml.Config(p);
+    std::vector<Array<int>> arrays;
+    for (int i = 0; i < 4; ++i)
+    {
+      arrays.emplace_back(dml, 10000);
+      arrays.back().Set(9999, i);
+    }
+    ASSERT_EQ(ListDir(d1.Path()).size(), 1u);
+    ASSERT_EQ(ListDir(d2.Path()).size(), 1u);
+    EXPECT_EQ(ListDir(d1.Path() + "/" + ListDir(d1.Path())[0]).size(), 2u);
+    EXPECT_EQ(ListDir(d2.Path() + "/" + ListDir(d2.Path())[0]).size(), 2u);
+    for (int i = 0; i < 4; ++i)
+    {
+      EXPECT_EQ(arrays[i].Get(9999), i);
+    }
+  }
+  EXPECT_TRUE(ListDir(d1.Path()).empty());
+  EXPECT_TRUE(ListDir(d2.Path()).empty());
 }
 
 TEST(StorageDML, ListsBothModes)

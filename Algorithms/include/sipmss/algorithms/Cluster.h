@@ -24,6 +24,10 @@ struct ClusterOptions
   // treated as zero (rank-deficient quadrics of flat or linear cells).
   double singularThreshold = 1e-3;
   storage::Profile storage; // memory budget, directories, mode policy
+  // Threads: 0 = automatic (the input is read and parsed on a second thread while the clustering
+  // runs, when the machine has more than one core), 1 = everything on the calling thread. The
+  // output is identical for any value.
+  int threads = 0;
 };
 
 // Grid geometry derived from the bounds and the maximum grid dimension.

@@ -3,23 +3,28 @@
 //
 // Sampling. Each side gets the same number of samples S. Samples are stratified along the
 // cumulative area table: sample k falls in the area stratum [k, k+1) * A/S (jittered uniformly
-// inside it), which picks its triangle with probability proportional to area and gives every
-// triangle whose area share exceeds 1/S at least floor(share * S) samples; the point inside the
-// triangle is uniform (barycentric with the sqrt trick). Zero-area triangles are never sampled
-// but are still distance targets. Vertices are NOT added as extra samples: every sample carries
-// the same weight, so mean and rms are unbiased area averages. The Hausdorff value is therefore
-// a sampled (lower) estimate of the true one, as in Metro.
+// inside it). Each sample so lands on a triangle with probability proportional to its area, and
+// a triangle with area share f gets between floor(f * S) - 1 and ceil(f * S) + 1 samples (less
+// variance than independent draws). The point inside the triangle is uniform (barycentric with
+// the sqrt trick). Zero-area triangles are never sampled but are still distance targets.
+// Vertices are NOT added as extra samples: every sample carries the same weight, so mean and rms
+// are unbiased area averages. The Hausdorff value is therefore a sampled (lower) estimate of the
+// true one, as in Metro.
 //
-// Distances. The target surface is indexed by a bounding volume hierarchy over the triangle
-// bounding boxes; the nearest search is exact (branch and bound with a conservative prune, so it
-// returns the same value as a brute-force minimum of PointTriangleDistanceSquared over all
-// triangles). A BVH rather than a uniform grid: its cost does not grow with the distance
-// between the surfaces (a grid shell search visits O((d / cell)^3) cells), and its memory does
-// not depend on how much of the bounding box the surface fills.
+// Distances. The target surface is indexed by a bounding volume hierarchy (MeshDistanceIndex);
+// the nearest search is exact: branch and bound with a conservative prune, so it returns the same
+// value as a brute-force minimum of PointTriangleDistanceSquared over all triangles, bit for bit.
+// A BVH rather than a uniform grid: its cost grows far less with the distance between the
+// surfaces (a grid shell search visits O((d / cell)^3) cells) and its memory does not depend on
+// how much of the bounding box the surface fills. Its boxes are oriented along the patches' mean
+// normals, which keeps queries far from a finely tessellated surface cheap. The worst case is
+// inherent to an exact search: a point (nearly) equidistant from much of the surface, like the
+// center of a sphere, visits all of it.
 //
 // Determinism. Samples are split into fixed-size chunks, each with its own RNG seeded from
 // (seed, side, chunk); per-chunk sums are combined in chunk order. Results are bitwise identical
-// for a given seed whatever the thread count.
+// for a given seed whatever the thread count. The forward side of CompareMeshes draws exactly the
+// samples of SampleDistance(reference, candidate, samples, seed, ...).
 //
 // Thread safety: all functions are reentrant; MeshDistanceIndex is immutable after construction
 // and may be queried from any number of threads.

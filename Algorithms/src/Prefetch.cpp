@@ -1,0 +1,278 @@
+#include "sipmss/algorithms/Prefetch.h"
+
+#include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <exception>
+#include <memory>
+#include <mutex>
+#include <thread>
+
+namespace sipmss::algorithms
+{
+namespace
+{
+
+struct Item
+{
+  enum Kind
+  {
+    Begin,
+    Vertices,
+    Triangles,
+    End
+  } kind = Begin;
+  io::MeshHeader header;
+  io::ReadStats stats;
+  std::uint64_t first = 0;
+  std::size_t count = 0;
+  std::vector<float> xyz, normals, texcoords, scalars;
+  std::vector<std::uint8_t> rgba;
+  std::vector<std::uint32_t> triangles;
+};
+
+// A bounded queue of items plus a pool of spent items for reuse (no allocation per chunk once
+// warm).
+class Channel
+{
+public:
+  explicit Channel(std::size_t depth)
+    : depth_(depth)
+  {
+  }
+
+  std::unique_ptr<Item> Fresh()
+  {
+    std::lock_guard<std::mutex> lock(this->mutex_);
+    if (this->pool_.empty())
+    {
+      return std::make_unique<Item>();
+    }
+    auto item = std::move(this->pool_.back());
+    this->pool_.pop_back();
+    return item;
+  }
+  void Recycle(std::unique_ptr<Item> item)
+  {
+    std::lock_guard<std::mutex> lock(this->mutex_);
+    this->pool_.push_back(std::move(item));
+  }
+  // false when the consumer has stopped
+  bool Push(std::unique_ptr<Item> item)
+  {
+    std::unique_lock<std::mutex> lock(this->mutex_);
+    this->notFull_.wait(lock, [&] { return this->items_.size() < this->depth_ || this->stopped_; });
+    if (this->stopped_)
+    {
+      return false;
+    }
+    this->items_.push_back(std::move(item));
+    this->notEmpty_.notify_one();
+    return true;
+  }
+  // nullptr when the producer is done (then Error() may hold its exception)
+  std::unique_ptr<Item> Pop()
+  {
+    std::unique_lock<std::mutex> lock(this->mutex_);
+    this->notEmpty_.wait(lock, [&] { return !this->items_.empty() || this->finished_; });
+    if (this->items_.empty())
+    {
+      return nullptr;
+    }
+    auto item = std::move(this->items_.front());
+    this->items_.pop_front();
+    this->notFull_.notify_one();
+    return item;
+  }
+  void Finish(std::exception_ptr error)
+  {
+    std::lock_guard<std::mutex> lock(this->mutex_);
+    this->error_ = error;
+    this->finished_ = true;
+    this->notEmpty_.notify_all();
+  }
+  void Stop()
+  {
+    std::lock_guard<std::mutex> lock(this->mutex_);
+    this->stopped_ = true;
+    this->stopFlag.store(true);
+    this->notFull_.notify_all();
+  }
+  std::exception_ptr Error()
+  {
+    std::lock_guard<std::mutex> lock(this->mutex_);
+    return this->error_;
+  }
+  std::atomic<bool> stopFlag{ false };
+
+private:
+  std::mutex mutex_;
+  std::condition_variable notFull_, notEmpty_;
+  std::deque<std::unique_ptr<Item>> items_;
+  std::vector<std::unique_ptr<Item>> pool_;
+  std::size_t depth_;
+  bool finished_ = false;
+  bool stopped_ = false;
+  std::exception_ptr error_;
+};
+
+class StoppedError : public std::runtime_error
+{
+public:
+  StoppedError()
+    : std::runtime_error("stopped")
+  {
+  }
+};
+
+// The reader's side: copies every call into an item.
+class ProducerSink final : public io::MeshSink
+{
+public:
+  explicit ProducerSink(Channel& c)
+    : channel_(c)
+  {
+  }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->scalars_ = h.layout.scalars.size();
+    auto item = this->channel_.Fresh();
+    item->kind = Item::Begin;
+    item->header = h;
+    this->Send(std::move(item));
+  }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    auto item = this->channel_.Fresh();
+    item->kind = Item::Vertices;
+    item->first = c.first;
+    item->count = c.count;
+    item->xyz.assign(c.xyz, c.xyz + 3 * c.count);
+    Copy(item->normals, c.normals, 3 * c.count);
+    Copy(item->rgba, c.rgba, 4 * c.count);
+    Copy(item->texcoords, c.texcoords, 2 * c.count);
+    Copy(item->scalars, c.scalars, this->scalars_ * c.count);
+    this->Send(std::move(item));
+  }
+  void Triangles(const std::uint32_t* indices, std::size_t count) override
+  {
+    auto item = this->channel_.Fresh();
+    item->kind = Item::Triangles;
+    item->count = count;
+    item->triangles.assign(indices, indices + 3 * count);
+    this->Send(std::move(item));
+  }
+  void End(const io::ReadStats& stats) override
+  {
+    auto item = this->channel_.Fresh();
+    item->kind = Item::End;
+    item->stats = stats;
+    this->Send(std::move(item));
+  }
+  bool AbortRequested() override { return this->channel_.stopFlag.load(); }
+
+private:
+  template <class T>
+  static void Copy(std::vector<T>& dst, const T* src, std::size_t n)
+  {
+    if (src)
+    {
+      dst.assign(src, src + n);
+    }
+    else
+    {
+      dst.clear();
+    }
+  }
+  void Send(std::unique_ptr<Item> item)
+  {
+    if (!this->channel_.Push(std::move(item)))
+    {
+      throw StoppedError();
+    }
+  }
+  Channel& channel_;
+  std::size_t scalars_ = 0;
+};
+
+void Dispatch(Item& item, io::MeshSink& sink)
+{
+  switch (item.kind)
+  {
+    case Item::Begin:
+      sink.Begin(item.header);
+      break;
+    case Item::Vertices:
+    {
+      io::VertexChunk c;
+      c.first = item.first;
+      c.count = item.count;
+      c.xyz = item.xyz.data();
+      c.normals = item.normals.empty() ? nullptr : item.normals.data();
+      c.rgba = item.rgba.empty() ? nullptr : item.rgba.data();
+      c.texcoords = item.texcoords.empty() ? nullptr : item.texcoords.data();
+      c.scalars = item.scalars.empty() ? nullptr : item.scalars.data();
+      sink.Vertices(c);
+      break;
+    }
+    case Item::Triangles:
+      sink.Triangles(item.triangles.data(), item.count);
+      break;
+    case Item::End:
+      sink.End(item.stats);
+      break;
+  }
+}
+
+} // namespace
+
+MeshSource Prefetched(MeshSource source, std::size_t depth)
+{
+  return [source = std::move(source), depth](
+           io::MeshSink& sink, const io::ReadOptions& options) -> io::ReadStats {
+    Channel channel(depth < 1 ? 1 : depth);
+    io::ReadStats result;
+    std::thread reader([&] {
+      std::exception_ptr error;
+      try
+      {
+        ProducerSink producer(channel);
+        result = source(producer, options);
+      }
+      catch (const StoppedError&)
+      {
+      }
+      catch (...)
+      {
+        error = std::current_exception();
+      }
+      channel.Finish(error);
+    });
+    try
+    {
+      while (auto item = channel.Pop())
+      {
+        if (sink.AbortRequested())
+        {
+          throw AbortedError();
+        }
+        Dispatch(*item, sink);
+        channel.Recycle(std::move(item));
+      }
+    }
+    catch (...)
+    {
+      channel.Stop();
+      reader.join();
+      throw;
+    }
+    reader.join();
+    if (std::exception_ptr e = channel.Error())
+    {
+      std::rethrow_exception(e);
+    }
+    return result;
+  };
+}
+
+} // namespace sipmss::algorithms
