@@ -640,6 +640,19 @@ void DML::Impl::SwitchTo(Mode target)
       this->LoadBlock(static_cast<BlockId>(i));
     }
   }
+  // No file is left: remove the private directories too (made again by the next spill), so an
+  // in-core phase leaves nothing on disk even if the process is killed.
+  for (auto& d : this->dirs)
+  {
+    if (!d.path.empty())
+    {
+      const std::string p(d.path.data(), d.path.size());
+      if (::rmdir(p.c_str()) == 0 || errno == ENOENT)
+      {
+        d.path.clear();
+      }
+    }
+  }
   this->mode = Mode::InCore;
   this->stats.usedInCore = true;
 }

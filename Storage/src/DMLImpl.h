@@ -311,7 +311,6 @@ struct DML::Impl
   void WriteBack(std::int32_t fi);
   void Evict(std::int32_t fi, bool writeBack);
   void DropBlockPages(BlockId id, std::uint64_t fromPage); // discard pages >= fromPage
-  void FlushBlock(BlockId id);
   void ReleaseFrames(std::uint64_t bytes); // Accountant callback
   void RecomputeQuotas();
   void RingInsert(detail::Block& b, std::int32_t fi);

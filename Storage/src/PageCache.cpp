@@ -648,29 +648,21 @@ void DML::Impl::DropBlockPages(BlockId id, std::uint64_t fromPage)
   {
     return;
   }
+  // Walk the block's own ring (not the whole table); `next` is taken before an eviction.
   Block& b = this->blocks[static_cast<std::size_t>(id)];
   auto& F = this->cache.frames;
-  for (std::size_t i = 0; i < F.size(); ++i)
+  std::int32_t fi = b.hand;
+  for (std::uint32_t n = b.resident; n > 0; --n)
   {
-    if (F[i].block == id && F[i].page >= fromPage)
+    const std::int32_t next = F[static_cast<std::size_t>(fi)].next;
+    if (F[static_cast<std::size_t>(fi)].page >= fromPage)
     {
-      this->Evict(static_cast<std::int32_t>(i), false);
+      this->Evict(fi, false);
     }
+    fi = next;
   }
   b.lastFrame = -1;
   this->cache.quotasDirty = true;
-}
-
-void DML::Impl::FlushBlock(BlockId id)
-{
-  auto& F = this->cache.frames;
-  for (std::size_t i = 0; i < F.size(); ++i)
-  {
-    if (F[i].block == id && F[i].dirty)
-    {
-      this->WriteBack(static_cast<std::int32_t>(i));
-    }
-  }
 }
 
 // Accountant callback: free page buffers until `bytes` fit (cached pages go first to the

@@ -53,7 +53,7 @@ struct Profile
   std::vector<std::string> directories;  // empty: $TMPDIR or /tmp
   std::uint64_t memoryBudget = 0;        // B in bytes; 0 = unbounded (always in core)
   ModePolicy policy = ModePolicy::Automatic;
-  PagePolicy pagePolicy = PagePolicy::StaticWeight;
+  PagePolicy pagePolicy = PagePolicy::Adaptive; // measured better than StaticWeight: docs/storage.md
   std::size_t pageSize = 0; // 0: automatic
 };
 
@@ -155,6 +155,8 @@ public:
   // --- zero-copy access for hot loops
   // In core: the block's memory (valid until the next Config/Reconfigure/Resize/OpenBlock that
   // changes the mode, or CloseBlock of this block). Out of core: nullptr.
+  // Note: a Resize of this block may move it even in core (realloc), and the list calls that
+  // grow a list's pool (OpenListBlock/Append/SetList) may switch the mode like OpenBlock.
   void* BasePointer(BlockId id) const;
   // Pin the page holding `index`; the span runs to the end of that page (or block).
   Span Pin(BlockId id, std::uint64_t index, Access access);
@@ -168,7 +170,8 @@ public:
   std::uint64_t ReadList(BlockId id, std::uint64_t list, std::vector<unsigned char>& out);
   void SetList(BlockId id, std::uint64_t list, const void* elements, std::uint64_t count);
 
-  // Path of this instance's private directory ("" until the first file is made).
+  // Path of this instance's private directory ("" until the first file is made, and again after
+  // a switch in core, which removes the files and the directory).
   std::string PrivateDirectory() const;
 
   // Removes private directories of dead processes under `directory`; returns how many.
