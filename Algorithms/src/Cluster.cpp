@@ -52,6 +52,75 @@ struct TriSlot
   std::uint32_t used; // 0 = empty
 };
 
+// A few pinned pages of one block kept across element accesses (out of core), so that runs of
+// nearby accesses cost one page lookup instead of one per element. In core it is a plain pointer.
+// Release() before anything that may move or resize the block.
+template <class T>
+class PinWindow
+{
+public:
+  PinWindow(DML& dml, storage::Access access)
+    : dml_(dml)
+    , access_(access)
+  {
+  }
+  ~PinWindow() { this->Release(); }
+  PinWindow(const PinWindow&) = delete;
+  PinWindow& operator=(const PinWindow&) = delete;
+
+  T& At(storage::BlockId id, std::uint64_t i)
+  {
+    if (void* base = this->dml_.BasePointer(id))
+    {
+      return static_cast<T*>(base)[i];
+    }
+    if (id != this->id_)
+    {
+      this->Release();
+      this->id_ = id;
+    }
+    for (std::size_t k = 0; k < this->used_; ++k)
+    {
+      const storage::Span& s = this->spans_[k];
+      if (i >= s.first && i < s.first + s.count)
+      {
+        return static_cast<T*>(s.data)[i - s.first];
+      }
+    }
+    std::size_t k = this->used_ < kWays ? this->used_++ : (this->next_++ % kWays);
+    if (this->spans_[k].data && k < this->used_ && this->used_ == kWays && this->pinned_[k])
+    {
+      this->dml_.Unpin(this->id_, this->spans_[k]);
+    }
+    this->spans_[k] = this->dml_.Pin(id, i, this->access_);
+    this->pinned_[k] = true;
+    return static_cast<T*>(this->spans_[k].data)[i - this->spans_[k].first];
+  }
+  void Release()
+  {
+    for (std::size_t k = 0; k < this->used_; ++k)
+    {
+      if (this->pinned_[k])
+      {
+        this->dml_.Unpin(this->id_, this->spans_[k]);
+        this->pinned_[k] = false;
+      }
+      this->spans_[k] = storage::Span{};
+    }
+    this->used_ = 0;
+    this->next_ = 0;
+  }
+
+private:
+  static constexpr std::size_t kWays = 2;
+  DML& dml_;
+  storage::Access access_;
+  storage::BlockId id_ = -1;
+  storage::Span spans_[kWays];
+  bool pinned_[kWays] = { false, false };
+  std::size_t used_ = 0, next_ = 0;
+};
+
 inline std::uint64_t Mix(std::uint64_t k)
 {
   k ^= k >> 33;
@@ -290,6 +359,7 @@ public:
   {
     if (c.first + c.count > this->vertices_.Size())
     {
+      this->vertexWindow_.Release();
       this->vertices_.Resize(std::max<std::uint64_t>(c.first + c.count, this->vertices_.Size() * 2));
     }
     std::uint64_t lastKey = std::numeric_limits<std::uint64_t>::max();
@@ -319,13 +389,13 @@ public:
         lastKey = key;
         lastCell = cell;
       }
-      this->vertices_.Set(c.first + i, VertexRec{ p[0], p[1], p[2], cell });
-      CellRec rec = this->cells_.Get(cell);
-      rec.sum[0] += p[0];
-      rec.sum[1] += p[1];
-      rec.sum[2] += p[2];
-      ++rec.count;
-      this->cells_.Set(cell, rec);
+      this->vertexWindow_.At(this->vertices_.Id(), c.first + i) = VertexRec{ p[0], p[1], p[2], cell };
+      this->UpdateCell(cell, [p](CellRec& rec) {
+        rec.sum[0] += p[0];
+        rec.sum[1] += p[1];
+        rec.sum[2] += p[2];
+        ++rec.count;
+      });
       if (this->attrStride_)
       {
         this->AccumulateAttributes(c, i, cell);
@@ -378,6 +448,8 @@ public:
   // --- after the read
   void ReleaseInputBlocks()
   {
+    this->vertexWindow_.Release();
+    this->cellWindow_.Release();
     this->vertices_.Close();
     this->cellMap_.Release();
   }
@@ -549,6 +621,7 @@ private:
     }
     if (this->numCells_ == this->cells_.Size())
     {
+      this->cellWindow_.Release();
       this->cells_.Resize(this->cells_.Size() * 2);
       if (this->attrStride_)
       {
@@ -614,11 +687,20 @@ private:
     this->deferred_.Set(this->deferredCount_++, TriSlot{ { f[0], f[1], f[2] }, 1 });
   }
 
+  // Applies f to cell record `cell` in place: the block's memory in core, a pinned page out of
+  // core (no read and write of the whole record).
+  template <class F>
+  void UpdateCell(std::uint32_t cell, F&& f)
+  {
+    f(this->cellWindow_.At(this->cells_.Id(), cell));
+  }
+
   void AddTriangle(const std::uint32_t* f)
   {
-    const VertexRec a = this->vertices_.Get(f[0]);
-    const VertexRec b = this->vertices_.Get(f[1]);
-    const VertexRec c = this->vertices_.Get(f[2]);
+    const storage::BlockId vid = this->vertices_.Id();
+    const VertexRec a = this->vertexWindow_.At(vid, f[0]);
+    const VertexRec b = this->vertexWindow_.At(vid, f[1]);
+    const VertexRec c = this->vertexWindow_.At(vid, f[2]);
     // Area-weighted plane quadric of the face (Garland-Heckbert), added to each corner's cell.
     const double e1[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
     const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
@@ -637,12 +719,12 @@ private:
       const std::uint32_t cs[3] = { a.cell, b.cell, c.cell };
       for (std::uint32_t cell : cs)
       {
-        CellRec rec = this->cells_.Get(cell);
-        for (int k = 0; k < 10; ++k)
-        {
-          rec.q[k] += q[k];
-        }
-        this->cells_.Set(cell, rec);
+        this->UpdateCell(cell, [&q](CellRec& rec) {
+          for (int k = 0; k < 10; ++k)
+          {
+            rec.q[k] += q[k];
+          }
+        });
       }
     }
     if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
@@ -651,9 +733,7 @@ private:
       std::uint32_t t[3] = { a.cell, b.cell, c.cell };
       const int m = t[0] < t[1] ? (t[0] < t[2] ? 0 : 2) : (t[1] < t[2] ? 1 : 2);
       const std::uint32_t r0 = t[m], r1 = t[(m + 1) % 3], r2 = t[(m + 2) % 3];
-      CellRec rec = this->cells_.Get(r0);
-      ++rec.triangles;
-      this->cells_.Set(r0, rec);
+      this->UpdateCell(r0, [](CellRec& rec) { ++rec.triangles; });
       this->triangles_.Append(r0, r1, r2);
     }
   }
@@ -740,6 +820,8 @@ private:
   std::vector<float> attrBuf_;
   Array<VertexRec> vertices_;
   Array<CellRec> cells_;
+  PinWindow<VertexRec> vertexWindow_{ dml_, storage::Access::Write };
+  PinWindow<CellRec> cellWindow_{ dml_, storage::Access::Write };
   storage::BlockId attrBlock_ = -1;
   CellMap cellMap_;
   // Direct-mapped cache of recent key -> cell lookups in front of the cell map (a fixed 128 KiB

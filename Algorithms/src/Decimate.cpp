@@ -54,7 +54,7 @@ constexpr std::uint32_t kNone = 0xffffffffu;
 double DbgCpu() { timespec t; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t); return t.tv_sec + 1e-9 * t.tv_nsec; }
 double g_dbg[8];
 std::uint64_t g_cnt[8];
-struct DbgDump { ~DbgDump() { if (std::getenv("SIPMSS_DECIMATE_DEBUG")) std::fprintf(stderr, "cpu: sweep %.3f hist %.3f collapse %.3f compact %.3f edges %llu survivors %llu recompute %llu\n", g_dbg[0], g_dbg[1], g_dbg[2], g_dbg[3], (unsigned long long)g_cnt[0], (unsigned long long)g_cnt[1], (unsigned long long)g_cnt[2]); } } g_dbgDump;
+struct DbgDump { ~DbgDump() { if (std::getenv("SIPMSS_DECIMATE_DEBUG")) std::fprintf(stderr, "bowtie %llu nmedge %llu cpu: sweep %.3f hist %.3f collapse %.3f compact %.3f edges %llu survivors %llu recompute %llu\n", (unsigned long long)g_cnt[5], (unsigned long long)g_cnt[6], g_dbg[0], g_dbg[1], g_dbg[2], g_dbg[3], (unsigned long long)g_cnt[0], (unsigned long long)g_cnt[1], (unsigned long long)g_cnt[2]); } } g_dbgDump;
 constexpr int kCostBins = 1 << 15;
 
 // Per-vertex state bits.
@@ -62,12 +62,13 @@ using State = std::uint16_t;
 constexpr State kRemoved = 1;      // collapsed into another vertex during this pass
 constexpr State kMarked = 2;       // touched by a collapse of this pass
 constexpr State kBoundary = 4;     // has boundary edges
-constexpr State kLocked = 8;       // non-manifold: never collapsed
+constexpr State kLocked = 8;       // never collapsed (reserved: nothing sets it at present)
 constexpr State kFixed = 16;       // lockBoundary: never moves, never removed (may absorb)
 constexpr State kNeedsLegal = 32;  // its cheapest collapse was illegal: evaluate with legality
 constexpr State kSurvivor = 64;    // survived a collapse of the last pass: all its edges changed
 constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edges
 constexpr State kCollapsed = 256;  // survived a collapse of this pass
+constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
 // Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
 inline bool Active(State s)
 {
@@ -1117,7 +1118,7 @@ void Decimator::BuildQuadrics()
     {
       if (n.count > 2)
       {
-        flags |= kLocked;
+        flags |= kComplex; // that edge is never collapsed; its other edges are, with care
       }
       else if (n.count == 1)
       {
@@ -1138,7 +1139,7 @@ void Decimator::BuildQuadrics()
       flags |= kBoundary;
       if (boundaryEdges != 2)
       {
-        flags |= kLocked; // several fans meet here
+        flags |= kComplex; // several fans meet here: the link condition keeps them apart
       }
       if (this->opt_.lockBoundary)
       {
@@ -1445,7 +1446,7 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n)
 {
   const State sv = this->S_.Get(v);
-  if (sv & kLocked) // also every vertex of an edge with > 2 faces
+  if (sv & kLocked)
   {
     return;
   }
@@ -1461,16 +1462,17 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   {
     return;
   }
-  if ((su & kBoundary) && (sv & kBoundary))
+  const bool bothBoundary = (su & kBoundary) && (sv & kBoundary);
+  if (bothBoundary || ((su | sv) & kComplex))
   {
     std::size_t count = 0;
     for (std::size_t i = 0; i < n; ++i)
     {
       count += (next[i] == v) + (prev[i] == v);
     }
-    if (count != 1)
+    if (count > 2 || (bothBoundary && count != 1))
     {
-      return; // would pinch the surface across the interior
+      return; // a non-manifold edge, or it would pinch the surface across the interior
     }
   }
   Quadric Q = this->Q_.Get(v);
@@ -1642,7 +1644,7 @@ void Decimator::Collapse(std::uint32_t u, const Cand& c)
   this->Q_.Set(u, Q);
   this->InterpolateAttributes(u, v, double(c.t));
   this->S_.Set(v, State(kRemoved | kMarked));
-  this->S_.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed))));
+  this->S_.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
   this->liveFaces_ -= removed;
 }
 
@@ -1835,6 +1837,14 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
     {
       marked += (this->S_.Get(u) & kMarked) != 0;
     }
+    std::uint64_t locked = 0, bnd = 0, nl = 0, nocand = 0;
+    for (std::uint64_t u = 0; u < nv; ++u)
+    {
+      State x = this->S_.Get(u);
+      locked += (x & kLocked) != 0; bnd += (x & kBoundary) != 0; nl += (x & kNeedsLegal) != 0;
+    }
+    (void)nocand;
+    std::fprintf(stderr, "locked %llu boundary %llu needsLegal %llu ", (unsigned long long)locked, (unsigned long long)bnd, (unsigned long long)nl);
     std::fprintf(stderr, "marked %.3f ", double(marked) / double(nv));
     std::fprintf(stderr,
       "pass: nv %llu faces %llu -> %llu goal %llu candidates %llu ordered %llu collapses %llu "
@@ -1942,7 +1952,7 @@ void Decimator::Compact()
       A2.SetRange(std::uint64_t(w) * rec, rec, this->abuf_.data());
     }
     const State sv = this->S_.Get(v);
-    State flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal));
+    State flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
     Cand c = this->none_;
     if (sv & kCollapsed)
     {

@@ -68,8 +68,30 @@ inline bool ParseInt64(const char* s, const char* e, const char*& q, std::int64_
   }
   // Up to 18 digits cannot overflow: no checks in the common case.
   const char* t = s;
-  const char* lim = e - s > 18 ? s + 18 : e;
   std::uint64_t v = 0;
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
+  if (e - s >= 8)
+  {
+    // SWAR: the leading digits of the next 8 bytes at once (first character = lowest byte).
+    std::uint64_t c;
+    std::memcpy(&c, s, 8);
+    const std::uint64_t d = c ^ 0x3030303030303030ull; // digits -> 0..9, others -> >= 10
+    const std::uint64_t nondigit = ((d + 0x7676767676767676ull) | d) & 0x8080808080808080ull;
+    const int n = nondigit ? __builtin_ctzll(nondigit) >> 3 : 8;
+    if (n > 0)
+    {
+      std::uint64_t x = n == 8 ? d : d << (8 * (8 - n)); // leading zero digits
+      x = (x * 10) + (x >> 8);
+      x = (((x & 0x000000FF000000FFull) * 0x000F424000000064ull) +
+            (((x >> 16) & 0x000000FF000000FFull) * 0x0000271000000001ull)) >> 32;
+      v = x;
+      t = s + n;
+    }
+    else
+      return false;
+  }
+#endif
+  const char* lim = e - s > 18 ? s + 18 : e;
   while (t < lim && unsigned(*t - '0') <= 9)
   {
     v = v * 10 + unsigned(*t - '0');

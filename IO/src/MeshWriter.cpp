@@ -264,10 +264,19 @@ private:
       h += "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar alpha\n";
     if (layout_.texcoords)
       h += "property float u\nproperty float v\n";
+    std::vector<std::string> names = { "x", "y", "z" };
+    if (layout_.normals)
+      names.insert(names.end(), { "nx", "ny", "nz" });
+    if (layout_.colors)
+      names.insert(names.end(), { "red", "green", "blue", "alpha" });
+    if (layout_.texcoords)
+      names.insert(names.end(), { "u", "v" });
     for (const std::string& s : layout_.scalars)
     {
-      if (s.empty() || s.find_first_of(" \t\r\n") != std::string::npos)
-        WriteFail(path_, "scalar name '" + s + "' cannot be a PLY property name");
+      if (s.empty() || s.find_first_of(" \t\r\n") != std::string::npos ||
+        std::find(names.begin(), names.end(), s) != names.end())
+        WriteFail(path_, "scalar name '" + s + "' cannot be a PLY property name (empty, blanks or a duplicate)");
+      names.push_back(s);
       h += "property float " + s + "\n";
     }
     h += "element face " + std::to_string(nt_) + "\n";

@@ -306,6 +306,16 @@ TEST(IOWriter, CountsAndIndicesAreChecked)
     });
     EXPECT_NE(e.find("expected 0"), std::string::npos) << e;
   }
+  // PLY property names must be unique and blank-free.
+  for (const char* name : { "x", "quality two", "" })
+  {
+    const std::string e = WriterError([&] {
+      VertexLayout l;
+      l.scalars = { name };
+      MeshWriter::Create(dir.File("names.ply"))->Begin(1, 0, l);
+    });
+    EXPECT_NE(e.find("cannot be a PLY property name"), std::string::npos) << e;
+  }
   // PLY stores vertices first.
   const std::string e = WriterError([&] {
     auto w = MeshWriter::Create(dir.File("order.ply"));

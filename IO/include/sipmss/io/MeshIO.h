@@ -98,12 +98,33 @@ struct ReadOptions
   bool dropDegenerateFaces = true; // faces with repeated indices are dropped and counted
 };
 
+// Behaviour details (see also MeshIOInternal.h for reading from memory):
+// - Detection is by content: PLY magic; binary STL when 84 + 50 * n equals the file size (a header
+//   starting with "solid" does not matter), ASCII STL when text starts with "solid", OBJ when the
+//   first statement is an OBJ keyword. Non-text content named *.stl[.gz] is read as binary STL.
+// - PLY: vertex x y z required; nx ny nz -> normals, red green blue [alpha] (or diffuse_*) -> rgba
+//   (float colours 0..1 are scaled), u v / s t / texture_u texture_v -> texcoords, every other
+//   scalar -> layout.scalars (in file order); vertex list properties and unknown elements are
+//   skipped. Faces: the `vertex_indices` or `vertex_index` list, fans for polygons.
+// - droppedFaces counts faces with fewer than 3 vertices plus, with dropDegenerateFaces, every
+//   fan triangle with a repeated index (so one polygon may count more than once).
+// - STL: facet normals are not delivered (empty layout). OBJ: `v x y z [anything]`, `f` with
+//   i, i/t, i//n, i/t/n and negative indices; everything else ignored; no '\' line continuations.
+// - Begin() gets the announced counts only for uncompressed PLY; 0 otherwise (see MeshHeader).
 Format DetectFormat(const std::string& path); // by content (and .gz transparently)
 ReadStats ReadMesh(const std::string& path, MeshSink& sink, const ReadOptions& options = {});
-MeshHeader ReadHeader(const std::string& path); // cheap: header only (PLY), else a scan
+// cheap: header only (PLY), else a scan. Uncompressed PLY: the header's counts (checked against
+// the file size; faceCount = faces as announced, not triangles). Binary STL whose size matches:
+// from its header. gzip PLY, ASCII STL, OBJ (and mismatched binary STL): a full validating read
+// that counts (vertexCount = vertices delivered, faceCount = faces/polygons in the file).
+MeshHeader ReadHeader(const std::string& path);
 
 // ---------------------------------------------------------------------------------------------
 // Streaming writer. Counts are declared first; vertices then triangles are streamed.
+// PLY needs every vertex before the first triangle; STL and OBJ accept triangles as soon as the
+// vertices they reference were written. STL keeps vertex positions in memory up to 64 MiB, beyond
+// that in a temporary file next to the output (unlinked as soon as it is created). Any count that
+// differs from Begin's, an index out of range or an I/O failure throws MeshIOError(path: reason).
 class MeshWriter
 {
 public:
