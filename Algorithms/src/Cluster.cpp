@@ -766,7 +766,7 @@ private:
     }
     // inside the cell (with a tolerance for points on its faces)?
     const std::uint64_t key = this->grid_.Key(mean[0], mean[1], mean[2]);
-    const double eps = 1e-6 * this->grid_.cellSize;
+    const double eps = std::max(options.placementSlack, 1e-6) * this->grid_.cellSize;
     bool inside = true;
     {
       std::uint64_t k = key;

@@ -54,7 +54,8 @@ constexpr std::uint32_t kNone = 0xffffffffu;
 double DbgCpu() { timespec t; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t); return t.tv_sec + 1e-9 * t.tv_nsec; }
 double g_dbg[8];
 std::uint64_t g_cnt[8];
-struct DbgDump { ~DbgDump() { if (std::getenv("SIPMSS_DECIMATE_DEBUG")) std::fprintf(stderr, "bowtie %llu nmedge %llu cpu: sweep %.3f hist %.3f collapse %.3f compact %.3f edges %llu survivors %llu recompute %llu\n", (unsigned long long)g_cnt[5], (unsigned long long)g_cnt[6], g_dbg[0], g_dbg[1], g_dbg[2], g_dbg[3], (unsigned long long)g_cnt[0], (unsigned long long)g_cnt[1], (unsigned long long)g_cnt[2]); } } g_dbgDump;
+std::uint64_t g_why[8];
+struct DbgDump { ~DbgDump() { if (std::getenv("SIPMSS_DECIMATE_DEBUG")) std::fprintf(stderr, "why vanish %llu link %llu tetra %llu face %llu (zero %llu) cpu: sweep %.3f hist %.3f collapse %.3f compact %.3f edges %llu survivors %llu recompute %llu\n", (unsigned long long)g_why[0], (unsigned long long)g_why[1], (unsigned long long)g_why[2], (unsigned long long)g_why[3], (unsigned long long)g_why[4], g_dbg[0], g_dbg[1], g_dbg[2], g_dbg[3], (unsigned long long)g_cnt[0], (unsigned long long)g_cnt[1], (unsigned long long)g_cnt[2]); } } g_dbgDump;
 constexpr int kCostBins = 1 << 15;
 
 // Per-vertex state bits.
@@ -940,41 +941,92 @@ void Decimator::BuildRings()
       RF.Set(e, std::uint32_t(i));
     }
   }
-  // Duplicates: a face equal (as a vertex set) to an earlier face is dropped.
+  // Faces on the same vertex set: copies of one orientation are one face, and two faces of
+  // opposite orientations cancel (a zero-volume double-sided pair: keeping one of them would
+  // leave three faces on each of its edges). A group is settled by its first live member; the
+  // net orientation decides what survives: nothing, or its first member of that orientation.
   std::vector<std::uint32_t> ids;
+  auto sameSet = [](const Tri& a, const std::uint32_t s[3]) {
+    std::uint32_t r[3] = { a.v[0], a.v[1], a.v[2] };
+    SmallSort(r, 3);
+    return r[0] == s[0] && r[1] == s[1] && r[2] == s[2];
+  };
+  auto orientation = [](const Tri& a, const Tri& ref) {
+    // +1: a is a rotation of ref, -1: of its reverse
+    for (int k = 0; k < 3; ++k)
+    {
+      if (a.v[0] == ref.v[k])
+      {
+        return a.v[1] == ref.v[(k + 1) % 3] ? 1 : -1;
+      }
+    }
+    return 1;
+  };
   for (std::uint64_t f = 0; f < nf; ++f)
   {
     this->Tick(2 * nf + f, 3 * nf);
-    Tri t = F.Get(f);
+    const Tri t = F.Get(f);
     if (!Alive(t))
     {
       continue;
     }
     std::uint32_t s[3] = { t.v[0], t.v[1], t.v[2] };
     SmallSort(s, 3);
-    std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
+    const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
     ids.resize(e - b);
     RF.GetRange(b, e - b, ids.data());
+    bool first = true, others = false;
+    int net = 1;
     for (std::uint32_t g : ids)
     {
-      if (g >= f)
-      {
-        break;
-      }
-      Tri u = F.Get(g);
-      if (!Alive(u))
+      if (g == f)
       {
         continue;
       }
-      std::uint32_t r[3] = { u.v[0], u.v[1], u.v[2] };
-      SmallSort(r, 3);
-      if (r[0] == s[0] && r[1] == s[1] && r[2] == s[2])
+      const Tri u = F.Get(g);
+      if (!Alive(u) || !sameSet(u, s))
       {
-        F.Set(f, kDeadTri);
-        ++this->dropped_;
-        --live;
+        continue;
+      }
+      if (g < f)
+      {
+        first = false;
         break;
       }
+      others = true;
+      net += orientation(u, t);
+    }
+    if (!first || !others)
+    {
+      continue;
+    }
+    // Keep at most one face: the first member whose orientation has the sign of net.
+    bool kept = net > 0; // f itself has orientation +1
+    if (!kept)
+    {
+      F.Set(f, kDeadTri);
+      ++this->dropped_;
+      --live;
+    }
+    for (std::uint32_t g : ids)
+    {
+      if (g <= f)
+      {
+        continue;
+      }
+      const Tri u = F.Get(g);
+      if (!Alive(u) || !sameSet(u, s))
+      {
+        continue;
+      }
+      if (!kept && net < 0 && orientation(u, t) < 0)
+      {
+        kept = true;
+        continue;
+      }
+      F.Set(g, kDeadTri);
+      ++this->dropped_;
+      --live;
     }
   }
   this->liveFaces_ = live;
@@ -1266,6 +1318,7 @@ bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
   const double maxE = std::max({ Dot(e0, e0), Dot(e1, e1), Dot(e2, e2) });
   if (!(l1 > 1e-20 * maxE * maxE))
   {
+    ++g_why[4];
     return false; // (nearly) zero area
   }
   const double l0 = Dot(n0, n0);
@@ -1287,6 +1340,7 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   // The collapse must leave faces (no vanishing component).
   if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
   {
+    ++g_why[0];
     return false;
   }
   // Link condition: the common neighbours are exactly the vertices opposite the edge.
@@ -1317,11 +1371,13 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   }
   if (common != m)
   {
+    ++g_why[1];
     return false;
   }
   // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
   if (m == 2 && ru.HasFace(nb.opp[0], nb.opp[1]) && rv.HasFace(nb.opp[0], nb.opp[1]))
   {
+    ++g_why[2];
     return false;
   }
   // Geometry of the faces that survive.
@@ -1329,6 +1385,7 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   {
     if (!Has(ru.faces[s].t, v) && !this->FaceOk(ru, s, p))
     {
+      ++g_why[3];
       return false;
     }
   }
@@ -1336,6 +1393,7 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   {
     if (!Has(rv.faces[s].t, u) && !this->FaceOk(rv, s, p))
     {
+      ++g_why[3];
       return false;
     }
   }

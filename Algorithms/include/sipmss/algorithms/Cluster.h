@@ -20,6 +20,11 @@ struct ClusterOptions
   bool useBounds = false;        // true: `bounds` is the grid's box, no bounds pass is made
   std::array<double, 6> bounds{}; // xmin xmax ymin ymax zmin zmax
   ClusterFallback fallback = ClusterFallback::Mean;
+  // How far (in cell sizes) the quadric minimizer may lie outside its cell before the fallback
+  // is used. The paper uses 0 (the cell itself). Measured on the Dragon-size input at grid 300
+  // (RMS error / bbox diagonal): 0 -> 4.47e-5, 0.5 -> 3.84e-5, 1 -> 3.81e-5, unbounded -> 3.80e-5
+  // (vtkQuadricClustering: 3.94e-5). 1 keeps each vertex in its cell's 3x3x3 neighbourhood.
+  double placementSlack = 1.0;
   // Relative threshold for the pseudo-inverse: eigenvalues below this times the largest are
   // treated as zero (rank-deficient quadrics of flat or linear cells).
   double singularThreshold = 1e-3;
