@@ -7,6 +7,10 @@ import unittest
 from vtkmodules.vtkCommonCore import vtkVersion
 from vtkmodules.vtkFiltersSources import vtkSphereSource
 from vtkmodules.vtkIOPLY import vtkPLYWriter
+from vtkmodules.vtkCommonTransforms import vtkTransform
+from vtkmodules.vtkFiltersGeneral import vtkDistancePolyDataFilter, vtkTransformPolyDataFilter
+import json
+import subprocess
 
 from sipmss import vtkSIPMSSCluster, vtkSIPMSSDecimate, vtkSIPMSSFilterBase
 
@@ -54,8 +58,9 @@ class SIPMSSPythonTest(unittest.TestCase):
             if not os.path.exists(bunny):
                 print("shared data absent: streaming a generated sphere instead of bunny.ply")
                 bunny = os.path.join(tmp, "sphere.ply")
+                src = sphere(200)  # keep the source alive while the writer uses its port
                 w = vtkPLYWriter()
-                w.SetInputConnection(sphere(200).GetOutputPort())
+                w.SetInputConnection(src.GetOutputPort())
                 w.SetFileName(bunny)
                 w.Write()
             f = vtkSIPMSSCluster()
@@ -71,6 +76,46 @@ class SIPMSSPythonTest(unittest.TestCase):
             # the private block directory is gone
             left = [n for n in os.listdir(tmp) if n.startswith("sipmss-")]
             self.assertEqual(left, [])
+
+    def test_compare_agrees_with_vtk_distance(self):
+        """`sipmss compare` against VTK's vtkDistancePolyDataFilter on a sphere and its 1.1x copy."""
+        cli = os.environ.get("SIPMSS_CLI")
+        if not cli:
+            self.skipTest("SIPMSS_CLI is not set")
+        ref = sphere(60)
+        t = vtkTransform()
+        t.Scale(1.1, 1.1, 1.1)
+        scaled = vtkTransformPolyDataFilter()
+        scaled.SetTransform(t)
+        scaled.SetInputConnection(ref.GetOutputPort())
+        scaled.Update()
+        with tempfile.TemporaryDirectory() as tmp:
+            paths = []
+            for name, alg in (("ref.ply", ref), ("cand.ply", scaled)):
+                w = vtkPLYWriter()
+                w.SetFileName(os.path.join(tmp, name))
+                w.SetInputConnection(alg.GetOutputPort())
+                w.Write()
+                paths.append(os.path.join(tmp, name))
+            out = subprocess.run([cli, "compare", paths[0], paths[1], "--samples", "100000"],
+                                 check=True, capture_output=True, text=True).stdout
+            ours = json.loads(out)
+        d = vtkDistancePolyDataFilter()
+        d.SetInputConnection(0, ref.GetOutputPort())
+        d.SetInputConnection(1, scaled.GetOutputPort())
+        d.SignedDistanceOff()
+        d.ComputeSecondDistanceOn()
+        d.Update()
+        a = d.GetOutput().GetPointData().GetArray("Distance")
+        b = d.GetSecondDistanceOutput().GetPointData().GetArray("Distance")
+        vals = [a.GetValue(i) for i in range(a.GetNumberOfTuples())] + \
+               [b.GetValue(i) for i in range(b.GetNumberOfTuples())]
+        vtk_max = max(vals)
+        vtk_mean = sum(vals) / len(vals)
+        # every distance is about 0.05 (sphere radius 0.5 scaled by 1.1), up to the facets' sagitta
+        self.assertAlmostEqual(ours["hausdorff_absolute"], vtk_max, delta=0.03 * vtk_max)
+        self.assertAlmostEqual(ours["mean_absolute"], vtk_mean, delta=0.03 * vtk_mean)
+        self.assertAlmostEqual(ours["diagonal"], 3 ** 0.5, delta=1e-3)
 
 
 if __name__ == "__main__":
