@@ -15,6 +15,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <optional>
 #include <thread>
 
 namespace sipmss::algorithms
@@ -330,9 +331,12 @@ private:
 class ClusterSink final : public io::MeshSink
 {
 public:
-  ClusterSink(DML& dml, const ClusterGrid& grid, Progress& progress)
+  ClusterSink(DML& dml, const ClusterGrid& grid, const ClusterOptions& options, bool configure,
+    Progress& progress)
     : dml_(dml)
     , grid_(grid)
+    , options_(options)
+    , configure_(configure)
     , progress_(progress)
     , cellMap_(dml)
     , triangles_(dml)
@@ -341,6 +345,21 @@ public:
 
   void Begin(const io::MeshHeader& h) override
   {
+    if (this->configure_ && h.vertexCount)
+    {
+      // The paper's Config: the table of structures with their maximum counts decides the mode.
+      storage::Profile profile = this->options_.storage;
+      const std::uint64_t gridCells =
+        std::uint64_t(this->grid_.dims[0]) * this->grid_.dims[1] * this->grid_.dims[2];
+      const std::uint64_t maxCells = std::min<std::uint64_t>(h.vertexCount, gridCells);
+      profile.structures = {
+        { "vertices", sizeof(VertexRec), h.vertexCount, 0.0 },
+        { "cells", sizeof(CellRec), maxCells, 0.0 },
+        { "cell map", sizeof(KeySlot), 2 * maxCells, 0.0 },
+        { "candidate triangles", sizeof(TriSlot), h.faceCount, 0.0 },
+      };
+      this->dml_.Config(profile);
+    }
     this->header_ = h;
     this->layout_ = h.layout;
     this->attrStride_ = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 4 : 0) +
@@ -531,6 +550,10 @@ public:
       if (!this->Representative(rec, c, options, p))
       {
         ++fallbacks;
+      }
+      if (options.exportQuadric)
+      {
+        options.exportQuadric(first + xyz.size() / 3, rec.q);
       }
       xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
       if (this->attrStride_)
@@ -813,6 +836,8 @@ private:
 
   DML& dml_;
   ClusterGrid grid_;
+  const ClusterOptions& options_;
+  bool configure_;
   Progress& progress_;
   io::MeshHeader header_;
   io::VertexLayout layout_;
@@ -888,12 +913,13 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
     options.threads > 0 ? options.threads : static_cast<int>(std::thread::hardware_concurrency());
   const MeshSource input = threads > 1 ? Prefetched(source) : source;
   RunStats stats;
-  DML dml;
+  std::optional<DML> own;
+  DML& dml = options.dml ? *options.dml : own.emplace();
+  if (own)
   {
-    // The profile: the structures that grow with the input. Counts are not known before the
-    // read, so C is estimated from the grid (cells) and refined by the DML as blocks open.
-    storage::Profile profile = options.storage;
-    dml.Config(profile);
+    // Before the read the sizes are unknown; ClusterSink::Begin configures again with the table
+    // of structures once the header announces the counts.
+    dml.Config(options.storage);
   }
 
   std::array<double, 6> bounds = options.bounds;
@@ -909,7 +935,7 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   }
   const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
 
-  ClusterSink sink(dml, grid, progress);
+  ClusterSink sink(dml, grid, options, own.has_value(), progress);
   {
     progress.BeginPhase("cluster", options.useBounds ? 0.0 : 0.15, 0.9);
     PhaseTimer timer(stats, dml, "cluster");

@@ -467,7 +467,8 @@ private:
   Array<std::uint32_t> ringOff_;  // nv_ + 1
   Array<std::uint32_t> ringFace_; // ringOff_[nv_]
   Array<Cand> cand_;
-  Array<std::uint32_t> order_;
+  Array<std::uint32_t> order_; // the pass's candidates in processing order (<= nv_ of them)
+  Array<std::uint32_t> remap_; // compaction: old vertex -> new
 
   View<Vec3> P_;
   View<Quadric> Q_;
@@ -562,6 +563,7 @@ void Decimator::BeginInput(const io::MeshHeader& header)
   add("decimate.ringFaces", sizeof(std::uint32_t), 3 * F);
   add("decimate.candidates", sizeof(Cand), V);
   add("decimate.order", sizeof(std::uint32_t), V);
+  add("decimate.remap", sizeof(std::uint32_t), V);
   this->dml_.Config(profile);
 
   this->vCap_ = std::max<std::uint64_t>(V, 1);
@@ -1131,59 +1133,100 @@ void Decimator::BuildQuadrics()
   this->state_ = Array<State>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->cand_ = Array<Cand>(this->dml_, std::max<std::uint64_t>(nv, 1));
   FillBlock(this->dml_, this->cand_, this->none_);
+  this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->remap_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->BindViews();
-  Ring& r = this->ru_;
   const double bw = this->opt_.boundaryWeight;
+  std::vector<Tri> tris;
+  std::vector<Vec3> unit;
+  std::vector<std::uint32_t> next, prev;
   for (std::uint64_t u = 0; u < nv; ++u)
   {
     this->Tick(u, nv);
-    this->LoadRing(std::uint32_t(u), r, true);
     Quadric Q;
     std::fill(Q.q, Q.q + 10, 0.0);
     State flags = kRecompute;
-    // Face plane quadrics, weighted by area.
-    Vec3 un[64];
-    std::vector<Vec3> unBig;
-    Vec3* unit = un;
-    if (r.faces.size() > 64)
+    // The live faces of the ring.
+    const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
+    tris.clear();
+    next.clear();
+    prev.clear();
+    for (std::uint32_t k = b; k < e; ++k)
     {
-      unBig.resize(r.faces.size());
-      unit = unBig.data();
+      const Tri t = this->F_.Get(this->RF_.Get(k));
+      if (!Alive(t))
+      {
+        continue;
+      }
+      const int c = t.v[0] == u ? 0 : (t.v[1] == u ? 1 : 2);
+      tris.push_back(t);
+      next.push_back(t.v[(c + 1) % 3]);
+      prev.push_back(t.v[(c + 2) % 3]);
     }
-    for (std::size_t s = 0; s < r.faces.size(); ++s)
+    const std::size_t n = tris.size();
+    const Vec3 pu = this->P_.Get(u);
+    // Face plane quadrics, weighted by area.
+    unit.resize(n);
+    for (std::size_t i = 0; i < n; ++i)
     {
-      Vec3 c[3];
-      r.Corners(s, c);
-      const Vec3& a = c[0];
-      Vec3 n = Cross(c[1] - a, c[2] - a);
-      double len = std::sqrt(Dot(n, n));
+      const Vec3 a = this->P_.Get(tris[i].v[0]);
+      Vec3 nn = Cross(this->P_.Get(tris[i].v[1]) - a, this->P_.Get(tris[i].v[2]) - a);
+      const double len = std::sqrt(Dot(nn, nn));
       if (len > 0)
       {
-        n = (1.0 / len) * n;
-        AddPlane(Q, n, -Dot(n, a), 0.5 * len);
+        nn = (1.0 / len) * nn;
+        AddPlane(Q, nn, -Dot(nn, a), 0.5 * len);
       }
-      unit[s] = n;
+      unit[i] = nn;
     }
-    // Boundary constraint planes and topology.
+    // Edge multiplicities: boundary constraint planes and topology.
+    auto count = [](const std::vector<std::uint32_t>& list, std::uint32_t x) {
+      return std::size_t(std::count(list.begin(), list.end(), x));
+    };
     int boundaryEdges = 0;
-    for (const Nb& n : r.nbs)
+    auto boundaryPlane = [&](std::uint32_t a, std::size_t face) {
+      ++boundaryEdges;
+      const Vec3 ev = this->P_.Get(a) - pu;
+      Vec3 m = Cross(ev, unit[face]);
+      const double len = std::sqrt(Dot(m, m));
+      if (len > 0 && bw > 0)
+      {
+        m = (1.0 / len) * m;
+        AddPlane(Q, m, -Dot(m, pu), bw * Dot(ev, ev));
+      }
+    };
+    for (std::size_t i = 0; i < n; ++i)
     {
-      if (n.count > 2)
+      const std::uint32_t a = next[i];
+      if (std::find(next.begin(), next.begin() + i, a) != next.begin() + i)
+      {
+        continue;
+      }
+      const std::size_t m = count(next, a) + count(prev, a);
+      if (m > 2)
       {
         flags |= kComplex; // that edge is never collapsed; its other edges are, with care
       }
-      else if (n.count == 1)
+      else if (m == 1)
       {
-        ++boundaryEdges;
-        const Vec3 pu = r.px;
-        Vec3 e = n.p - pu;
-        Vec3 m = Cross(e, unit[n.slot]);
-        double len = std::sqrt(Dot(m, m));
-        if (len > 0 && bw > 0)
-        {
-          m = (1.0 / len) * m;
-          AddPlane(Q, m, -Dot(m, pu), bw * Dot(e, e));
-        }
+        boundaryPlane(a, i);
+      }
+    }
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      const std::uint32_t a = prev[i];
+      if (count(next, a) > 0 || std::find(prev.begin(), prev.begin() + i, a) != prev.begin() + i)
+      {
+        continue;
+      }
+      const std::size_t m = count(prev, a);
+      if (m > 2)
+      {
+        flags |= kComplex;
+      }
+      else if (m == 1)
+      {
+        boundaryPlane(a, i);
       }
     }
     if (boundaryEdges > 0)
@@ -1226,8 +1269,12 @@ void Decimator::BuildQuadrics()
 // ---------------------------------------------------------------------------------------------
 // collapse
 
-Placement Decimator::Place(
-  const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const
+// The placement of a collapse with summed quadric Q: the optimum when well conditioned, else the
+// best point of the segment; an endpoint when it is as good (to rounding), u before v.
+// Everything is expanded around the midpoint m (better conditioned than the absolute form):
+// E(m + s e) = E(m) + 2 s e.g + s^2 e.Ae with g = A m + b, and at the optimum d = -A^-1 g,
+// E(m + d) = E(m) + d.g.
+Placement Decimator::Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const
 {
   if (su & kFixed)
   {
@@ -1239,10 +1286,17 @@ Placement Decimator::Place(
   }
   const double* q = Q.q;
   const Vec3 e = pv - pu;
+  const Vec3 m = 0.5 * (pu + pv);
   const double len2 = Dot(e, e);
-  const double tr = Trace(Q);
-  const double tol = 1e-10 * tr * len2; // below the noise of the cost evaluation
-  const double cu = Eval(Q, pu), cv = Eval(Q, pv);
+  const double tr = q[0] + q[4] + q[7];
+  const double tol = 1e-10 * tr * len2; // below the rounding of the costs
+  const Vec3 g = { q[0] * m.x + q[1] * m.y + q[2] * m.z + q[3],
+    q[1] * m.x + q[4] * m.y + q[5] * m.z + q[6], q[2] * m.x + q[5] * m.y + q[7] * m.z + q[8] };
+  const Vec3 Ae = { q[0] * e.x + q[1] * e.y + q[2] * e.z, q[1] * e.x + q[4] * e.y + q[5] * e.z,
+    q[2] * e.x + q[5] * e.y + q[7] * e.z };
+  const double Em = Dot(m, g) + (q[3] * m.x + q[6] * m.y + q[8] * m.z) + q[9];
+  const double eg = Dot(e, g), eAe = Dot(e, Ae);
+  const double cu = Em - eg + 0.25 * eAe, cv = Em + eg + 0.25 * eAe;
   Placement best = cu <= cv ? Placement{ cu, pu, 0.0 } : Placement{ cv, pv, 1.0 };
   bool solved = false;
   if (tr > 0)
@@ -1256,46 +1310,32 @@ Placement Decimator::Place(
     // Well conditioned: det (the product of the eigenvalues) against the cube of their sum.
     if (invertible && det > 1e-12 * tr * tr * tr)
     {
-      // Solve around the midpoint for accuracy: A (m + d) + b = 0.
-      const Vec3 m = 0.5 * (pu + pv);
-      const Eigen::Vector3d g(q[0] * m.x + q[1] * m.y + q[2] * m.z + q[3],
-        q[1] * m.x + q[4] * m.y + q[5] * m.z + q[6], q[2] * m.x + q[5] * m.y + q[7] * m.z + q[8]);
-      const Eigen::Vector3d d = -(inv * g);
+      const Eigen::Vector3d d = -(inv * Eigen::Vector3d(g.x, g.y, g.z));
       // The optimum of a nearly singular quadric can slide far along the weak direction: keep it
       // within one edge length of the midpoint, else use the segment.
       if (d.squaredNorm() <= len2)
       {
         solved = true;
-        const Vec3 p = { m.x + d.x(), m.y + d.y(), m.z + d.z() };
-        const double c = Eval(Q, p);
+        const double c = Em + d.x() * g.x + d.y() * g.y + d.z() * g.z;
         if (c < best.cost - tol)
         {
-          const double t = len2 > 0 ? Dot(p - pu, e) / len2 : 0.0;
+          const Vec3 p = { m.x + d.x(), m.y + d.y(), m.z + d.z() };
+          const double t = len2 > 0 ? 0.5 + Dot(Vec3{ d.x(), d.y(), d.z() }, e) / len2 : 0.0;
           best = { c, p, std::min(1.0, std::max(0.0, t)) };
         }
       }
     }
   }
-  if (!solved)
+  if (!solved && eAe > 0)
   {
-    // Best point of the segment pu + t e (covers the endpoints and the midpoint).
-    const Vec3 Ae = { q[0] * e.x + q[1] * e.y + q[2] * e.z, q[1] * e.x + q[4] * e.y + q[5] * e.z,
-      q[2] * e.x + q[5] * e.y + q[7] * e.z };
-    const Vec3 gu = { q[0] * pu.x + q[1] * pu.y + q[2] * pu.z + q[3],
-      q[1] * pu.x + q[4] * pu.y + q[5] * pu.z + q[6], q[2] * pu.x + q[5] * pu.y + q[7] * pu.z + q[8] };
-    const double a2 = Dot(e, Ae);
-    const double b1 = Dot(e, gu);
-    if (a2 > 0)
+    // Best point of the segment: s in (-1/2, 1/2) around the midpoint.
+    const double sopt = -eg / eAe;
+    if (sopt > -0.5 && sopt < 0.5)
     {
-      const double t = -b1 / a2;
-      if (t > 0 && t < 1)
+      const double c = Em + sopt * eg;
+      if (c < best.cost - tol)
       {
-        const Vec3 p = pu + t * e;
-        const double c = Eval(Q, p);
-        if (c < best.cost - tol)
-        {
-          best = { c, p, t };
-        }
+        best = { c, m + sopt * e, sopt + 0.5 };
       }
     }
   }
@@ -1402,6 +1442,13 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
 
 void Decimator::Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
 {
+  if (const Cand* cp = this->C_.Ptr(x))
+  {
+    if (!(pl.cost < cp->cost || (pl.cost == cp->cost && partner < cp->partner)))
+    {
+      return;
+    }
+  }
   Cand c = this->C_.Get(x);
   if (pl.cost < c.cost || (pl.cost == c.cost && partner < c.partner))
   {
@@ -1790,7 +1837,6 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
       gstart[counts[b]] += 0;
     }
     // all bins of a group share one cursor: use gstart as the cursor
-    this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(taken, 1));
     this->BindViews();
     std::uint64_t st2 = 0;
     for (int g = 0; g < kGroups; ++g) { gstart[g] = st2; st2 += gcount[g]; }
@@ -1804,7 +1850,6 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
   }
   else
   {
-  this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(taken, 1));
   this->BindViews();
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.6 * progressSpan, progressBase + 0.7 * progressSpan);
@@ -1911,7 +1956,6 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
       (unsigned long long)goal, (unsigned long long)candidates, (unsigned long long)taken,
       (unsigned long long)done, (unsigned long long)illegal);
   }
-  this->order_.Close();
   double t3 = DbgCpu(); g_dbg[2] += t3 - t2;
   // 4. Compact into fresh blocks.
   this->progress_.BeginPhase(
@@ -1923,92 +1967,68 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
   return done > 0 || illegal > 0;
 }
 
+// Renumbers the live vertices and faces after a pass, in place: compaction keeps the order, so
+// every element moves to an index <= its own and ascending loops never overwrite what they still
+// have to read. The blocks then shrink (Resize: no copy) and the DML re-evaluates its mode with
+// the smaller cost. The rings are rebuilt (degrees, offsets, reverse fill). In place rather than
+// into fresh blocks: half the peak memory, and no first-touch page faults on every pass.
 void Decimator::Compact()
 {
   const std::uint64_t nv = this->nv_, nf = this->nf_;
-  Array<std::uint32_t> remap(this->dml_, std::max<std::uint64_t>(nv, 1));
-  FillBlock(this->dml_, remap, std::uint32_t(0));
+  const std::uint64_t nf2 = this->liveFaces_;
+  const std::uint64_t total = 4 * nf + 2 * nv;
+  this->remap_.Resize(std::max<std::uint64_t>(nv, 1));
   this->BindViews();
-  View<std::uint32_t> R(this->dml_, remap);
-  // Degrees of the live faces.
+  View<std::uint32_t> R(this->dml_, this->remap_);
+  // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with).
+  FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
   for (std::uint64_t f = 0; f < nf; ++f)
   {
-    this->Tick(f, 3 * nf + 2 * nv);
-    Tri t = this->F_.Get(f);
+    this->Tick(f, total);
+    const Tri t = this->F_.Get(f);
     if (!Alive(t))
     {
       continue;
     }
-    for (int k = 0; k < 3; ++k)
+    for (int c = 0; c < 3; ++c)
     {
-      R.Set(t.v[k], R.Get(t.v[k]) + 1);
+      this->RO_.Set(t.v[c], this->RO_.Get(t.v[c]) + 1);
     }
   }
-  std::uint64_t nv2 = 0;
-  for (std::uint64_t v = 0; v < nv; ++v)
-  {
-    if (R.Get(v) > 0)
-    {
-      ++nv2;
-    }
-  }
-  const std::uint64_t nf2 = this->liveFaces_;
-  Array<Vec3> pos2(this->dml_, std::max<std::uint64_t>(nv2, 1));
-  Array<Quadric> quad2(this->dml_, std::max<std::uint64_t>(nv2, 1));
-  Array<std::uint8_t> attr2;
-  if (this->recSize_)
-  {
-    attr2 = Array<std::uint8_t>(this->dml_, std::max<std::uint64_t>(nv2, 1) * this->recSize_);
-  }
-  Array<State> state2(this->dml_, std::max<std::uint64_t>(nv2, 1));
-  Array<Cand> cand2(this->dml_, std::max<std::uint64_t>(nv2, 1));
-  Array<Tri> faces2(this->dml_, std::max<std::uint64_t>(nf2, 1));
-  Array<std::uint32_t> off2(this->dml_, nv2 + 1);
-  Array<std::uint32_t> ring2(this->dml_, std::max<std::uint64_t>(3 * nf2, 1));
-  this->BindViews();
-  R.Refresh();
-  View<Vec3> P2(this->dml_, pos2);
-  View<Quadric> Q2(this->dml_, quad2);
-  View<std::uint8_t> A2 = this->recSize_ ? View<std::uint8_t>(this->dml_, attr2) : View<std::uint8_t>();
-  View<State> S2(this->dml_, state2);
-  View<Cand> C2(this->dml_, cand2);
-  View<Tri> F2(this->dml_, faces2);
-  View<std::uint32_t> O2(this->dml_, off2), RF2(this->dml_, ring2);
-  // New vertex numbers (order kept); O2[k] = end of k's ring (filled backwards below).
+  // 2. New vertex numbers; RO[k] = end of k's ring (k <= v: RO[k] was read already). R holds the
+  // new number, with the top bit for the survivors of this pass (their old state is overwritten
+  // below before their neighbours look at it).
+  constexpr std::uint32_t kTop = 0x80000000u;
   std::uint64_t k = 0;
   std::uint32_t end = 0;
   for (std::uint64_t v = 0; v < nv; ++v)
   {
-    this->Tick(nf + v, 3 * nf + 2 * nv);
-    const std::uint32_t deg = R.Get(v);
+    this->Tick(nf + v, total);
+    const std::uint32_t deg = this->RO_.Get(v);
     if (deg == 0)
     {
       R.Set(v, kNone);
       continue;
     }
     end += deg;
-    O2.Set(k, end);
-    R.Set(v, std::uint32_t(k));
+    this->RO_.Set(k, end);
+    R.Set(v, std::uint32_t(k) | ((this->S_.Get(v) & kCollapsed) ? kTop : 0u));
     ++k;
   }
-  // Vertex data and the candidates carried to the next pass.
+  const std::uint64_t nv2 = k;
+  this->RO_.Set(nv2, end);
+  // 3. Vertex data, and the candidates carried to the next pass.
   const std::size_t rec = this->recSize_;
   this->abuf_.resize(rec);
   for (std::uint64_t v = 0; v < nv; ++v)
   {
-    this->Tick(nf + nv + v, 3 * nf + 2 * nv);
-    const std::uint32_t w = R.Get(v);
-    if (w == kNone)
+    this->Tick(nf + nv + v, total);
+    const std::uint32_t rv = R.Get(v);
+    if (rv == kNone)
     {
       continue;
     }
-    P2.Set(w, this->P_.Get(v));
-    Q2.Set(w, this->Q_.Get(v));
-    if (rec)
-    {
-      this->A_.GetRange(v * rec, rec, this->abuf_.data());
-      A2.SetRange(std::uint64_t(w) * rec, rec, this->abuf_.data());
-    }
+    const std::uint64_t w = rv & ~kTop;
     const State sv = this->S_.Get(v);
     State flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
     Cand c = this->none_;
@@ -2027,7 +2047,7 @@ void Decimator::Compact()
       // exact unless it pointed at one of them.
       c = this->C_.Get(v);
       const std::uint32_t x = c.partner == kNone ? kNone : R.Get(c.partner);
-      if (x != kNone && !(this->S_.Get(c.partner) & kCollapsed))
+      if (x != kNone && !(x & kTop))
       {
         c.partner = x;
       }
@@ -2040,45 +2060,65 @@ void Decimator::Compact()
         }
       }
     }
-    S2.Set(w, flags);
-    C2.Set(w, c);
+    if (w != v)
+    {
+      this->P_.Set(w, this->P_.Get(v));
+      this->Q_.Set(w, this->Q_.Get(v));
+      if (rec)
+      {
+        this->A_.GetRange(v * rec, rec, this->abuf_.data());
+        this->A_.SetRange(w * rec, rec, this->abuf_.data());
+      }
+    }
+    this->S_.Set(w, flags);
+    this->C_.Set(w, c);
   }
-  O2.Set(nv2, end);
-  // Faces in reverse order: new index, remapped corners, ring entries.
-  std::uint64_t f2 = nf2;
-  for (std::uint64_t f = nf; f-- > 0;)
+  // 4. Faces, ascending: new index f2 <= f.
+  std::uint64_t f2 = 0;
+  for (std::uint64_t f = 0; f < nf; ++f)
   {
-    this->Tick(nf + 2 * nv + (nf - f), 3 * nf + 2 * nv);
-    Tri t = this->F_.Get(f);
+    this->Tick(nf + 2 * nv + f, total);
+    const Tri t = this->F_.Get(f);
     if (!Alive(t))
     {
       continue;
     }
-    --f2;
     Tri w;
     for (int c = 0; c < 3; ++c)
     {
-      w.v[c] = R.Get(t.v[c]);
-      std::uint32_t e = O2.Get(w.v[c]) - 1;
-      O2.Set(w.v[c], e);
-      RF2.Set(e, std::uint32_t(f2));
+      w.v[c] = R.Get(t.v[c]) & ~kTop;
     }
-    F2.Set(f2, w);
+    this->F_.Set(f2++, w);
   }
-  remap.Close();
-  this->pos_ = std::move(pos2);
-  this->quad_ = std::move(quad2);
+  // 5. Shrink, then the rings (faces in reverse: each list ascending, RO[k] ends at its start).
+  const std::uint64_t nvb = std::max<std::uint64_t>(nv2, 1);
+  this->pos_.Resize(nvb);
+  this->quad_.Resize(nvb);
   if (rec)
   {
-    this->attr_ = std::move(attr2);
+    this->attr_.Resize(nvb * rec);
   }
-  this->state_ = std::move(state2);
-  this->cand_ = std::move(cand2);
-  this->faces_ = std::move(faces2);
-  this->ringOff_ = std::move(off2);
-  this->ringFace_ = std::move(ring2);
+  this->state_.Resize(nvb);
+  this->cand_.Resize(nvb);
+  this->faces_.Resize(std::max<std::uint64_t>(nf2, 1));
+  this->ringOff_.Resize(nv2 + 1);
+  this->ringFace_.Resize(std::max<std::uint64_t>(3 * nf2, 1));
   this->nv_ = nv2;
   this->nf_ = nf2;
+  this->BindViews();
+  for (std::uint64_t f = nf2; f-- > 0;)
+  {
+    this->Tick(2 * nf + 2 * nv + (nf2 - f), total);
+    const Tri t = this->F_.Get(f);
+    for (int c = 0; c < 3; ++c)
+    {
+      const std::uint32_t e = this->RO_.Get(t.v[c]) - 1;
+      this->RO_.Set(t.v[c], e);
+      this->RF_.Set(e, std::uint32_t(f));
+    }
+  }
+  this->remap_.Resize(nvb);
+  this->order_.Resize(nvb);
   this->dml_.Reconfigure();
   this->BindViews();
 }

@@ -33,6 +33,11 @@ struct ClusterOptions
   // runs, when the machine has more than one core), 1 = everything on the calling thread. The
   // output is identical for any value.
   int threads = 0;
+  // Optional: run on this DML (already configured by the caller, e.g. the two-stage method that
+  // keeps the clustered mesh in it for the second stage). Default: a DML of the run's own.
+  storage::DML* dml = nullptr;
+  // Optional: called for each output vertex with its cell's quadric (a2 ab ac b2 bc c2 ad bd cd d2).
+  std::function<void(std::uint64_t vertex, const double quadric[10])> exportQuadric;
 };
 
 // Grid geometry derived from the bounds and the maximum grid dimension.
