@@ -3,6 +3,7 @@
 #include "vtkSIPMSSPolyDataBridge.h"
 
 #include "sipmss/algorithms/Decimate.h"
+#include "sipmss/algorithms/TwoStage.h"
 
 #include "vtkDataObject.h"
 #include "vtkInformation.h"
@@ -51,15 +52,22 @@ int vtkSIPMSSDecimate::RequestData(
       options.boundaryWeight = this->BoundaryWeight;
       options.weldDistance = this->WeldDistance;
       options.storage = profile;
-      return sipmss::algorithms::Decimate(source, sink, options, progress,
-        [levels](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
-          vtkNew<vtkPolyData> lod;
-          vtkSIPMSSPolyDataBridge::PolyDataSink lodSink(lod);
-          emit(lodSink);
-          levels->SetBlock(static_cast<unsigned int>(level), lod);
-          levels->GetMetaData(static_cast<unsigned int>(level))
-            ->Set(vtkMultiBlockDataSet::NAME(), ("LOD " + std::to_string(level)).c_str());
-        });
+      auto onLevel = [levels](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
+        vtkNew<vtkPolyData> lod;
+        vtkSIPMSSPolyDataBridge::PolyDataSink lodSink(lod);
+        emit(lodSink);
+        levels->SetBlock(static_cast<unsigned int>(level), lod);
+        levels->GetMetaData(static_cast<unsigned int>(level))
+          ->Set(vtkMultiBlockDataSet::NAME(), ("LOD " + std::to_string(level)).c_str());
+      };
+      if (this->PreClusterGridDimension > 0)
+      {
+        sipmss::algorithms::TwoStageOptions two;
+        two.gridDimension = this->PreClusterGridDimension;
+        two.decimate = options;
+        return sipmss::algorithms::TwoStage(source, sink, two, progress, onLevel);
+      }
+      return sipmss::algorithms::Decimate(source, sink, options, progress, onLevel);
     });
 }
 
@@ -73,4 +81,5 @@ void vtkSIPMSSDecimate::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "LockBoundary: " << this->LockBoundary << "\n";
   os << indent << "BoundaryWeight: " << this->BoundaryWeight << "\n";
   os << indent << "WeldDistance: " << this->WeldDistance << "\n";
+  os << indent << "PreClusterGridDimension: " << this->PreClusterGridDimension << "\n";
 }

@@ -72,6 +72,17 @@ public:
 
   ///@{
   /**
+   * Two-stage simplification (the paper's Algorithm Two-Stage): when > 0, the input is first
+   * clustered on a grid with this maximum dimension (as vtkSIPMSSCluster, e.g. 300), and the
+   * clustered mesh, kept in the storage layer with its cell quadrics, is then decimated. Much
+   * faster on huge inputs at nearly the same quality. 0 (default): decimate the input directly.
+   */
+  vtkSetClampMacro(PreClusterGridDimension, int, 0, 65535);
+  vtkGetMacro(PreClusterGridDimension, int);
+  ///@}
+
+  ///@{
+  /**
    * Weld input vertices closer than this distance first. Negative (default): no welding.
    */
   vtkSetMacro(WeldDistance, double);
@@ -92,6 +103,7 @@ protected:
   bool LockBoundary = false;
   double BoundaryWeight = 100.0;
   double WeldDistance = -1.0;
+  int PreClusterGridDimension = 0;
 
 private:
   vtkSIPMSSDecimate(const vtkSIPMSSDecimate&) = delete;

@@ -2,32 +2,42 @@
 // written against the DML so that it runs in core or out of core with identical results.
 //
 // Stages (paper section 4.1):
-//   read      the source is streamed into DML blocks (positions as doubles relative to the first
-//             vertex, triangles, packed point attributes). Blocks grow with Resize when the source
-//             does not announce its counts (OBJ, STL, gzip) and vertices/triangles may interleave.
-//   rings     one pass over the faces counts the vertex degrees, a prefix sum gives CSR offsets
-//             and a second pass over the faces fills the incident face lists (vertex rings).
-//             Degenerate (repeated index, zero area) and duplicate triangles are dropped here.
-//   quadrics  per vertex (a gather over its ring): area-weighted face plane quadrics, boundary
-//             constraint quadrics (plane through the boundary edge perpendicular to its face,
-//             weight boundaryWeight * |edge|^2), options.initialQuadric. Vertices on non-manifold
-//             edges (> 2 faces) or with more than two boundary edges are locked.
+//   read      the source is streamed into DML blocks: positions as doubles relative to the first
+//             vertex (exact for float input), triangles, packed point attributes. Blocks grow
+//             with Resize when the source does not announce its counts (OBJ, STL, gzip), and
+//             vertices and triangles may interleave (OBJ).
+//   [weld]    optional (weldDistance >= 0): a spatial hash in the DML joins close vertices.
+//   rings     one pass over the faces validates them, drops zero-area ones and counts degrees;
+//             a prefix sum gives CSR offsets; a second pass fills the incident face lists.
+//             Faces on one vertex set: copies of one orientation become one face, opposite
+//             orientations cancel (double-sided zero-volume pairs, common in scans).
+//   quadrics  area-weighted face plane quadrics (one per face, added to its corners in face
+//             order), boundary constraint quadrics (plane through the edge perpendicular to its
+//             face, weight boundaryWeight * |edge|^2), options.initialQuadric. Vertices on an edge
+//             with > 2 faces, or where several boundary fans meet, are flagged kComplex: such
+//             edges are never collapsed, the others are, under the link condition.
 //   collapse  passes without a global priority queue. Each pass
-//               1. computes for every vertex its cheapest *legal* incident edge collapse
-//                  (optimal placement from the summed quadric when well conditioned, else the
-//                  best point of the edge segment, endpoints preferred on ties);
-//               2. orders the candidates with a counting sort on the cost's float bits (32768
-//                  log-spaced bins: linear time, deterministic, ties by vertex index);
-//               3. collapses them in that order while the pass goal is not met. A collapse marks
-//                  every vertex of the faces around both endpoints, and a candidate whose
-//                  endpoints are marked is skipped, so no two collapses of one pass touch the
-//                  same faces; therefore the legality computed in step 1 still holds;
-//               4. compacts the live vertices and faces into fresh blocks, rebuilds the rings and
-//                  calls Reconfigure() so that the run moves in core as the mesh shrinks.
-//             The pass goal removes at most passFraction of the remaining triangles and never
-//             goes below the next level's target, so every level (and the final target) is met
-//             exactly unless the mesh runs out of legal collapses.
+//               1. keeps for every vertex its cheapest collapse (and the second cheapest edge):
+//                  optimal placement from the summed quadric when well conditioned, else the
+//                  best point of the segment, endpoints preferred on ties. Incremental and exact:
+//                  only the survivors of the last pass and vertices whose best and second best
+//                  both pointed at a collapsed pair evaluate their edges (each edge once);
+//               2. orders the cheapest candidates (about twice the collapses the pass needs) by
+//                  a counting sort on the cost's float bits: a cost quantile as threshold, linear
+//                  time, deterministic;
+//               3. collapses them in that order while the pass goal is not met, checking legality
+//                  then (link condition, no tetrahedron collapse, no vanishing component, no
+//                  normal flip or excessive turn, no zero-area face, boundary rules). A collapse
+//                  marks every vertex of the faces around both endpoints, and a candidate with a
+//                  marked endpoint is skipped: no two collapses of one pass touch the same faces,
+//                  so each check sees the mesh exactly as step 1 did;
+//               4. compacts the live vertices and faces (in place, order kept), shrinks the
+//                  blocks, rebuilds the rings and calls Reconfigure(): the run moves in core as
+//                  the mesh shrinks.
+//             A pass removes at most passFraction of the triangles and never goes below the next
+//             level's target, so levels and the final target are met exactly (or one below).
 //   write     the final level is streamed to the output sink.
+// Every loop over many elements ticks the progress (abort within a few milliseconds).
 #include "sipmss/algorithms/Decimate.h"
 
 #include <Eigen/Dense>
@@ -39,6 +49,7 @@
 #include <cstring>
 #include <ctime>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -51,12 +62,8 @@ using storage::BlockId;
 using storage::DML;
 
 constexpr std::uint32_t kNone = 0xffffffffu;
-double DbgCpu() { timespec t; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t); return t.tv_sec + 1e-9 * t.tv_nsec; }
-double g_dbg[8];
-std::uint64_t g_cnt[8];
-std::uint64_t g_why[8];
-struct DbgDump { ~DbgDump() { if (std::getenv("SIPMSS_DECIMATE_DEBUG")) std::fprintf(stderr, "why vanish %llu link %llu tetra %llu face %llu (zero %llu) cpu: sweep %.3f hist %.3f collapse %.3f compact %.3f edges %llu survivors %llu recompute %llu\n", (unsigned long long)g_why[0], (unsigned long long)g_why[1], (unsigned long long)g_why[2], (unsigned long long)g_why[3], (unsigned long long)g_why[4], g_dbg[0], g_dbg[1], g_dbg[2], g_dbg[3], (unsigned long long)g_cnt[0], (unsigned long long)g_cnt[1], (unsigned long long)g_cnt[2]); } } g_dbgDump;
 constexpr int kCostBins = 1 << 15;
+constexpr int kGroups = 4;
 
 // Per-vertex state bits.
 using State = std::uint16_t;
@@ -70,6 +77,7 @@ constexpr State kSurvivor = 64;    // survived a collapse of the last pass: all 
 constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edges
 constexpr State kCollapsed = 256;  // survived a collapse of this pass
 constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
+constexpr State kPromote = 1024;   // its best partner collapsed: its second best became the best
 // Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
 inline bool Active(State s)
 {
@@ -155,14 +163,25 @@ inline double Trace(const Quadric& Q)
 
 // One pass's candidate of a vertex: collapse it with `partner` to p; t = position of p along the
 // edge (0: this vertex, 1: partner) for the point data.
+//
+// cost2/partner2: the cheapest of the other edges (the second best), so that a vertex whose best
+// partner collapsed can take it without evaluating all its edges again; cost2 is NaN when not
+// known exactly. t < 0: the placement of the best edge is still to be computed (a promotion).
 struct Cand
 {
   double cost;
   double p[3];
   std::uint32_t partner;
   float t;
+  double cost2;
+  std::uint32_t partner2;
+  std::uint32_t pad;
 };
-static_assert(sizeof(Cand) == 40, "Cand layout");
+static_assert(sizeof(Cand) == 56, "Cand layout");
+inline bool Before(double a, std::uint32_t pa, double b, std::uint32_t pb)
+{
+  return a < b || (a == b && pa < pb); // false when b is NaN (unknown)
+}
 
 struct Placement
 {
@@ -389,6 +408,8 @@ public:
     : opt_(options)
     , progress_(progress)
     , stats_(stats)
+    , ownDml_(options.dml ? nullptr : new DML())
+    , dml_(options.dml ? *options.dml : *ownDml_)
     , hist_(kCostBins, 0)
   {
     this->cosThreshold_ = options.minNormalCosine;
@@ -413,7 +434,7 @@ private:
   void Weld();
   void BuildRings();
   void BuildQuadrics();
-  bool Pass(std::uint64_t goal, double progressBase, double progressSpan);
+  bool Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan);
   void Compact();
   void Emit(io::MeshSink& sink);
 
@@ -444,7 +465,10 @@ private:
   RunStats& stats_;
   double cosThreshold_ = 0.2;
 
-  DML dml_; // before every block so that the blocks close first
+  // The DML: the caller's (options.dml) or our own; declared before every block so that the
+  // blocks close first.
+  std::unique_ptr<DML> ownDml_;
+  DML& dml_;
 
   // Input description.
   io::VertexLayout layout_;
@@ -482,10 +506,12 @@ private:
   // Scratch bounded by valences and chunk sizes.
   Ring ru_, rv_;
   std::vector<EdgeCand> edges_;
-  const Cand none_ = { std::numeric_limits<double>::infinity(), { 0, 0, 0 }, kNone, 0.0f };
+  const Cand none_ = { std::numeric_limits<double>::infinity(), { 0, 0, 0 }, kNone, 0.0f,
+    std::numeric_limits<double>::infinity(), kNone, 0 };
   std::vector<std::uint32_t> ids_, next_ = std::vector<std::uint32_t>(64),
                                    prev_ = std::vector<std::uint32_t>(64);
   std::vector<std::uint32_t> hist_;
+  std::vector<std::uint64_t> starts_;
   std::vector<Vec3> vbuf_;
   std::vector<std::uint8_t> abuf_, abuf2_;
   std::vector<Tri> tbuf_;
@@ -564,7 +590,10 @@ void Decimator::BeginInput(const io::MeshHeader& header)
   add("decimate.candidates", sizeof(Cand), V);
   add("decimate.order", sizeof(std::uint32_t), V);
   add("decimate.remap", sizeof(std::uint32_t), V);
-  this->dml_.Config(profile);
+  if (!this->opt_.dml)
+  {
+    this->dml_.Config(profile);
+  }
 
   this->vCap_ = std::max<std::uint64_t>(V, 1);
   this->fCap_ = std::max<std::uint64_t>(F, 1);
@@ -1136,17 +1165,45 @@ void Decimator::BuildQuadrics()
   this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->remap_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->BindViews();
+  // Face plane quadrics, weighted by area: computed once per face, added to its corners in face
+  // order (deterministic sums).
+  const Quadric zero = { { 0, 0, 0, 0, 0, 0, 0, 0, 0, 0 } };
+  FillBlock(this->dml_, this->quad_, zero);
+  this->BindViews();
+  for (std::uint64_t f = 0; f < this->nf_; ++f)
+  {
+    this->Tick(f, this->nf_ + nv);
+    const Tri t = this->F_.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    const Vec3 a = this->P_.Get(t.v[0]);
+    Vec3 nn = Cross(this->P_.Get(t.v[1]) - a, this->P_.Get(t.v[2]) - a);
+    const double len = std::sqrt(Dot(nn, nn));
+    if (!(len > 0))
+    {
+      continue;
+    }
+    nn = (1.0 / len) * nn;
+    Quadric fq = zero;
+    AddPlane(fq, nn, -Dot(nn, a), 0.5 * len);
+    for (int c = 0; c < 3; ++c)
+    {
+      Quadric Q = this->Q_.Get(t.v[c]);
+      AddTo(Q, fq);
+      this->Q_.Set(t.v[c], Q);
+    }
+  }
+  // Per vertex: edge multiplicities from the ring (topology flags, boundary constraint planes)
+  // and the initial quadric.
   const double bw = this->opt_.boundaryWeight;
   std::vector<Tri> tris;
-  std::vector<Vec3> unit;
   std::vector<std::uint32_t> next, prev;
   for (std::uint64_t u = 0; u < nv; ++u)
   {
-    this->Tick(u, nv);
-    Quadric Q;
-    std::fill(Q.q, Q.q + 10, 0.0);
+    this->Tick(this->nf_ + u, this->nf_ + nv);
     State flags = kRecompute;
-    // The live faces of the ring.
     const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
     tris.clear();
     next.clear();
@@ -1164,32 +1221,36 @@ void Decimator::BuildQuadrics()
       prev.push_back(t.v[(c + 2) % 3]);
     }
     const std::size_t n = tris.size();
-    const Vec3 pu = this->P_.Get(u);
-    // Face plane quadrics, weighted by area.
-    unit.resize(n);
-    for (std::size_t i = 0; i < n; ++i)
-    {
-      const Vec3 a = this->P_.Get(tris[i].v[0]);
-      Vec3 nn = Cross(this->P_.Get(tris[i].v[1]) - a, this->P_.Get(tris[i].v[2]) - a);
-      const double len = std::sqrt(Dot(nn, nn));
-      if (len > 0)
-      {
-        nn = (1.0 / len) * nn;
-        AddPlane(Q, nn, -Dot(nn, a), 0.5 * len);
-      }
-      unit[i] = nn;
-    }
-    // Edge multiplicities: boundary constraint planes and topology.
     auto count = [](const std::vector<std::uint32_t>& list, std::uint32_t x) {
-      return std::size_t(std::count(list.begin(), list.end(), x));
+      std::size_t m = 0;
+      for (std::uint32_t y : list)
+      {
+        m += y == x;
+      }
+      return m;
     };
+    Quadric Q;
+    bool changed = false;
     int boundaryEdges = 0;
     auto boundaryPlane = [&](std::uint32_t a, std::size_t face) {
       ++boundaryEdges;
+      if (!(bw > 0))
+      {
+        return;
+      }
+      if (!changed)
+      {
+        Q = this->Q_.Get(u);
+        changed = true;
+      }
+      const Tri& t = tris[face];
+      const Vec3 p0 = this->P_.Get(t.v[0]);
+      Vec3 fn = Cross(this->P_.Get(t.v[1]) - p0, this->P_.Get(t.v[2]) - p0);
+      const Vec3 pu = this->P_.Get(u);
       const Vec3 ev = this->P_.Get(a) - pu;
-      Vec3 m = Cross(ev, unit[face]);
+      Vec3 m = Cross(ev, fn);
       const double len = std::sqrt(Dot(m, m));
-      if (len > 0 && bw > 0)
+      if (len > 0)
       {
         m = (1.0 / len) * m;
         AddPlane(Q, m, -Dot(m, pu), bw * Dot(ev, ev));
@@ -1258,10 +1319,18 @@ void Decimator::BuildQuadrics()
         T.q[8] = az + iq[8];
         T.q[9] = o.x * ax + o.y * ay + o.z * az + 2.0 * (iq[3] * o.x + iq[6] * o.y + iq[8] * o.z) +
           iq[9];
+        if (!changed)
+        {
+          Q = this->Q_.Get(u);
+          changed = true;
+        }
         AddTo(Q, T);
       }
     }
-    this->Q_.Set(u, Q);
+    if (changed)
+    {
+      this->Q_.Set(u, Q);
+    }
     this->S_.Set(u, flags);
   }
 }
@@ -1358,7 +1427,6 @@ bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
   const double maxE = std::max({ Dot(e0, e0), Dot(e1, e1), Dot(e2, e2) });
   if (!(l1 > 1e-20 * maxE * maxE))
   {
-    ++g_why[4];
     return false; // (nearly) zero area
   }
   const double l0 = Dot(n0, n0);
@@ -1380,7 +1448,6 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   // The collapse must leave faces (no vanishing component).
   if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
   {
-    ++g_why[0];
     return false;
   }
   // Link condition: the common neighbours are exactly the vertices opposite the edge.
@@ -1411,13 +1478,11 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   }
   if (common != m)
   {
-    ++g_why[1];
     return false;
   }
   // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
   if (m == 2 && ru.HasFace(nb.opp[0], nb.opp[1]) && rv.HasFace(nb.opp[0], nb.opp[1]))
   {
-    ++g_why[2];
     return false;
   }
   // Geometry of the faces that survive.
@@ -1425,7 +1490,6 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   {
     if (!Has(ru.faces[s].t, v) && !this->FaceOk(ru, s, p))
     {
-      ++g_why[3];
       return false;
     }
   }
@@ -1433,7 +1497,6 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   {
     if (!Has(rv.faces[s].t, u) && !this->FaceOk(rv, s, p))
     {
-      ++g_why[3];
       return false;
     }
   }
@@ -1444,22 +1507,34 @@ void Decimator::Offer(std::uint32_t x, std::uint32_t partner, const Placement& p
 {
   if (const Cand* cp = this->C_.Ptr(x))
   {
-    if (!(pl.cost < cp->cost || (pl.cost == cp->cost && partner < cp->partner)))
+    if (!Before(pl.cost, partner, cp->cost, cp->partner) &&
+      !Before(pl.cost, partner, cp->cost2, cp->partner2))
     {
       return;
     }
   }
   Cand c = this->C_.Get(x);
-  if (pl.cost < c.cost || (pl.cost == c.cost && partner < c.partner))
+  if (Before(pl.cost, partner, c.cost, c.partner))
   {
+    c.cost2 = c.cost;
+    c.partner2 = c.partner;
     c.cost = pl.cost;
     c.p[0] = pl.p.x;
     c.p[1] = pl.p.y;
     c.p[2] = pl.p.z;
     c.partner = partner;
     c.t = float(fromPartner ? 1.0 - pl.t : pl.t);
-    this->C_.Set(x, c);
   }
+  else if (partner != c.partner && Before(pl.cost, partner, c.cost2, c.partner2))
+  {
+    c.cost2 = pl.cost;
+    c.partner2 = partner;
+  }
+  else
+  {
+    return;
+  }
+  this->C_.Set(x, c);
 }
 
 // The candidate sweep for vertex u: evaluates u's edges to higher neighbours once and offers
@@ -1480,9 +1555,27 @@ void Decimator::Evaluate(std::uint32_t u)
   }
   if (!Active(su))
   {
-    return; // its candidate is exact (and adjacent survivors offer their new edges)
+    // Its candidate is exact (adjacent survivors offer their new edges), or its second best
+    // was promoted: the placement of that edge is computed here.
+    if (su & kPromote)
+    {
+      Cand c = this->C_.Get(u);
+      if (c.t < 0)
+      {
+        const std::uint32_t v = c.partner;
+        Quadric Q = this->Q_.Get(v);
+        AddTo(Q, this->Q_.Get(u));
+        const Placement pl = this->Place(Q, this->P_.Get(u), this->P_.Get(v), su, this->S_.Get(v));
+        c.cost = pl.cost;
+        c.p[0] = pl.p.x;
+        c.p[1] = pl.p.y;
+        c.p[2] = pl.p.z;
+        c.t = float(pl.t);
+        this->C_.Set(u, c);
+      }
+    }
+    return;
   }
-  ++g_cnt[(su & kSurvivor) ? 1 : 2];
   const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
   const std::uint32_t* ids = this->RF_.Ptr(b);
   if (!ids)
@@ -1582,7 +1675,6 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   }
   Quadric Q = this->Q_.Get(v);
   AddTo(Q, Qu);
-  ++g_cnt[0];
   const Placement pl = this->Place(Q, pu, this->P_.Get(v), su, sv);
   if (!std::isfinite(pl.cost) ||
     (std::isfinite(this->opt_.maximumError) && pl.cost > this->opt_.maximumError * Trace(Q)))
@@ -1657,6 +1749,9 @@ void Decimator::EvaluateFull(std::uint32_t u, State su)
       c.p[2] = ec.pl.p.z;
       c.partner = ec.v;
       c.t = float(ec.pl.t);
+      c.cost2 = std::numeric_limits<double>::quiet_NaN();
+      c.partner2 = kNone;
+      c.pad = 0;
       this->C_.Set(u, c);
       return;
     }
@@ -1761,12 +1856,11 @@ inline std::uint32_t CostBin(double cost)
   return bits >> 16; // non-negative floats order like their bits; 15 bits: ~0.8% wide bins
 }
 
-bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpan)
+bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan)
 {
   const std::uint64_t nv = this->nv_;
   this->BindViews();
   // 1. Every vertex's cheapest collapse.
-  double t0 = DbgCpu();
   this->progress_.BeginPhase("collapse", progressBase, progressBase + 0.6 * progressSpan);
   for (std::uint64_t u = 0; u < nv; ++u)
   {
@@ -1776,11 +1870,11 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
   // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
   // about four times the collapses the goal needs (a collapse removes 2 faces, and both
   // endpoints may propose it). Ties in order of vertex index.
-  double t1 = DbgCpu(); g_dbg[0] += t1 - t0;
   std::fill(this->hist_.begin(), this->hist_.end(), 0u);
   std::uint64_t candidates = 0;
   for (std::uint64_t u = 0; u < nv; ++u)
   {
+    this->Tick(u, nv);
     const Cand c = this->C_.Get(u);
     if (c.partner != kNone)
     {
@@ -1792,64 +1886,44 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
   {
     return false;
   }
-  static const double wantFactor = std::getenv("WANT") ? std::atof(std::getenv("WANT")) : 2.0;
-  const std::uint64_t want = std::uint64_t(wantFactor * double(this->liveFaces_ - goal)) + 16;
+  const std::uint64_t want = 2 * (this->liveFaces_ - goal) + 16;
   std::uint64_t taken = 0;
   std::uint32_t lastBin = 0;
   for (std::uint32_t b = 0; b < std::uint32_t(kCostBins); ++b)
   {
-    const std::uint32_t n = this->hist_[b];
-    this->hist_[b] = std::uint32_t(taken); // start of the bin
-    taken += n;
+    taken += this->hist_[b];
     lastBin = b;
     if (taken >= want)
     {
       break;
     }
   }
-  // Coarse groups (quantiles of the ordered candidates), each in vertex order.
-  static const int kGroups = std::getenv("NGRP") ? std::atoi(std::getenv("NGRP")) : 0;
-  if (kGroups > 0)
+  // Processing order. A pass that may end on a level (or the final target) goes in exact cost
+  // order (bins 0.8% wide, ties by vertex index), so that the last collapses are the cheapest.
+  // Other passes take the ordered candidates in kGroups cost quantiles, each in vertex order: a
+  // forward sweep over the blocks (cache and page friendly, which matters out of core) with the
+  // same quality in tests against a strict order.
+  const int groups = exact ? 0 : kGroups;
+  const std::size_t keys = groups ? std::size_t(groups) : std::size_t(lastBin) + 1;
+  std::vector<std::uint64_t>& start = this->starts_; // start of each key (group or bin)
+  start.assign(keys, 0);
+  std::uint64_t cum = 0;
+  for (std::uint32_t b = 0; b <= lastBin; ++b)
   {
-    std::vector<std::uint64_t> gstart(kGroups + 1, 0);
-    std::uint64_t prevStart = 0;
-    std::vector<std::uint32_t> counts(lastBin + 1);
-    for (std::uint32_t b = 0; b <= lastBin; ++b)
-    {
-      std::uint64_t next = b < lastBin ? this->hist_[b + 1] : taken;
-      counts[b] = std::uint32_t(next - this->hist_[b]);
-    }
-    (void)prevStart;
-    std::vector<std::uint64_t> gcount(kGroups, 0);
-    std::uint64_t cum = 0;
-    for (std::uint32_t b = 0; b <= lastBin; ++b)
-    {
-      int g = int(std::min<std::uint64_t>(kGroups - 1, cum * kGroups / std::max<std::uint64_t>(taken, 1)));
-      cum += counts[b];
-      gcount[g] += counts[b];
-      counts[b] = std::uint32_t(g);
-    }
-    std::uint64_t st = 0;
-    for (int g = 0; g < kGroups; ++g) { gstart[g] = st; st += gcount[g]; }
-    for (std::uint32_t b = 0; b <= lastBin; ++b)
-    {
-      this->hist_[b] = std::uint32_t(gstart[counts[b]]);
-      gstart[counts[b]] += 0;
-    }
-    // all bins of a group share one cursor: use gstart as the cursor
-    this->BindViews();
-    std::uint64_t st2 = 0;
-    for (int g = 0; g < kGroups; ++g) { gstart[g] = st2; st2 += gcount[g]; }
-    for (std::uint64_t u = 0; u < nv; ++u)
-    {
-      const Cand c = this->C_.Get(u);
-      if (c.partner == kNone) continue;
-      const std::uint32_t b = CostBin(c.cost);
-      if (b <= lastBin) this->O_.Set(gstart[counts[b]]++, std::uint32_t(u));
-    }
+    const std::uint64_t n = this->hist_[b];
+    const std::uint32_t key = std::uint32_t(
+      groups ? std::min<std::uint64_t>(groups - 1, cum * std::uint64_t(groups) / taken) : b);
+    this->hist_[b] = key; // bin -> key
+    start[key] += n;
+    cum += n;
   }
-  else
+  std::uint64_t sum = 0;
+  for (std::uint64_t& x : start)
   {
+    const std::uint64_t n = x;
+    x = sum;
+    sum += n;
+  }
   this->BindViews();
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.6 * progressSpan, progressBase + 0.7 * progressSpan);
@@ -1864,16 +1938,14 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
     const std::uint32_t b = CostBin(c.cost);
     if (b <= lastBin)
     {
-      this->O_.Set(this->hist_[b]++, std::uint32_t(u));
+      this->O_.Set(start[this->hist_[b]]++, std::uint32_t(u));
     }
-  }
   }
   // 3. Collapse in cost order, independent collapses only. Legality is checked here: the faces
   // around an unmarked pair are as they were in step 1. A vertex whose cheapest collapse is
   // illegal evaluates all its edges with legality in the next passes.
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.7 * progressSpan, progressBase + 0.85 * progressSpan);
-  double t2 = DbgCpu(); g_dbg[1] += t2 - t1;
   std::uint64_t done = 0, illegal = 0;
   // In core: prefetch the data of the candidates ahead (two stages: their state, candidate and
   // ring offsets; then, for those still unmarked, the partner's and the ring's first lines).
@@ -1933,35 +2005,10 @@ bool Decimator::Pass(std::uint64_t goal, double progressBase, double progressSpa
     this->Collapse(u, c);
     ++done;
   }
-  if (std::getenv("SIPMSS_DECIMATE_DEBUG"))
-  {
-    std::uint64_t marked = 0;
-    for (std::uint64_t u = 0; u < nv; ++u)
-    {
-      marked += (this->S_.Get(u) & kMarked) != 0;
-    }
-    std::uint64_t locked = 0, bnd = 0, nl = 0, nocand = 0;
-    for (std::uint64_t u = 0; u < nv; ++u)
-    {
-      State x = this->S_.Get(u);
-      locked += (x & kLocked) != 0; bnd += (x & kBoundary) != 0; nl += (x & kNeedsLegal) != 0;
-    }
-    (void)nocand;
-    std::fprintf(stderr, "locked %llu boundary %llu needsLegal %llu ", (unsigned long long)locked, (unsigned long long)bnd, (unsigned long long)nl);
-    std::fprintf(stderr, "marked %.3f ", double(marked) / double(nv));
-    std::fprintf(stderr,
-      "pass: nv %llu faces %llu -> %llu goal %llu candidates %llu ordered %llu collapses %llu "
-      "illegal %llu\n",
-      (unsigned long long)nv, (unsigned long long)this->nf_, (unsigned long long)this->liveFaces_,
-      (unsigned long long)goal, (unsigned long long)candidates, (unsigned long long)taken,
-      (unsigned long long)done, (unsigned long long)illegal);
-  }
-  double t3 = DbgCpu(); g_dbg[2] += t3 - t2;
   // 4. Compact into fresh blocks.
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.85 * progressSpan, progressBase + progressSpan);
   this->Compact();
-  g_dbg[3] += DbgCpu() - t3;
   // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
   // as long as some candidate exists.
   return done > 0 || illegal > 0;
@@ -2043,13 +2090,46 @@ void Decimator::Compact()
     else
     {
       // The edges of an untouched vertex are unchanged; a touched one lost or changed only its
-      // edges to the collapsed pairs (the survivors offer the new ones): its candidate stays
-      // exact unless it pointed at one of them.
+      // edges to the collapsed pairs (the survivors offer the new ones): its best and second
+      // best stay exact unless they pointed at one of them. A lost best is replaced by the
+      // second best when that one is known and still valid.
       c = this->C_.Get(v);
-      const std::uint32_t x = c.partner == kNone ? kNone : R.Get(c.partner);
-      if (x != kNone && !(x & kTop))
+      auto valid = [&R, kTop](std::uint32_t partner, std::uint32_t& mapped) {
+        mapped = partner == kNone ? kNone : R.Get(partner);
+        return partner == kNone || (mapped != kNone && !(mapped & kTop));
+      };
+      std::uint32_t x = kNone, x2 = kNone;
+      const bool bestOk = c.partner != kNone && valid(c.partner, x);
+      const bool secondOk = c.cost2 == c.cost2 && valid(c.partner2, x2); // not NaN
+      if (bestOk)
       {
         c.partner = x;
+        if (secondOk)
+        {
+          c.partner2 = x2;
+        }
+        else
+        {
+          c.cost2 = std::numeric_limits<double>::quiet_NaN();
+          c.partner2 = kNone;
+        }
+      }
+      else if (c.partner != kNone && secondOk && !(flags & kNeedsLegal))
+      {
+        // Promote (no second best is known after it); kNone: no other edge at all.
+        c.cost = c.cost2;
+        c.partner = x2;
+        c.t = -1.0f;
+        c.cost2 = std::numeric_limits<double>::quiet_NaN();
+        c.partner2 = kNone;
+        if (x2 == kNone)
+        {
+          c = this->none_;
+        }
+        else
+        {
+          flags |= kPromote;
+        }
       }
       else
       {
@@ -2291,7 +2371,7 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
       const std::uint64_t step = std::max<std::uint64_t>(1, std::uint64_t(double(T) * fraction));
       const std::uint64_t goal = std::max(levels[level], T > step ? T - step : 0);
       const double done = F0 > target ? double(F0 - T) / double(F0 - target) : 1.0;
-      if (!this->Pass(goal, 0.35 + 0.6 * done, 0.6 * (1.0 - done) * fraction))
+      if (!this->Pass(goal, goal == levels[level], 0.35 + 0.6 * done, 0.6 * (1.0 - done) * fraction))
       {
         // No legal collapse under maximumError remains: this is the final level.
         if (!compacted)

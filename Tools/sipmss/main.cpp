@@ -1,6 +1,6 @@
 // sipmss: simplify huge triangle meshes under a fixed memory budget, compare and inspect meshes.
 //
-//   sipmss simplify INPUT OUTPUT [--algorithm cluster|decimate] [--grid N] [--target N |
+//   sipmss simplify INPUT OUTPUT [--algorithm cluster|decimate|two-stage] [--grid N] [--target N |
 //                  --reduction R] [--memory-mb MB] [--tmpdir DIR]... [--lods K]
 //                  [--stats-json FILE] [--quiet]
 //   sipmss compare REFERENCE CANDIDATE [--samples N]
@@ -11,6 +11,7 @@
 #include "sipmss/algorithms/Cluster.h"
 #include "sipmss/algorithms/Compare.h"
 #include "sipmss/algorithms/Decimate.h"
+#include "sipmss/algorithms/TwoStage.h"
 #include "sipmss/io/MeshIO.h"
 
 #include <CLI/CLI.hpp>
@@ -230,7 +231,7 @@ int RunSimplify(const SimplifyArgs& a)
     o.storage = profile;
     stats = algorithms::Cluster(source, sink, o, progress);
   }
-  else if (a.algorithm == "decimate")
+  else if (a.algorithm == "decimate" || a.algorithm == "two-stage")
   {
     algorithms::DecimateOptions o;
     o.targetTriangles = a.target;
@@ -249,7 +250,17 @@ int RunSimplify(const SimplifyArgs& a)
         lodSinks.push_back(std::move(s));
       };
     }
-    stats = algorithms::Decimate(source, sink, o, progress, onLevel);
+    if (a.algorithm == "decimate")
+    {
+      stats = algorithms::Decimate(source, sink, o, progress, onLevel);
+    }
+    else
+    {
+      algorithms::TwoStageOptions t;
+      t.gridDimension = a.grid > 0 ? a.grid : 300;
+      t.decimate = o;
+      stats = algorithms::TwoStage(source, sink, t, progress, onLevel);
+    }
   }
   else
   {
@@ -369,18 +380,19 @@ int main(int argc, char** argv)
   CLI::App* simplify = app.add_subcommand("simplify", "simplify INPUT into OUTPUT");
   simplify->add_option("INPUT", sa.input, "PLY, STL or OBJ file (.gz too)")->required();
   simplify->add_option("OUTPUT", sa.output, "output file (.ply, .stl or .obj)")->required();
-  simplify->add_option("--algorithm", sa.algorithm, "cluster or decimate")
-    ->check(CLI::IsMember({ "cluster", "decimate" }));
-  simplify->add_option("--grid", sa.grid, "cluster: maximum grid dimension (default 50)")
+  simplify->add_option("--algorithm", sa.algorithm, "cluster, decimate or two-stage")
+    ->check(CLI::IsMember({ "cluster", "decimate", "two-stage" }));
+  simplify->add_option("--grid", sa.grid,
+    "maximum grid dimension of the clustering (cluster: default 50; two-stage: default 300)")
     ->check(CLI::Range(1, 65535));
-  auto* target = simplify->add_option("--target", sa.target, "decimate: target triangle count");
-  simplify->add_option("--reduction", sa.reduction, "decimate: fraction of triangles to remove")
+  auto* target = simplify->add_option("--target", sa.target, "decimate, two-stage: target triangle count");
+  simplify->add_option("--reduction", sa.reduction, "decimate, two-stage: fraction of triangles to remove")
     ->check(CLI::Range(0.0, 1.0))
     ->excludes(target);
   simplify->add_option("--memory-mb", sa.memoryMB, "memory budget in MiB (0 = unbounded)")
     ->check(CLI::Range(0.0, 1e9));
   simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)");
-  simplify->add_option("--lods", sa.lods, "decimate: levels of detail, written as OUTPUT_lodK")
+  simplify->add_option("--lods", sa.lods, "decimate, two-stage: levels of detail, written as OUTPUT_lodK")
     ->check(CLI::Range(1, 64));
   simplify->add_option("--stats-json", sa.statsJson, "write run statistics as JSON");
   simplify->add_flag("--quiet", sa.quiet, "no progress bar and no summary");

@@ -15,12 +15,17 @@ struct DecimateOptions
   std::uint64_t targetTriangles = 0; // > 0: stop at or below this many triangles
   double targetReduction = 0.9;      // used when targetTriangles == 0: fraction to remove
   double maximumError = std::numeric_limits<double>::infinity(); // stop when the cheapest
-                                     // collapse costs more (quadric error, squared distance)
+                                     // collapse costs more (quadric error, squared distance:
+                                     // the area-weighted cost divided by the quadric's weight)
   int levelsOfDetail = 1;            // > 1: emit that many levels, evenly spaced in log(count)
   bool lockBoundary = false;         // boundary vertices never move
   double boundaryWeight = 100.0;     // weight of the boundary constraint quadrics
   double weldDistance = -1.0;        // >= 0: weld input vertices closer than this first
   storage::Profile storage;          // memory budget, directories, mode policy
+  // Optional: run on this DML (already configured by the caller, e.g. the two-stage method that
+  // keeps the clustered mesh in it). Default: a DML of the run's own, configured from `storage`
+  // with the run's structures.
+  storage::DML* dml = nullptr;
   // Initial per-vertex quadrics, e.g. the cell quadrics of a clustering stage (two-stage).
   // Called for each input vertex index; return false to use the face quadrics only.
   // Quadric layout: the upper triangle of the symmetric 4x4 row by row,
