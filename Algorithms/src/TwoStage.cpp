@@ -269,8 +269,14 @@ RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageO
       {
         return false;
       }
+      // Cluster exports a2 ab ac b2 bc c2 ad bd cd d2; Decimate takes the 4x4 upper triangle by
+      // rows: a2 ab ac ad b2 bc bd c2 cd d2.
       const Quadric r = quadrics.Get(v);
-      std::copy_n(r.q, 10, q);
+      static constexpr int kFromCluster[10] = { 0, 1, 2, 6, 3, 4, 7, 5, 8, 9 };
+      for (int k = 0; k < 10; ++k)
+      {
+        q[k] = r.q[kFromCluster[k]];
+      }
       return true;
     };
   }
