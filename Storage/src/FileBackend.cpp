@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <filesystem>
 #include <ctime>
 #include <dirent.h>
 #include <fcntl.h>
@@ -206,32 +207,12 @@ void RemoveTree(const std::string& path) noexcept
 {
   try
   {
-    if (DIR* d = ::opendir(path.c_str()))
-    {
-      while (const dirent* e = ::readdir(d))
-      {
-        if (std::strcmp(e->d_name, ".") == 0 || std::strcmp(e->d_name, "..") == 0)
-        {
-          continue;
-        }
-        const std::string child = path + "/" + e->d_name;
-        struct stat st{};
-        if (::lstat(child.c_str(), &st) == 0 && S_ISDIR(st.st_mode))
-        {
-          RemoveTree(child);
-        }
-        else
-        {
-          ::unlink(child.c_str());
-        }
-      }
-      ::closedir(d);
-    }
-    ::rmdir(path.c_str());
+    std::error_code ec; // best effort on cleanup paths; symlinks are removed, not followed
+    std::filesystem::remove_all(path, ec);
   }
   catch (...)
   {
-    // best effort (std::bad_alloc while building a path)
+    // std::bad_alloc while building a path: nothing more can be done here
   }
 }
 

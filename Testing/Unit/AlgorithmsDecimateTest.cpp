@@ -919,7 +919,9 @@ TEST(AlgorithmsDecimate, AbortIsQuick)
       std::chrono::duration<double>(std::chrono::steady_clock::now() - progress.at).count();
     if (aborted)
     {
-      EXPECT_LT(late, 0.1) << "abort requested at " << after << " s";
+      // The cores poll every ~0.05 s of work; the bound is loose so that a loaded CI machine
+      // does not fail it, yet a loop that never polls (seconds of work) does.
+      EXPECT_LT(late, 0.5) << "abort requested at " << after << " s";
     }
   }
 }

@@ -7,6 +7,7 @@
 #include <unistd.h>
 
 #include <cstring>
+#include <filesystem>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -16,28 +17,8 @@ namespace sipmss::storage::testing
 
 inline void RemoveAll(const std::string& path)
 {
-  if (DIR* d = ::opendir(path.c_str()))
-  {
-    while (const dirent* e = ::readdir(d))
-    {
-      if (std::strcmp(e->d_name, ".") == 0 || std::strcmp(e->d_name, "..") == 0)
-      {
-        continue;
-      }
-      const std::string child = path + "/" + e->d_name;
-      struct stat st{};
-      if (::lstat(child.c_str(), &st) == 0 && S_ISDIR(st.st_mode))
-      {
-        RemoveAll(child);
-      }
-      else
-      {
-        ::unlink(child.c_str());
-      }
-    }
-    ::closedir(d);
-  }
-  ::rmdir(path.c_str());
+  std::error_code ec;
+  std::filesystem::remove_all(path, ec);
 }
 
 // Names in a directory (without . and ..); empty if it does not exist.

@@ -154,11 +154,19 @@ public:
   void Begin(const io::MeshHeader& h) override { this->header = h; }
   void Vertices(const io::VertexChunk& c) override
   {
-    for (std::size_t i = 0; i < 3 * c.count; ++i)
+    float lo[3] = { HUGE_VALF, HUGE_VALF, HUGE_VALF }, hi[3] = { -HUGE_VALF, -HUGE_VALF, -HUGE_VALF };
+    for (std::size_t i = 0; i < c.count; ++i)
     {
-      const int k = int(i % 3);
-      this->bounds[2 * k] = std::min<double>(this->bounds[2 * k], c.xyz[i]);
-      this->bounds[2 * k + 1] = std::max<double>(this->bounds[2 * k + 1], c.xyz[i]);
+      for (int k = 0; k < 3; ++k)
+      {
+        lo[k] = std::min(lo[k], c.xyz[3 * i + k]);
+        hi[k] = std::max(hi[k], c.xyz[3 * i + k]);
+      }
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      this->bounds[2 * k] = std::min<double>(this->bounds[2 * k], lo[k]);
+      this->bounds[2 * k + 1] = std::max<double>(this->bounds[2 * k + 1], hi[k]);
     }
   }
   void Triangles(const std::uint32_t*, std::size_t) override {}
