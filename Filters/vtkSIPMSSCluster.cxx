@@ -23,6 +23,8 @@ int vtkSIPMSSCluster::RequestData(
       sipmss::algorithms::ClusterOptions options;
       options.maximumGridDimension = this->MaximumGridDimension;
       options.storage = profile;
+      options.boundaryQuadrics = this->BoundaryWeight > 0;
+      options.boundaryWeight = this->BoundaryWeight;
       if (this->UseBounds)
       {
         options.useBounds = true;
@@ -42,4 +44,5 @@ void vtkSIPMSSCluster::PrintSelf(ostream& os, vtkIndent indent)
   this->Superclass::PrintSelf(os, indent);
   os << indent << "MaximumGridDimension: " << this->MaximumGridDimension << "\n";
   os << indent << "UseBounds: " << this->UseBounds << "\n";
+  os << indent << "BoundaryWeight: " << this->BoundaryWeight << "\n";
 }

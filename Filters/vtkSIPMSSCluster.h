@@ -32,6 +32,16 @@ public:
 
   ///@{
   /**
+   * Weight of boundary constraint quadrics: planes through the input's boundary edges keep holes
+   * and borders in place (lower error on scans with holes, about 9x slower: an extra pass over
+   * all edges). 0 (default): off.
+   */
+  vtkSetClampMacro(BoundaryWeight, double, 0.0, VTK_DOUBLE_MAX);
+  vtkGetMacro(BoundaryWeight, double);
+  ///@}
+
+  ///@{
+  /**
    * Grid box. By default the bounds of the input (or of the file, from a first streaming pass).
    * UseBounds = true uses Bounds instead (e.g. to cluster several pieces on one grid).
    */
@@ -49,6 +59,7 @@ protected:
   int RequestData(vtkInformation*, vtkInformationVector**, vtkInformationVector*) override;
 
   int MaximumGridDimension = 50;
+  double BoundaryWeight = 0.0;
   double Bounds[6] = { 0, 1, 0, 1, 0, 1 };
   bool UseBounds = false;
 

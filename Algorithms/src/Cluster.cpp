@@ -47,6 +47,13 @@ struct KeySlot
   std::uint64_t cell;
 };
 
+struct EdgeRec
+{
+  std::uint32_t a, b;  // a < b
+  std::uint32_t third; // the face's third vertex (to rebuild the face's plane)
+  std::uint32_t flip;  // 1 when the face runs b -> a
+};
+
 struct TriSlot
 {
   std::uint32_t v[3]; // canonical rotation (smallest first), orientation kept
@@ -474,6 +481,7 @@ public:
   }
 
   void FinishTriangles() { this->triangles_.Finish(this->cells_, this->numCells_, this->progress_); }
+  void FinishBoundaries() { this->AddBoundaryQuadrics(); }
 
   void Emit(io::MeshSink& out, const ClusterOptions& options, RunStats& stats)
   {
@@ -710,6 +718,123 @@ private:
     this->deferred_.Set(this->deferredCount_++, TriSlot{ { f[0], f[1], f[2] }, 1 });
   }
 
+  // Boundary quadrics (optional): every face's three undirected edges are kept in a DML block and
+  // counted per smaller vertex; after the read they are bucketed by that vertex (the same
+  // counting sort as the output triangles), and an edge met exactly once is a boundary edge of
+  // the input: a plane through it, perpendicular to its face, weighted by boundaryWeight times
+  // its squared length, goes into the quadrics of both endpoints' cells.
+  void AppendEdges(const std::uint32_t* f)
+  {
+    if (!this->edges_.IsOpen())
+    {
+      this->edges_ = Array<EdgeRec>(this->dml_, 1024);
+      this->edgeCount_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(this->vertices_.Size(), 1));
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      const std::uint32_t u = f[k], v = f[(k + 1) % 3], w = f[(k + 2) % 3];
+      const EdgeRec e{ std::min(u, v), std::max(u, v), w, u > v ? 1u : 0u };
+      if (this->numEdges_ == this->edges_.Size())
+      {
+        this->edges_.Resize(this->edges_.Size() * 2);
+      }
+      this->edges_.Set(this->numEdges_++, e);
+      if (e.a >= this->edgeCount_.Size())
+      {
+        this->edgeCount_.Resize(std::max<std::uint64_t>(e.a + 1, 2 * this->edgeCount_.Size()));
+      }
+      this->edgeCount_.Set(e.a, this->edgeCount_.Get(e.a) + 1);
+    }
+  }
+
+  void AddBoundaryQuadrics()
+  {
+    if (!this->edges_.IsOpen())
+    {
+      return;
+    }
+    this->vertexWindow_.Release();
+    this->cellWindow_.Release();
+    const std::uint64_t nv = this->edgeCount_.Size();
+    std::uint64_t total = 0;
+    for (std::uint64_t v = 0; v < nv; ++v)
+    {
+      total += this->edgeCount_.Get(v);
+      this->edgeCount_.Set(v, static_cast<std::uint32_t>(total)); // bucket end
+    }
+    Array<EdgeRec> buckets(this->dml_, std::max<std::uint64_t>(total, 1));
+    for (std::uint64_t i = 0; i < this->numEdges_; ++i)
+    {
+      const EdgeRec e = this->edges_.Get(i);
+      const std::uint32_t end = this->edgeCount_.Get(e.a) - 1;
+      this->edgeCount_.Set(e.a, end);
+      buckets.Set(end, e);
+      this->progress_.Tick(0.5 * double(i) / double(this->numEdges_));
+    }
+    this->edges_.Close();
+    std::vector<EdgeRec> bucket;
+    for (std::uint64_t v = 0; v < nv; ++v)
+    {
+      const std::uint64_t begin = this->edgeCount_.Get(v);
+      const std::uint64_t end = v + 1 < nv ? this->edgeCount_.Get(v + 1) : total;
+      if (begin == end)
+      {
+        continue;
+      }
+      bucket.resize(end - begin);
+      buckets.Read(begin, end - begin, bucket.data());
+      std::sort(bucket.begin(), bucket.end(),
+        [](const EdgeRec& x, const EdgeRec& y) { return x.b < y.b; });
+      for (std::size_t k = 0; k < bucket.size(); ++k)
+      {
+        const bool single = (k == 0 || bucket[k - 1].b != bucket[k].b) &&
+          (k + 1 == bucket.size() || bucket[k + 1].b != bucket[k].b);
+        if (single)
+        {
+          this->AddBoundaryPlane(bucket[k]);
+        }
+      }
+      this->progress_.Tick(0.5 + 0.5 * double(v) / double(nv));
+    }
+    this->edgeCount_.Close();
+  }
+
+  void AddBoundaryPlane(const EdgeRec& e)
+  {
+    const VertexRec a = this->vertices_.Get(e.a);
+    const VertexRec b = this->vertices_.Get(e.b);
+    const VertexRec c = this->vertices_.Get(e.third);
+    const double ed[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
+    const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
+    const double fn[3] = { ed[1] * e2[2] - ed[2] * e2[1], ed[2] * e2[0] - ed[0] * e2[2],
+      ed[0] * e2[1] - ed[1] * e2[0] };
+    // normal of the constraint plane: perpendicular to the edge, in the face's plane
+    double n[3] = { ed[1] * fn[2] - ed[2] * fn[1], ed[2] * fn[0] - ed[0] * fn[2],
+      ed[0] * fn[1] - ed[1] * fn[0] };
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    const double el2 = ed[0] * ed[0] + ed[1] * ed[1] + ed[2] * ed[2];
+    if (!(len > 0) || !(el2 > 0))
+    {
+      return;
+    }
+    n[0] /= len;
+    n[1] /= len;
+    n[2] /= len;
+    const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
+    const double w = this->options_.boundaryWeight * el2;
+    const double q[10] = { w * n[0] * n[0], w * n[0] * n[1], w * n[0] * n[2], w * n[1] * n[1],
+      w * n[1] * n[2], w * n[2] * n[2], w * n[0] * d, w * n[1] * d, w * n[2] * d, w * d * d };
+    for (std::uint32_t cell : { a.cell, b.cell })
+    {
+      this->UpdateCell(cell, [&q](CellRec& rec) {
+        for (int k = 0; k < 10; ++k)
+        {
+          rec.q[k] += q[k];
+        }
+      });
+    }
+  }
+
   // Applies f to cell record `cell` in place: the block's memory in core, a pinned page out of
   // core (no read and write of the whole record).
   template <class F>
@@ -720,6 +845,10 @@ private:
 
   void AddTriangle(const std::uint32_t* f)
   {
+    if (this->options_.boundaryQuadrics)
+    {
+      this->AppendEdges(f);
+    }
     const storage::BlockId vid = this->vertices_.Id();
     const VertexRec a = this->vertexWindow_.At(vid, f[0]);
     const VertexRec b = this->vertexWindow_.At(vid, f[1]);
@@ -856,6 +985,9 @@ private:
   std::vector<KeySlot> recent_ = std::vector<KeySlot>(kRecent, KeySlot{ 0, 0 });
   TriangleSet triangles_;
   Array<TriSlot> deferred_;
+  Array<EdgeRec> edges_;
+  Array<std::uint32_t> edgeCount_;
+  std::uint64_t numEdges_ = 0;
   std::uint64_t deferredCount_ = 0;
   std::uint32_t numCells_ = 0;
   std::uint64_t verticesSeen_ = 0;
@@ -944,6 +1076,12 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
     stats.inputVertices = sink.InputStats().vertices;
     stats.inputTriangles = sink.InputStats().triangles;
     stats.droppedInputFaces = sink.InputStats().droppedFaces;
+  }
+  if (options.boundaryQuadrics)
+  {
+    progress.BeginPhase("boundaries", 0.85, 0.9);
+    PhaseTimer timer(stats, dml, "boundaries");
+    sink.FinishBoundaries();
   }
   sink.ReleaseInputBlocks();
   {

@@ -252,3 +252,42 @@ TEST(Cluster, SameOutputForAnyThreadCount)
   EXPECT_EQ(outs[0].m.t, outs[1].m.t);
   EXPECT_EQ(outs[0].m.scalar, outs[1].m.scalar);
 }
+
+TEST(Cluster, BoundaryQuadricsPinTheCorners)
+{
+  // A flat square: its corner cells hold the face plane z = 0 and, with boundary quadrics, the
+  // border planes x = 0 / x = 1 and y = 0 / y = 1: full rank, so the representative is exactly
+  // the square's corner. Without them it is the mean of the cell's vertices.
+  const Mesh plane = Plane(16);
+  auto hasCorners = [](const Mesh& m) {
+    int found = 0;
+    for (std::size_t i = 0; i < m.p.size(); i += 3)
+    {
+      const bool x = std::abs(m.p[i]) < 1e-6f || std::abs(m.p[i] - 1.f) < 1e-6f;
+      const bool y = std::abs(m.p[i + 1]) < 1e-6f || std::abs(m.p[i + 1] - 1.f) < 1e-6f;
+      found += x && y;
+    }
+    return found;
+  };
+  EXPECT_EQ(hasCorners(RunCluster(plane, 4).m), 0);
+  ClusterOptions o;
+  o.maximumGridDimension = 4;
+  o.boundaryQuadrics = true;
+  Collect out;
+  NullProgress progress;
+  RunStats s = Cluster(MemorySource(plane), out, o, progress);
+  EXPECT_EQ(hasCorners(out.m), 4);
+  bool boundaryPhase = false;
+  for (const auto& p : s.phases)
+  {
+    boundaryPhase |= p.name == "boundaries";
+  }
+  EXPECT_TRUE(boundaryPhase);
+  // the same out of core
+  o.storage.policy = storage::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 64 * 1024;
+  Collect out2;
+  Cluster(MemorySource(plane), out2, o, progress);
+  EXPECT_EQ(out.m.p, out2.m.p);
+  EXPECT_EQ(out.m.t, out2.m.t);
+}

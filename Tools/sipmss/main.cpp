@@ -197,6 +197,7 @@ struct SimplifyArgs
   std::uint64_t target = 0;
   double reduction = -1;
   double memoryMB = 0;
+  double boundaryWeight = 0;
   std::vector<std::string> tmpdirs;
   int lods = 1;
   bool quiet = false;
@@ -237,6 +238,8 @@ int RunSimplify(const SimplifyArgs& a)
     algorithms::ClusterOptions o;
     o.maximumGridDimension = a.grid > 0 ? a.grid : 50;
     o.storage = profile;
+    o.boundaryQuadrics = a.boundaryWeight > 0;
+    o.boundaryWeight = a.boundaryWeight;
     stats = algorithms::Cluster(source, sink, o, progress);
   }
   else if (a.algorithm == "decimate" || a.algorithm == "two-stage")
@@ -397,6 +400,9 @@ int main(int argc, char** argv)
   simplify->add_option("--reduction", sa.reduction, "decimate, two-stage: fraction of triangles to remove")
     ->check(CLI::Range(0.0, 1.0))
     ->excludes(target);
+  simplify->add_option("--boundary-weight", sa.boundaryWeight,
+    "cluster: boundary quadrics of this weight keep holes in place (0 = off; slower)")
+    ->check(CLI::Range(0.0, 1e9));
   simplify->add_option("--memory-mb", sa.memoryMB, "memory budget in MiB (0 = unbounded)")
     ->check(CLI::Range(0.0, 1e9));
   simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)");

@@ -25,6 +25,11 @@ struct ClusterOptions
   // (RMS error / bbox diagonal): 0 -> 4.47e-5, 0.5 -> 3.84e-5, 1 -> 3.81e-5, unbounded -> 3.80e-5
   // (vtkQuadricClustering: 3.94e-5). 1 keeps each vertex in its cell's 3x3x3 neighbourhood.
   double placementSlack = 1.0;
+  // Boundary constraint quadrics (planes through the input's boundary edges, perpendicular to
+  // their faces, weighted by boundaryWeight * edge length^2) keep holes and borders in place. Costs
+  // a second pass over all input edges; see docs/benchmarks.md for what it measures.
+  bool boundaryQuadrics = false;
+  double boundaryWeight = 1.0;
   // Relative threshold for the pseudo-inverse: eigenvalues below this times the largest are
   // treated as zero (rank-deficient quadrics of flat or linear cells).
   double singularThreshold = 1e-3;
