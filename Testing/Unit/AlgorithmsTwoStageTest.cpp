@@ -1,0 +1,130 @@
+// The two-stage method: the hand-off inside one DML, the out-of-core -> in-core switch, and
+// identical results whatever the mode.
+#include "sipmss/algorithms/TwoStage.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+using namespace sipmss;
+using namespace sipmss::algorithms;
+
+namespace
+{
+struct Mesh
+{
+  std::vector<float> p;
+  std::vector<std::uint32_t> t;
+};
+
+// A bumpy closed sphere of about 2 * n * n triangles.
+Mesh Sphere(int n)
+{
+  Mesh m;
+  const int rings = n, segs = 2 * n;
+  m.p.insert(m.p.end(), { 0.f, 0.f, 1.f });
+  for (int i = 1; i < rings; ++i)
+  {
+    const double th = M_PI * i / rings;
+    for (int j = 0; j < segs; ++j)
+    {
+      const double ph = 2 * M_PI * j / segs;
+      const double r = 1.0 + 0.05 * std::sin(5 * th) * std::cos(3 * ph);
+      m.p.insert(m.p.end(), { float(r * std::sin(th) * std::cos(ph)),
+                              float(r * std::sin(th) * std::sin(ph)), float(r * std::cos(th)) });
+    }
+  }
+  m.p.insert(m.p.end(), { 0.f, 0.f, -1.f });
+  const std::uint32_t south = std::uint32_t(m.p.size() / 3 - 1);
+  auto id = [&](int i, int j) { return std::uint32_t(1 + (i - 1) * segs + (j % segs)); };
+  for (int j = 0; j < segs; ++j)
+  {
+    m.t.insert(m.t.end(), { 0, id(1, j), id(1, j + 1) });
+    m.t.insert(m.t.end(), { south, id(rings - 1, j + 1), id(rings - 1, j) });
+  }
+  for (int i = 1; i < rings - 1; ++i)
+    for (int j = 0; j < segs; ++j)
+    {
+      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j), id(i + 1, j + 1) });
+      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
+    }
+  return m;
+}
+
+MeshSource MemorySource(const Mesh& m)
+{
+  return [&m](io::MeshSink& sink, const io::ReadOptions& options) {
+    io::MeshHeader h;
+    h.vertexCount = m.p.size() / 3;
+    h.faceCount = m.t.size() / 3;
+    sink.Begin(h);
+    io::VertexChunk c;
+    c.count = m.p.size() / 3;
+    c.xyz = m.p.data();
+    sink.Vertices(c);
+    io::ReadStats s;
+    s.vertices = c.count;
+    if (!options.verticesOnly)
+    {
+      sink.Triangles(m.t.data(), m.t.size() / 3);
+      s.triangles = m.t.size() / 3;
+      sink.End(s);
+    }
+    return s;
+  };
+}
+
+struct Collect final : io::MeshSink
+{
+  Mesh m;
+  void Begin(const io::MeshHeader&) override {}
+  void Vertices(const io::VertexChunk& c) override { this->m.p.insert(this->m.p.end(), c.xyz, c.xyz + 3 * c.count); }
+  void Triangles(const std::uint32_t* i, std::size_t n) override { this->m.t.insert(this->m.t.end(), i, i + 3 * n); }
+  void End(const io::ReadStats&) override {}
+};
+
+RunStats RunTwoStage(const Mesh& in, Collect& out, storage::ModePolicy policy, std::uint64_t budget)
+{
+  TwoStageOptions o;
+  o.gridDimension = 40;
+  o.decimate.targetTriangles = 500;
+  o.decimate.storage.policy = policy;
+  o.decimate.storage.memoryBudget = budget;
+  NullProgress progress;
+  return TwoStage(MemorySource(in), out, o, progress);
+}
+} // namespace
+
+TEST(TwoStage, HandOffAndModeSwitchGiveTheInCoreResult)
+{
+  const Mesh sphere = Sphere(160); // ~51K triangles: stage 1 does not fit 1 MiB, stage 2 does
+  Collect inCore, automatic;
+  const RunStats a = RunTwoStage(sphere, inCore, storage::ModePolicy::InCore, 0);
+  const RunStats b = RunTwoStage(sphere, automatic, storage::ModePolicy::Automatic, 1 << 20);
+  ASSERT_LE(inCore.m.t.size() / 3, 500u);
+  ASSERT_GT(inCore.m.t.size() / 3, 400u);
+  EXPECT_EQ(inCore.m.p, automatic.m.p);
+  EXPECT_EQ(inCore.m.t, automatic.m.t);
+  EXPECT_FALSE(a.storage.usedOutOfCore);
+  // the automatic run started out of core and ended in core
+  EXPECT_TRUE(b.storage.usedOutOfCore);
+  EXPECT_TRUE(b.storage.usedInCore);
+  EXPECT_GE(b.storage.reconfigurations, 1u);
+  EXPECT_LE(b.storage.peakBytes, 1u << 20);
+  ASSERT_FALSE(b.phases.empty());
+  EXPECT_EQ(b.phases.front().name.rfind("stage 1 ", 0), 0u);
+  EXPECT_EQ(b.phases.back().name.rfind("stage 2 ", 0), 0u);
+  bool firstOut = false, lastIn = b.phases.back().mode == storage::Mode::InCore;
+  for (const auto& p : b.phases)
+  {
+    if (p.name == "stage 1 cluster")
+    {
+      firstOut = p.mode == storage::Mode::OutOfCore;
+    }
+  }
+  EXPECT_TRUE(firstOut);
+  EXPECT_TRUE(lastIn);
+  // stage 1 really reduced: the result is a closed mesh of the target size
+  EXPECT_EQ(a.inputTriangles, sphere.t.size() / 3);
+  EXPECT_EQ(a.outputTriangles, inCore.m.t.size() / 3);
+}
