@@ -1,10 +1,16 @@
 // Algorithm II (OoCS grid clustering with quadrics) on the DML. See Cluster.h and
 // docs/architecture.md. Every structure that grows with the input lives in DML blocks:
-//   vertices  : per input vertex {x, y, z, cell}            (16 B)
-//   cellHash  : open-addressing map grid key -> dense cell  (16 B per slot, load <= 1/2)
-//   cells     : per cell quadric (10 doubles), vertex sum, count, first vertex
-//   cellAttrs : per cell sums of the point data (normals, colors, texcoords, scalars)
-//   triHash   : open-addressing set of output triangles (dedup), triangles in first-seen order
+//   vertices   : per input vertex {x, y, z, cell}                      (16 B)
+//   cell map   : open-addressing map grid key -> dense cell id          (16 B a slot, load <= 1/2),
+//                behind a fixed 8192-entry cache of recent lookups
+//   cells      : per cell: quadric (10 doubles), vertex sum, count, first vertex, bucket counter
+//   cell attrs : per cell sums of the point data (normals, colors, texcoords, scalars)
+//   candidates : faces over three distinct cells, appended in input order; after the read they
+//                are bucketed by smallest cell and deduplicated per bucket (TriangleSet)
+//   edges      : only with boundary quadrics: every face's edges, bucketed by smaller vertex
+// Out of core, element access goes through a few pinned pages per block (PinWindow), so runs of
+// nearby accesses in scanner-ordered input cost one page lookup. The input is parsed on a second
+// thread (Prefetched) while this one clusters; the output does not depend on it.
 #include "sipmss/algorithms/Cluster.h"
 
 #include "sipmss/algorithms/Prefetch.h"
