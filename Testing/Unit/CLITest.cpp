@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -126,4 +127,52 @@ TEST_F(CLI, BadInputLeavesNothing)
   Result m = RunCli("simplify " + P("missing.ply") + " " + P("o.ply") + " --quiet");
   EXPECT_EQ(m.status, 1);
   EXPECT_NE(m.out.find("missing.ply"), std::string::npos) << m.out;
+}
+
+TEST_F(CLI, InterruptCleansUp)
+{
+  // A mesh big enough that decimating it at a 4 MB budget takes many seconds.
+  const int n = 700; // 2 * 700^2 = 980K triangles
+  {
+    std::ofstream f(this->dir / "big.ply", std::ios::binary);
+    f << "ply\nformat binary_little_endian 1.0\nelement vertex " << (n + 1) * (n + 1)
+      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
+      << "\nproperty list uchar int vertex_indices\nend_header\n";
+    for (int j = 0; j <= n; ++j)
+      for (int i = 0; i <= n; ++i)
+      {
+        const float p[3] = { float(i), float(j), float(std::sin(i * 0.05) * std::cos(j * 0.07)) };
+        f.write(reinterpret_cast<const char*>(p), sizeof(p));
+      }
+    for (int j = 0; j < n; ++j)
+      for (int i = 0; i < n; ++i)
+      {
+        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+        const int t[2][3] = { { a, b, c }, { a, c, d } };
+        for (const auto& tri : t)
+        {
+          const unsigned char three = 3;
+          f.write(reinterpret_cast<const char*>(&three), 1);
+          f.write(reinterpret_cast<const char*>(tri), sizeof(tri));
+        }
+      }
+  }
+  const std::string cmd = "sh -c '" + std::string(SIPMSS_CLI) + " simplify " + P("big.ply") + " " +
+    P("out.ply") + " --algorithm decimate --target 100 --memory-mb 4 --tmpdir " + this->dir.string() +
+    " & p=$!; sleep 1; kill -INT $p; wait $p; echo status=$?'";
+  FILE* p = ::popen(cmd.c_str(), "r");
+  std::string out;
+  std::array<char, 256> buf{};
+  std::size_t k;
+  while ((k = std::fread(buf.data(), 1, buf.size(), p)) > 0)
+  {
+    out.append(buf.data(), k);
+  }
+  ::pclose(p);
+  EXPECT_NE(out.find("status=130"), std::string::npos) << out;
+  for (const auto& e : fs::directory_iterator(this->dir))
+  {
+    const std::string name = e.path().filename().string();
+    EXPECT_TRUE(name == "octa.ply" || name == "big.ply") << "left behind: " << name;
+  }
 }

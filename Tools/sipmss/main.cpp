@@ -21,6 +21,7 @@
 #include <unistd.h>
 
 #include <cmath>
+#include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -35,7 +36,18 @@ using namespace sipmss;
 namespace
 {
 
-// A progress bar on a terminal; silent otherwise.
+// SIGINT/SIGTERM: the first one asks the run to stop (the cores poll Progress::Aborted at least
+// every 0.1 s), so the normal unwinding removes the temporary output and the DML's block files;
+// a second one terminates at once.
+volatile std::sig_atomic_t g_interrupted = 0;
+
+extern "C" void OnInterrupt(int sig)
+{
+  g_interrupted = sig;
+  std::signal(sig, SIG_DFL);
+}
+
+// A progress bar on a terminal; silent otherwise. Aborted() on SIGINT/SIGTERM.
 class TerminalProgress final : public algorithms::Progress
 {
 public:
@@ -58,6 +70,7 @@ public:
     std::fflush(stderr);
     this->drawn_ = true;
   }
+  bool Aborted() override { return g_interrupted != 0; }
   void Finish()
   {
     if (this->drawn_)
@@ -432,6 +445,8 @@ int main(int argc, char** argv)
     return rc == 0 ? 0 : 2;
   }
 
+  std::signal(SIGINT, OnInterrupt);
+  std::signal(SIGTERM, OnInterrupt);
   try
   {
     if (*simplify)
@@ -443,6 +458,11 @@ int main(int argc, char** argv)
       return RunCompare(ref, cand, samples);
     }
     return RunInfo(infoPath);
+  }
+  catch (const algorithms::AbortedError&)
+  {
+    std::fprintf(stderr, "sipmss: interrupted; nothing was written\n");
+    return 128 + (g_interrupted ? int(g_interrupted) : SIGINT);
   }
   catch (const CLI::ValidationError& e)
   {
