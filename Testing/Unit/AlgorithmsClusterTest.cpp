@@ -2,6 +2,8 @@
 // abort, bad input.
 #include "sipmss/algorithms/Cluster.h"
 
+#include "AlgorithmsTestUtil.h"
+
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -10,64 +12,12 @@
 
 using namespace sipmss;
 using namespace sipmss::algorithms;
+using sipmss::testing::Collect;
+using sipmss::testing::MemorySource;
+using sipmss::testing::Mesh;
 
 namespace
 {
-struct Mesh
-{
-  std::vector<float> p;
-  std::vector<std::uint32_t> t;
-  std::vector<float> scalar; // optional point scalar "s"
-};
-
-MeshSource MemorySource(const Mesh& m)
-{
-  return [&m](io::MeshSink& sink, const io::ReadOptions& options) {
-    io::MeshHeader h;
-    h.vertexCount = m.p.size() / 3;
-    h.faceCount = m.t.size() / 3;
-    if (!m.scalar.empty())
-    {
-      h.layout.scalars = { "s" };
-    }
-    sink.Begin(h);
-    io::VertexChunk c;
-    c.count = m.p.size() / 3;
-    c.xyz = m.p.data();
-    c.scalars = m.scalar.empty() ? nullptr : m.scalar.data();
-    sink.Vertices(c);
-    io::ReadStats s;
-    s.vertices = c.count;
-    if (!options.verticesOnly)
-    {
-      sink.Triangles(m.t.data(), m.t.size() / 3);
-      s.triangles = m.t.size() / 3;
-      sink.End(s);
-    }
-    return s;
-  };
-}
-
-struct Collect final : io::MeshSink
-{
-  Mesh m;
-  io::MeshHeader header;
-  void Begin(const io::MeshHeader& h) override { this->header = h; }
-  void Vertices(const io::VertexChunk& c) override
-  {
-    this->m.p.insert(this->m.p.end(), c.xyz, c.xyz + 3 * c.count);
-    if (c.scalars)
-    {
-      this->m.scalar.insert(this->m.scalar.end(), c.scalars, c.scalars + c.count);
-    }
-  }
-  void Triangles(const std::uint32_t* i, std::size_t n) override
-  {
-    this->m.t.insert(this->m.t.end(), i, i + 3 * n);
-  }
-  void End(const io::ReadStats&) override {}
-};
-
 // A cube [0,2]^3 as 12 triangles (outward orientation).
 Mesh Cube()
 {

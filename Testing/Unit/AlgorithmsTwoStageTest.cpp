@@ -2,21 +2,20 @@
 // identical results whatever the mode.
 #include "sipmss/algorithms/TwoStage.h"
 
+#include "AlgorithmsTestUtil.h"
+
 #include <gtest/gtest.h>
 
 #include <cmath>
 
 using namespace sipmss;
 using namespace sipmss::algorithms;
+using sipmss::testing::Collect;
+using sipmss::testing::MemorySource;
+using sipmss::testing::Mesh;
 
 namespace
 {
-struct Mesh
-{
-  std::vector<float> p;
-  std::vector<std::uint32_t> t;
-};
-
 // A bumpy closed sphere of about 2 * n * n triangles.
 Mesh Sphere(int n)
 {
@@ -50,38 +49,6 @@ Mesh Sphere(int n)
     }
   return m;
 }
-
-MeshSource MemorySource(const Mesh& m)
-{
-  return [&m](io::MeshSink& sink, const io::ReadOptions& options) {
-    io::MeshHeader h;
-    h.vertexCount = m.p.size() / 3;
-    h.faceCount = m.t.size() / 3;
-    sink.Begin(h);
-    io::VertexChunk c;
-    c.count = m.p.size() / 3;
-    c.xyz = m.p.data();
-    sink.Vertices(c);
-    io::ReadStats s;
-    s.vertices = c.count;
-    if (!options.verticesOnly)
-    {
-      sink.Triangles(m.t.data(), m.t.size() / 3);
-      s.triangles = m.t.size() / 3;
-      sink.End(s);
-    }
-    return s;
-  };
-}
-
-struct Collect final : io::MeshSink
-{
-  Mesh m;
-  void Begin(const io::MeshHeader&) override {}
-  void Vertices(const io::VertexChunk& c) override { this->m.p.insert(this->m.p.end(), c.xyz, c.xyz + 3 * c.count); }
-  void Triangles(const std::uint32_t* i, std::size_t n) override { this->m.t.insert(this->m.t.end(), i, i + 3 * n); }
-  void End(const io::ReadStats&) override {}
-};
 
 RunStats RunTwoStage(const Mesh& in, Collect& out, storage::ModePolicy policy, std::uint64_t budget)
 {
