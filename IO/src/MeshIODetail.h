@@ -415,4 +415,20 @@ Format DetectFromInput(Input& in);
 
 std::size_t ClampChunk(std::size_t chunkElements, std::size_t bytesPerElement, std::uint64_t expected);
 
+// The end of every reader: flush the buffers, tell the sink the final counts.
+inline ReadStats Finish(
+  Input& in, MeshSink& sink, VertexBuffer& vb, TriangleBuffer& tb, std::uint64_t polygons)
+{
+  vb.Flush(sink, in);
+  tb.Flush(sink, in);
+  ReadStats st;
+  st.vertices = vb.first;
+  st.triangles = tb.triangles;
+  st.polygons = polygons;
+  st.droppedFaces = tb.dropped;
+  st.bytes = in.Offset();
+  sink.End(st);
+  return st;
+}
+
 } // namespace sipmss::io::detail

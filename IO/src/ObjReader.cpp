@@ -95,16 +95,7 @@ ReadStats ReadObj(Input& in, MeshSink& sink, const ReadOptions& options)
     }
     in.SkipLine(); // comments, vn, vt, groups, materials, ...
   }
-  vb.Flush(sink, in);
-  tb.Flush(sink, in);
-  ReadStats st;
-  st.vertices = vb.first;
-  st.triangles = tb.triangles;
-  st.polygons = polygons;
-  st.droppedFaces = tb.dropped;
-  st.bytes = in.Offset();
-  sink.End(st);
-  return st;
+  return Finish(in, sink, vb, tb, polygons);
 }
 
 } // namespace sipmss::io::detail

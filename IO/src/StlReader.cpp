@@ -33,20 +33,6 @@ std::string Printable(std::string_view s)
   return out;
 }
 
-ReadStats Finish(Input& in, MeshSink& sink, VertexBuffer& vb, TriangleBuffer& tb, std::uint64_t polygons)
-{
-  vb.Flush(sink, in);
-  tb.Flush(sink, in);
-  ReadStats st;
-  st.vertices = vb.first;
-  st.triangles = tb.triangles;
-  st.polygons = polygons;
-  st.droppedFaces = tb.dropped;
-  st.bytes = in.Offset();
-  sink.End(st);
-  return st;
-}
-
 } // namespace
 
 ReadStats ReadStlBinary(Input& in, MeshSink& sink, const ReadOptions& options)
