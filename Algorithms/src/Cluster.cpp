@@ -455,9 +455,8 @@ public:
     this->Tick();
   }
 
-  void End(const io::ReadStats& stats) override
+  void End(const io::ReadStats&) override
   {
-    this->readStats_ = stats;
     if (this->deferredCount_)
     {
       for (std::uint64_t i = 0; i < this->deferredCount_; ++i)
@@ -489,7 +488,7 @@ public:
   void FinishTriangles() { this->triangles_.Finish(this->cells_, this->numCells_, this->progress_); }
   void FinishBoundaries() { this->AddBoundaryQuadrics(); }
 
-  void Emit(io::MeshSink& out, const ClusterOptions& options, RunStats& stats)
+  void Emit(io::MeshSink& out, RunStats& stats)
   {
     const std::uint64_t numTris = this->triangles_.Size();
     // Number the cells used by output triangles, in cell order.
@@ -552,7 +551,6 @@ public:
       texcoords.clear();
       scalars.clear();
     };
-    std::uint64_t fallbacks = 0;
     for (std::uint32_t c = 0; c < this->numCells_; ++c)
     {
       if (outIndex.Get(c) == kNoCell)
@@ -561,13 +559,10 @@ public:
       }
       const CellRec rec = this->cells_.Get(c);
       double p[3];
-      if (!this->Representative(rec, c, options, p))
+      this->Representative(rec, p);
+      if (this->options_.exportQuadric)
       {
-        ++fallbacks;
-      }
-      if (options.exportQuadric)
-      {
-        options.exportQuadric(first + xyz.size() / 3, rec.q);
+        this->options_.exportQuadric(first + xyz.size() / 3, rec.q);
       }
       xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
       if (this->attrStride_)
@@ -609,7 +604,6 @@ public:
       }
     }
     flush();
-    this->fallbacks_ = fallbacks;
 
     std::vector<std::uint32_t> tri;
     tri.reserve(3 * chunk);
@@ -641,8 +635,6 @@ public:
     stats.outputTriangles = numTris;
   }
 
-  const io::ReadStats& InputStats() const { return this->readStats_; }
-  std::uint64_t Fallbacks() const { return this->fallbacks_; }
 
 private:
   void Tick()
@@ -896,9 +888,9 @@ private:
     }
   }
 
-  // Minimizes the cell quadric with a pseudo-inverse about the cell's mean (Lindstrom).
-  // Returns false when the minimizer left the cell and the fallback was used.
-  bool Representative(const CellRec& rec, std::uint32_t, const ClusterOptions& options, double p[3])
+  // Minimizes the cell quadric with a pseudo-inverse about the cell's mean (Lindstrom); when the
+  // minimizer leaves the cell (by more than placementSlack), the fallback is used.
+  void Representative(const CellRec& rec, double p[3])
   {
     const double inv = 1.0 / double(std::max<std::uint32_t>(rec.count, 1));
     const Eigen::Vector3d mean(rec.sum[0] * inv, rec.sum[1] * inv, rec.sum[2] * inv);
@@ -914,7 +906,7 @@ private:
       Eigen::Vector3d inverse = Eigen::Vector3d::Zero();
       for (int k = 0; k < 3; ++k)
       {
-        if (std::abs(ev[k]) > options.singularThreshold * maxEv)
+        if (std::abs(ev[k]) > this->options_.singularThreshold * maxEv)
         {
           inverse[k] = 1.0 / ev[k];
         }
@@ -924,7 +916,7 @@ private:
     }
     // inside the cell (with a tolerance for points on its faces)?
     const std::uint64_t key = this->grid_.Key(mean[0], mean[1], mean[2]);
-    const double eps = std::max(options.placementSlack, 1e-6) * this->grid_.cellSize;
+    const double eps = std::max(this->options_.placementSlack, 1e-6) * this->grid_.cellSize;
     bool inside = true;
     {
       std::uint64_t k = key;
@@ -952,9 +944,9 @@ private:
       p[0] = x[0];
       p[1] = x[1];
       p[2] = x[2];
-      return true;
+      return;
     }
-    if (options.fallback == ClusterFallback::SampledVertex)
+    if (this->options_.fallback == ClusterFallback::SampledVertex)
     {
       p[0] = rec.first[0];
       p[1] = rec.first[1];
@@ -966,7 +958,6 @@ private:
       p[1] = mean[1];
       p[2] = mean[2];
     }
-    return false;
   }
 
   DML& dml_;
@@ -998,8 +989,6 @@ private:
   std::uint32_t numCells_ = 0;
   std::uint64_t verticesSeen_ = 0;
   std::uint64_t expected_ = 0, done_ = 0;
-  std::uint64_t fallbacks_ = 0;
-  io::ReadStats readStats_;
 };
 
 } // namespace
@@ -1077,11 +1066,10 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   {
     progress.BeginPhase("cluster", options.useBounds ? 0.0 : 0.15, 0.9);
     PhaseTimer timer(stats, dml, "cluster");
-    io::ReadOptions ro;
-    input(sink, ro);
-    stats.inputVertices = sink.InputStats().vertices;
-    stats.inputTriangles = sink.InputStats().triangles;
-    stats.droppedInputFaces = sink.InputStats().droppedFaces;
+    const io::ReadStats read = input(sink, io::ReadOptions{});
+    stats.inputVertices = read.vertices;
+    stats.inputTriangles = read.triangles;
+    stats.droppedInputFaces = read.droppedFaces;
   }
   if (options.boundaryQuadrics)
   {
@@ -1098,7 +1086,7 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   {
     progress.BeginPhase("output", 0.95, 1.0);
     PhaseTimer timer(stats, dml, "output");
-    sink.Emit(output, options, stats);
+    sink.Emit(output, stats);
   }
   progress.BeginPhase("done", 1.0, 1.0);
   stats.storage = dml.GetStats();

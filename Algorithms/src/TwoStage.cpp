@@ -85,9 +85,7 @@ public:
     this->triangles_.Write(this->triangleCount_, count, reinterpret_cast<const Triangle*>(idx));
     this->triangleCount_ += count;
   }
-  void End(const io::ReadStats& stats) override { this->stats_ = stats; }
-
-  std::uint64_t Triangles() const { return this->triangleCount_; }
+  void End(const io::ReadStats&) override {}
 
   // Streams the stored mesh (the same chunk protocol as the readers).
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options)
@@ -182,7 +180,6 @@ private:
   Array<Triangle> triangles_;
   storage::BlockId attrs_ = -1;
   std::uint64_t triangleCount_ = 0;
-  io::ReadStats stats_;
 };
 
 // Maps a stage's [0,1] progress into [begin,end) of the whole run.

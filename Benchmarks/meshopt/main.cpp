@@ -3,6 +3,7 @@
 // to a target triangle count, writes the result, and prints JSON with the read and simplify times.
 //   sipmss-bench-meshopt INPUT OUTPUT TARGET_TRIANGLES [sloppy]
 #include "sipmss/io/MeshIO.h"
+#include "sipmss/io/VectorSink.h"
 
 #include <meshoptimizer.h>
 
@@ -12,24 +13,6 @@
 #include <cstdlib>
 #include <string>
 #include <vector>
-
-namespace
-{
-struct Collect final : sipmss::io::MeshSink
-{
-  std::vector<float> p;
-  std::vector<unsigned int> t;
-  void Begin(const sipmss::io::MeshHeader&) override {}
-  void Vertices(const sipmss::io::VertexChunk& c) override
-  {
-    if (this->p.size() < 3 * (c.first + c.count))
-      this->p.resize(3 * (c.first + c.count));
-    std::copy_n(c.xyz, 3 * c.count, this->p.begin() + 3 * c.first);
-  }
-  void Triangles(const std::uint32_t* i, std::size_t n) override { this->t.insert(this->t.end(), i, i + 3 * n); }
-  void End(const sipmss::io::ReadStats&) override {}
-};
-}
 
 int main(int argc, char** argv)
 {
@@ -41,8 +24,13 @@ int main(int argc, char** argv)
   try
   {
     const auto t0 = std::chrono::steady_clock::now();
-    Collect m;
-    sipmss::io::ReadMesh(argv[1], m);
+    struct
+    {
+      std::vector<float> p;
+      std::vector<std::uint32_t> t;
+    } m;
+    sipmss::io::VectorSink sink(m.p, m.t);
+    sipmss::io::ReadMesh(argv[1], sink);
     const auto t1 = std::chrono::steady_clock::now();
     const std::size_t target = std::strtoull(argv[3], nullptr, 10) * 3;
     std::vector<unsigned int> out(m.t.size());

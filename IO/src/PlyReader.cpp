@@ -537,14 +537,7 @@ public:
       else
         BinarySkip(el);
     }
-    ReadStats st;
-    st.vertices = vb_.first;
-    st.triangles = tb_.triangles;
-    st.polygons = polygons_;
-    st.droppedFaces = tb_.dropped;
-    st.bytes = in_.Offset();
-    sink_.End(st);
-    return st;
+    return Finish(in_, sink_, vb_, tb_, polygons_);
   }
 
 private:

@@ -10,6 +10,7 @@
 // volumetric reconstructions such as vrip write their output); "shuffled": random order.
 // This is a tool for making inputs: it holds the mesh in memory (unlike sipmss itself).
 #include "sipmss/io/MeshIO.h"
+#include "sipmss/io/VectorSink.h"
 
 #include <CLI/CLI.hpp>
 
@@ -29,29 +30,6 @@ struct Mesh
 {
   std::vector<float> p;
   std::vector<std::uint32_t> t;
-};
-
-class Collect final : public io::MeshSink
-{
-public:
-  explicit Collect(Mesh& m)
-    : m_(m)
-  {
-  }
-  void Begin(const io::MeshHeader&) override {}
-  void Vertices(const io::VertexChunk& c) override
-  {
-    this->m_.p.resize(std::max(this->m_.p.size(), 3 * (c.first + c.count)));
-    std::copy_n(c.xyz, 3 * c.count, this->m_.p.begin() + 3 * c.first);
-  }
-  void Triangles(const std::uint32_t* i, std::size_t n) override
-  {
-    this->m_.t.insert(this->m_.t.end(), i, i + 3 * n);
-  }
-  void End(const io::ReadStats&) override {}
-
-private:
-  Mesh& m_;
 };
 
 Mesh Scan(std::uint64_t triangles)
@@ -258,7 +236,7 @@ int main(int argc, char** argv)
     }
     else
     {
-      Collect c(mesh);
+      io::VectorSink c(mesh.p, mesh.t);
       io::ReadMesh(in, c);
       for (int l = 0; l < levels; ++l)
         Subdivide(mesh, displace);

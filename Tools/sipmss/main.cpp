@@ -13,6 +13,7 @@
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/TwoStage.h"
 #include "sipmss/io/MeshIO.h"
+#include "sipmss/io/VectorSink.h"
 
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
@@ -131,33 +132,6 @@ private:
   fs::path output_, temp_;
   std::unique_ptr<io::MeshWriter> writer_;
   bool committed_ = false;
-};
-
-// Collects a whole mesh in memory (for compare).
-class MemorySink final : public io::MeshSink
-{
-public:
-  explicit MemorySink(algorithms::TriangleMesh& m)
-    : mesh_(m)
-  {
-  }
-  void Begin(const io::MeshHeader&) override {}
-  void Vertices(const io::VertexChunk& c) override
-  {
-    if (this->mesh_.points.size() < 3 * (c.first + c.count))
-    {
-      this->mesh_.points.resize(3 * (c.first + c.count));
-    }
-    std::copy_n(c.xyz, 3 * c.count, this->mesh_.points.begin() + 3 * c.first);
-  }
-  void Triangles(const std::uint32_t* i, std::size_t n) override
-  {
-    this->mesh_.triangles.insert(this->mesh_.triangles.end(), i, i + 3 * n);
-  }
-  void End(const io::ReadStats&) override {}
-
-private:
-  algorithms::TriangleMesh& mesh_;
 };
 
 // Gathers the header, counts and bounds (for info).
@@ -355,7 +329,7 @@ int RunSimplify(const SimplifyArgs& a)
 int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t samples)
 {
   algorithms::TriangleMesh a, b;
-  MemorySink sa(a), sb(b);
+  io::VectorSink sa(a.points, a.triangles), sb(b.points, b.triangles);
   io::ReadMesh(ref, sa);
   io::ReadMesh(cand, sb);
   algorithms::CompareOptions o;
