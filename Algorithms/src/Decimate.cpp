@@ -9,13 +9,17 @@
 //   [weld]    optional (weldDistance >= 0): a spatial hash in the DML joins close vertices.
 //   rings     one pass over the faces validates them, drops zero-area ones and counts degrees;
 //             a prefix sum gives CSR offsets; a second pass fills the incident face lists.
-//             Faces on one vertex set: copies of one orientation become one face, opposite
-//             orientations cancel (double-sided zero-volume pairs, common in scans).
+//             Faces on one vertex set: copies of one orientation become one face; a double-
+//             sided pair (opposite orientations) cancels where other faces already close its
+//             edges (zero-volume pillows in scans) and keeps the face that matches its neighbour
+//             where cancelling would open a hole (thin parts folded by clustering).
 //   quadrics  area-weighted face plane quadrics (one per face, added to its corners in face
 //             order), boundary constraint quadrics (plane through the edge perpendicular to its
 //             face, weight boundaryWeight * |edge|^2), options.initialQuadric. Vertices on an edge
-//             with > 2 faces, or where several boundary fans meet, are flagged kComplex: such
-//             edges are never collapsed, the others are, under the link condition.
+//             with > 2 faces, or where several boundary fans meet, are flagged kComplex: their
+//             edges are counted before a collapse; a non-manifold edge collapses like any other
+//             under the link condition (its common neighbours are exactly the vertices opposite
+//             it, and no two of those faces become duplicates).
 //   collapse  passes without a global priority queue. Each pass
 //               1. keeps for every vertex its cheapest collapse (and the second cheapest edge):
 //                  optimal placement from the summed quadric when well conditioned, else the
@@ -27,10 +31,13 @@
 //                  time, deterministic;
 //               3. collapses them in that order while the pass goal is not met, checking legality
 //                  then (link condition, no tetrahedron collapse, no vanishing component, no
-//                  normal flip or excessive turn, no zero-area face, boundary rules). A collapse
-//                  marks every vertex of the faces around both endpoints, and a candidate with a
-//                  marked endpoint is skipped: no two collapses of one pass touch the same faces,
-//                  so each check sees the mesh exactly as step 1 did;
+//                  normal flip or excessive turn, no zero-area face, boundary rules). The two
+//                  endpoints of a collapse are busy for the rest of the pass (the survivor's ring
+//                  list is stale until step 4); a candidate with a busy endpoint is skipped.
+//                  Neighbours stay free: their rings are exact (faces are relabelled in place)
+//                  and their candidates' costs unchanged, and legality is checked against the
+//                  current positions, so collapses of one pass may share faces and a pass
+//                  removes up to about a third of the triangles;
 //               4. compacts the live vertices and faces (in place, order kept), shrinks the
 //                  blocks, rebuilds the rings and calls Reconfigure(): the run moves in core as
 //                  the mesh shrinks.
@@ -79,6 +86,8 @@ constexpr State kCollapsed = 256;  // survived a collapse of this pass
 constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
 constexpr State kPromote = 1024;   // its best partner collapsed: its second best became the best
 // Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
+// An endpoint of a collapse of this pass: its ring in the CSR is stale until Compact.
+constexpr State kBusy = kRemoved | kCollapsed;
 inline bool Active(State s)
 {
   return (s & (kSurvivor | kRecompute)) != 0 && (s & (kNeedsLegal | kLocked)) == 0;
@@ -1032,6 +1041,47 @@ void Decimator::BuildRings()
       continue;
     }
     // Keep at most one face: the first member whose orientation has the sign of net.
+    // Net zero (a double-sided pair): cancelling it suits edges that other faces already make
+    // manifold (two more faces each: fins, scans); on edges with one other face it would open a
+    // hole (clustered meshes, where a thin part folds onto itself), and one face of the pair,
+    // oriented like that neighbour, closes them. The edges decide by majority.
+    if (net == 0)
+    {
+      int single = 0, pairs = 0, agree = 0;
+      std::vector<std::uint32_t> ring;
+      for (int k = 0; k < 3; ++k)
+      {
+        const std::uint32_t a = t.v[k], c = t.v[(k + 1) % 3];
+        const std::uint32_t rb = RO.Get(a), re = RO.Get(a + 1);
+        ring.resize(re - rb);
+        RF.GetRange(rb, re - rb, ring.data());
+        int others = 0, dir = 0;
+        for (std::uint32_t g : ring)
+        {
+          const Tri u = F.Get(g);
+          if (!Alive(u) || !Has(u, c) || sameSet(u, s))
+          {
+            continue;
+          }
+          ++others;
+          const int ia = u.v[0] == a ? 0 : (u.v[1] == a ? 1 : 2);
+          dir = u.v[(ia + 1) % 3] == c ? 1 : -1; // +1: the neighbour runs a -> c like t
+        }
+        if (others == 1)
+        {
+          ++single;
+          agree += -dir; // a consistent neighbour runs c -> a: t's orientation is right
+        }
+        else if (others == 2)
+        {
+          ++pairs;
+        }
+      }
+      if (single > pairs)
+      {
+        net = agree >= 0 ? 1 : -1;
+      }
+    }
     bool kept = net > 0; // f itself has orientation +1
     if (!kept)
     {
@@ -1485,6 +1535,23 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   {
     return false;
   }
+  if (m > 2)
+  {
+    // A non-manifold edge (m sheets meet on it): the same test for every face of u's ring whose
+    // other two corners are both common neighbours.
+    for (const RingFace& f : ru.faces)
+    {
+      if (Has(f.t, v))
+      {
+        continue;
+      }
+      const std::uint32_t a = f.t.v[(f.corner + 1) % 3], b = f.t.v[(f.corner + 2) % 3];
+      if (rv.HasFace(a, b))
+      {
+        return false;
+      }
+    }
+  }
   // Geometry of the faces that survive.
   for (std::size_t s = 0; s < ru.faces.size(); ++s)
   {
@@ -1668,7 +1735,7 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
     {
       count += (next[i] == v) + (prev[i] == v);
     }
-    if (count > 2 || (bothBoundary && count != 1))
+    if (bothBoundary && count != 1)
     {
       return; // a non-manifold edge, or it would pinch the surface across the interior
     }
@@ -1707,10 +1774,6 @@ void Decimator::EvaluateFull(std::uint32_t u, State su)
   for (std::uint32_t k = 0; k < ru.nbs.size(); ++k)
   {
     const Nb& nb = ru.nbs[k];
-    if (nb.count > 2)
-    {
-      continue;
-    }
     const State sv = this->S_.Get(nb.v);
     if (sv & kLocked)
     {
@@ -1941,9 +2004,10 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
       this->O_.Set(start[this->hist_[b]]++, std::uint32_t(u));
     }
   }
-  // 3. Collapse in cost order, independent collapses only. Legality is checked here: the faces
-  // around an unmarked pair are as they were in step 1. A vertex whose cheapest collapse is
-  // illegal evaluates all its edges with legality in the next passes.
+  // 3. Collapse in cost order, endpoints of earlier collapses excluded. Legality is checked
+  // here, on the current faces and positions (the costs of pairs with no busy endpoint are as in
+  // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
+  // in the next passes.
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.7 * progressSpan, progressBase + 0.85 * progressSpan);
   std::uint64_t done = 0, illegal = 0;
@@ -1972,7 +2036,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
       if (i + kAhead < taken)
       {
         const std::uint32_t w = Op[i + kAhead];
-        if (!(Sp[w] & kMarked))
+        if (!(Sp[w] & kBusy))
         {
           const std::uint32_t x = Cp[w].partner;
           Prefetch(Sp + x);
@@ -1985,12 +2049,12 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
     }
     const std::uint32_t u = this->O_.Get(i);
     const State su = this->S_.Get(u);
-    if (su & kMarked)
+    if (su & kBusy)
     {
       continue;
     }
     const Cand c = this->C_.Get(u);
-    if (this->S_.Get(c.partner) & kMarked)
+    if (this->S_.Get(c.partner) & kBusy)
     {
       continue;
     }

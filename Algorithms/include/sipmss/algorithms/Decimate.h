@@ -34,7 +34,7 @@ struct DecimateOptions
   std::function<bool(std::uint64_t vertex, double quadric[10])> initialQuadric;
   // Pass schedule: each pass removes at most this fraction of the remaining triangles (the
   // cheapest independent collapses), and never goes below the next level's target.
-  double passFraction = 0.15;
+  double passFraction = 0.25;
   // A collapse is rejected when a surviving face's normal turns so that the cosine between its
   // new and old normal falls below this (0.2: about 78 degrees; flips are always rejected).
   double minNormalCosine = 0.2;
