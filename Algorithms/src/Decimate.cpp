@@ -2384,6 +2384,11 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
   }
   this->BuildRings();
   this->BuildQuadrics();
+  if (this->opt_.sourceConsumed)
+  {
+    this->opt_.sourceConsumed();
+    this->dml_.Reconfigure();
+  }
 
   const std::uint64_t F0 = this->liveFaces_;
   std::uint64_t target = this->opt_.targetTriangles;

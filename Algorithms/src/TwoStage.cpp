@@ -31,12 +31,18 @@ public:
     : dml_(dml)
   {
   }
-  ~DmlMesh() override
+  ~DmlMesh() override { this->Release(); }
+
+  // Frees the stored mesh (Replay is not possible afterwards).
+  void Release()
   {
     if (this->attrs_ >= 0)
     {
       this->dml_.CloseBlock(this->attrs_);
+      this->attrs_ = -1;
     }
+    this->points_.Close();
+    this->triangles_.Close();
   }
 
   void Begin(const io::MeshHeader& h) override
@@ -277,6 +283,12 @@ RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageO
       return true;
     };
   }
+  // Once stage 2 holds the mesh and its quadrics, the hand-off blocks go: the run moves in core
+  // as soon as stage 2's own blocks fit.
+  dopt.sourceConsumed = [&handoff, &quadrics]() {
+    handoff.Release();
+    quadrics.Close();
+  };
   StageProgress p2(progress, 0.5, 1.0, "stage 2: ");
   const std::size_t from = stats.phases.size();
   RunStats s2 = Decimate(

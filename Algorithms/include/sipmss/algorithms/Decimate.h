@@ -32,8 +32,13 @@ struct DecimateOptions
   // Quadric layout: the upper triangle of the symmetric 4x4 row by row,
   // a00 a01 a02 b0 a11 a12 b1 a22 b2 c (E(p) = p^T A p + 2 b.p + c), in input coordinates.
   std::function<bool(std::uint64_t vertex, double quadric[10])> initialQuadric;
+  // Called once the source and initialQuadric are no longer needed (before the collapse
+  // passes): a caller that keeps the input in the same DML frees it there, so that the run can
+  // move in core sooner.
+  std::function<void()> sourceConsumed;
   // Pass schedule: each pass removes at most this fraction of the remaining triangles (the
-  // cheapest independent collapses), and never goes below the next level's target.
+  // cheapest collapses; only their endpoints are exclusive), and never goes below the next
+  // level's target.
   double passFraction = 0.25;
   // A collapse is rejected when a surviving face's normal turns so that the cosine between its
   // new and old normal falls below this (0.2: about 78 degrees; flips are always rejected).
