@@ -1677,6 +1677,25 @@ void Decimator::Evaluate(std::uint32_t u)
   {
     return;
   }
+  if (const Quadric* qp = this->Q_.Ptr(0))
+  {
+    // The neighbours' data is read (and their candidates written) below: fetch it in parallel.
+    const State* sp = this->S_.Ptr(0);
+    const Vec3* pp = this->P_.Ptr(0);
+    const Cand* cp = this->C_.Ptr(0);
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      const std::uint32_t a = next[i];
+      Prefetch(qp + a);
+      Prefetch(reinterpret_cast<const char*>(qp + a) + 64);
+      if (sp && pp && cp)
+      {
+        Prefetch(sp + a);
+        Prefetch(pp + a);
+        Prefetch(cp + a);
+      }
+    }
+  }
   const Quadric Qu = this->Q_.Get(u);
   const Vec3 pu = this->P_.Get(u);
   auto in = [](const std::uint32_t* a, std::size_t m, std::uint32_t x) {
