@@ -804,6 +804,57 @@ TEST(AlgorithmsDecimate, DropsDegenerateAndDuplicateTriangles)
   ExpectValid(r.out);
 }
 
+TEST(AlgorithmsDecimate, NonManifoldEdgesCollapse)
+{
+  // Three flat sheets meeting on one spine (a "book", as clustering makes where parts touch):
+  // every spine edge has 3 faces. The 10 spine segments alone carry 30 faces, so a target of 12
+  // needs collapses of non-manifold edges; each keeps the sheets apart (no duplicate faces).
+  const int n = 10;
+  Mesh m;
+  auto spine = [&](int i) { return std::uint32_t(i); };
+  for (int i = 0; i <= n; ++i)
+  {
+    m.xyz.insert(m.xyz.end(), { float(i) / n, 0.0f, 0.0f });
+  }
+  const float dirs[3][3] = { { 0, 1, 0 }, { 0, 0, 1 }, { 0, -0.7f, -0.7f } };
+  for (const auto& d : dirs)
+  {
+    const std::uint32_t base = std::uint32_t(m.Vertices());
+    for (int r = 1; r <= n; ++r)
+    {
+      for (int i = 0; i <= n; ++i)
+      {
+        const float s = float(r) / n;
+        m.xyz.insert(m.xyz.end(), { float(i) / n, s * d[1], s * d[2] });
+      }
+    }
+    auto at = [&](int r, int i) {
+      return r == 0 ? spine(i) : base + std::uint32_t((r - 1) * (n + 1) + i);
+    };
+    for (int r = 0; r < n; ++r)
+    {
+      for (int i = 0; i < n; ++i)
+      {
+        m.tris.insert(m.tris.end(), { at(r, i), at(r, i + 1), at(r + 1, i + 1) });
+        m.tris.insert(m.tris.end(), { at(r, i), at(r + 1, i + 1), at(r + 1, i) });
+      }
+    }
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 12;
+  Outcome r = Simplify(MemorySource(m), o);
+  ExpectValid(r.out);
+  EXPECT_LE(r.out.Triangles(), 14u);
+  int nonManifold = 0;
+  for (auto& [e, k] : EdgeUse(r.out))
+  {
+    EXPECT_LE(k, 3);
+    nonManifold += k > 2;
+  }
+  EXPECT_GE(nonManifold, 1); // the sheets still meet on a (shorter) spine
+  EXPECT_LT(nonManifold, n);
+}
+
 TEST(AlgorithmsDecimate, NonManifoldInputIsHandled)
 {
   Mesh g = Grid(10, Bumps);
