@@ -57,7 +57,12 @@
 #include <ctime>
 #include <limits>
 #include <memory>
+#include <atomic>
+#include <condition_variable>
+#include <exception>
+#include <mutex>
 #include <string>
+#include <thread>
 #include <vector>
 
 namespace sipmss::algorithms
@@ -374,6 +379,55 @@ struct EdgeCand
   Placement pl;
 };
 
+// An offer to a vertex of another thread's range, applied after a barrier.
+struct Deferred
+{
+  std::uint32_t x, partner;
+  bool fromPartner;
+  Placement pl;
+};
+
+// One thread's scratch for the candidate sweep (and the main thread's for the collapses).
+struct Scratch
+{
+  Ring ru, rv;
+  std::vector<EdgeCand> edges;
+  std::vector<std::uint32_t> ids, next = std::vector<std::uint32_t>(64),
+                                  prev = std::vector<std::uint32_t>(64);
+  std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
+  std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
+};
+
+// A reusable barrier for a fixed number of threads (C++17 has none).
+class Barrier
+{
+public:
+  explicit Barrier(int n)
+    : n_(n)
+  {
+  }
+  void Wait()
+  {
+    std::unique_lock<std::mutex> lock(this->m_);
+    const std::uint64_t gen = this->gen_;
+    if (++this->count_ == this->n_)
+    {
+      this->count_ = 0;
+      ++this->gen_;
+      this->cv_.notify_all();
+      return;
+    }
+    this->cv_.wait(lock, [&] { return gen != this->gen_; });
+  }
+
+private:
+  std::mutex m_;
+  std::condition_variable cv_;
+  int n_;
+  int count_ = 0;
+  std::uint64_t gen_ = 0;
+};
+
 class Decimator;
 
 // The sink that streams the source into the DML.
@@ -422,6 +476,9 @@ public:
     , hist_(kCostBins, 0)
   {
     this->cosThreshold_ = options.minNormalCosine;
+    this->threads_ = options.threads > 0 ? options.threads
+                                         : int(std::max(1u, std::thread::hardware_concurrency()));
+    this->threads_ = std::min(this->threads_, 16);
   }
 
   void Run(const MeshSource& input, io::MeshSink& output,
@@ -449,12 +506,16 @@ private:
 
   void BindViews();
   void LoadRing(std::uint32_t x, Ring& r, bool positions);
-  void Evaluate(std::uint32_t u);
+  void Sweep(std::uint64_t nv);
+  void Evaluate(std::uint32_t u, Scratch& s);
   void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
-    std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n);
-  void EvaluateFull(std::uint32_t u, State su);
-  void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
-  bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p);
+    std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
+    Scratch& s);
+  void EvaluateFull(std::uint32_t u, State su, Scratch& s);
+  void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner,
+    Scratch& s);
+  void Apply(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
+  bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s);
   bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
   Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const;
   void Collapse(std::uint32_t u, const Cand& c);
@@ -473,6 +534,7 @@ private:
   Progress& progress_;
   RunStats& stats_;
   double cosThreshold_ = 0.2;
+  int threads_ = 1;
 
   // The DML: the caller's (options.dml) or our own; declared before every block so that the
   // blocks close first.
@@ -512,13 +574,11 @@ private:
   View<Cand> C_;
   View<std::uint32_t> O_;
 
-  // Scratch bounded by valences and chunk sizes.
-  Ring ru_, rv_;
-  std::vector<EdgeCand> edges_;
+  // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
+  std::vector<Scratch> scratch_ = std::vector<Scratch>(1);
+  std::vector<std::uint32_t> partStart_; // first vertex of each sweep thread's range
   const Cand none_ = { std::numeric_limits<double>::infinity(), { 0, 0, 0 }, kNone, 0.0f,
     std::numeric_limits<double>::infinity(), kNone, 0 };
-  std::vector<std::uint32_t> ids_, next_ = std::vector<std::uint32_t>(64),
-                                   prev_ = std::vector<std::uint32_t>(64);
   std::vector<std::uint32_t> hist_;
   std::vector<std::uint64_t> starts_;
   std::vector<Vec3> vbuf_;
@@ -1488,12 +1548,12 @@ bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
 }
 
 // Is collapsing u (ring in ru_, with positions) and nb.v to p legal? Loads rv_ (positions).
-bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
+bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s)
 {
   const std::uint32_t v = nb.v;
   const std::uint32_t m = nb.count;
-  Ring& ru = this->ru_;
-  Ring& rv = this->rv_;
+  Ring& ru = s.ru;
+  Ring& rv = s.rv;
   this->LoadRing(v, rv, true);
   // The collapse must leave faces (no vanishing component).
   if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
@@ -1570,7 +1630,26 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p)
   return true;
 }
 
-void Decimator::Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
+// Offers an edge to x: directly when x is this thread's, else queued for x's thread. The result
+// does not depend on the order of offers (the best two by (cost, partner) are kept), so the
+// parallel sweep in core and the sequential one out of core give identical candidates.
+void Decimator::Offer(
+  std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner, Scratch& s)
+{
+  if (x < s.lo || x >= s.hi)
+  {
+    std::size_t t = 0;
+    while (t + 1 < this->partStart_.size() && x >= this->partStart_[t + 1])
+    {
+      ++t;
+    }
+    s.out[t].push_back({ x, partner, fromPartner, pl });
+    return;
+  }
+  this->Apply(x, partner, pl, fromPartner);
+}
+
+void Decimator::Apply(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
 {
   if (const Cand* cp = this->C_.Ptr(x))
   {
@@ -1608,7 +1687,122 @@ void Decimator::Offer(std::uint32_t x, std::uint32_t partner, const Placement& p
 // them to both endpoints (light path: the ring's faces only, no neighbour table). An edge u-a is
 // taken from the face where a follows u; an edge seen only with a before u is a boundary edge
 // (or inconsistently oriented) and is taken from there.
-void Decimator::Evaluate(std::uint32_t u)
+// Step 1 of a pass: every active vertex evaluates its edges. In core, the vertex range is split
+// among threads_ threads; a thread writes only its own vertices' candidates and queues offers to
+// the others', which their owners apply between barriers, one chunk of vertices at a time (the
+// queues stay small). Out of core (the DML is single-threaded) one thread sweeps in order. Both
+// give the same candidates: see Offer.
+void Decimator::Sweep(std::uint64_t nv)
+{
+  constexpr std::uint64_t kChunk = 16384;
+  constexpr std::uint64_t kParallelMin = 8192;
+  const bool inCore = this->S_.Ptr(0) && this->C_.Ptr(0) && this->Q_.Ptr(0) && this->P_.Ptr(0) &&
+    this->F_.Ptr(0) && this->RO_.Ptr(0) && this->RF_.Ptr(0);
+  const int T = (inCore && nv >= kParallelMin) ? this->threads_ : 1;
+  if (T <= 1)
+  {
+    Scratch& s = this->scratch_[0];
+    s.lo = 0;
+    s.hi = kNone;
+    for (std::uint64_t u = 0; u < nv; ++u)
+    {
+      this->Tick(u, nv);
+      this->Evaluate(std::uint32_t(u), s);
+    }
+    return;
+  }
+  if (this->scratch_.size() < std::size_t(T))
+  {
+    this->scratch_.resize(std::size_t(T));
+  }
+  this->partStart_.assign(std::size_t(T) + 1, 0);
+  for (int t = 0; t <= T; ++t)
+  {
+    this->partStart_[std::size_t(t)] = std::uint32_t(nv * std::uint64_t(t) / std::uint64_t(T));
+  }
+  std::uint64_t rounds = 0;
+  for (int t = 0; t < T; ++t)
+  {
+    Scratch& s = this->scratch_[std::size_t(t)];
+    s.lo = this->partStart_[std::size_t(t)];
+    s.hi = this->partStart_[std::size_t(t) + 1];
+    s.out.resize(std::size_t(T));
+    for (auto& q : s.out)
+    {
+      q.clear();
+    }
+    rounds = std::max(rounds, (std::uint64_t(s.hi - s.lo) + kChunk - 1) / kChunk);
+  }
+  Barrier barrier(T);
+  std::atomic<bool> stop{ false };
+  std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
+  auto work = [&](int t) {
+    Scratch& s = this->scratch_[std::size_t(t)];
+    for (std::uint64_t r = 0; r < rounds; ++r)
+    {
+      try
+      {
+        const std::uint64_t b = std::min<std::uint64_t>(s.hi, s.lo + r * kChunk);
+        const std::uint64_t e = std::min<std::uint64_t>(s.hi, b + kChunk);
+        for (std::uint64_t u = b; u < e && !stop.load(std::memory_order_relaxed); ++u)
+        {
+          if (t == 0)
+          {
+            this->Tick(u - s.lo, s.hi - s.lo); // progress and abort: the calling thread only
+          }
+          this->Evaluate(std::uint32_t(u), s);
+        }
+      }
+      catch (...)
+      {
+        errors[std::size_t(t)] = std::current_exception();
+        stop = true;
+      }
+      barrier.Wait();
+      if (!stop)
+      {
+        for (int o = 0; o < T; ++o)
+        {
+          if (o != t)
+          {
+            for (const Deferred& d : this->scratch_[std::size_t(o)].out[std::size_t(t)])
+            {
+              this->Apply(d.x, d.partner, d.pl, d.fromPartner);
+            }
+          }
+        }
+      }
+      barrier.Wait(); // everyone is done with the queues (and agrees on stop)
+      for (auto& q : s.out)
+      {
+        q.clear();
+      }
+      if (stop)
+      {
+        break;
+      }
+    }
+  };
+  std::vector<std::thread> workers;
+  for (int t = 1; t < T; ++t)
+  {
+    workers.emplace_back(work, t);
+  }
+  work(0);
+  for (std::thread& w : workers)
+  {
+    w.join();
+  }
+  for (const std::exception_ptr& e : errors)
+  {
+    if (e)
+    {
+      std::rethrow_exception(e);
+    }
+  }
+}
+
+void Decimator::Evaluate(std::uint32_t u, Scratch& s)
 {
   const State su = this->S_.Get(u);
   if (su & kLocked)
@@ -1617,7 +1811,7 @@ void Decimator::Evaluate(std::uint32_t u)
   }
   if (su & kNeedsLegal)
   {
-    this->EvaluateFull(u, su);
+    this->EvaluateFull(u, su, s);
     return;
   }
   if (!Active(su))
@@ -1633,7 +1827,8 @@ void Decimator::Evaluate(std::uint32_t u)
         Quadric Q = this->Q_.Get(v);
         AddTo(Q, this->Q_.Get(u));
         const Placement pl = this->Place(Q, this->P_.Get(u), this->P_.Get(v), su, this->S_.Get(v));
-        c.cost = pl.cost;
+        // c.cost stays: the same edge's cost as computed before (equal up to rounding), which
+        // keeps the outcome independent of whether an offer to u came before or after this.
         c.p[0] = pl.p.x;
         c.p[1] = pl.p.y;
         c.p[2] = pl.p.z;
@@ -1647,20 +1842,18 @@ void Decimator::Evaluate(std::uint32_t u)
   const std::uint32_t* ids = this->RF_.Ptr(b);
   if (!ids)
   {
-    this->ids_.resize(e - b);
-    this->RF_.GetRange(b, e - b, this->ids_.data());
-    ids = this->ids_.data();
+    s.ids.resize(e - b);
+    this->RF_.GetRange(b, e - b, s.ids.data());
+    ids = s.ids.data();
   }
-  std::uint32_t* next = this->next_.data();
-  std::uint32_t* prev = this->prev_.data();
-  std::size_t n = 0;
-  if (e - b > this->next_.size())
+  if (e - b > s.next.size())
   {
-    this->next_.resize(e - b);
-    this->prev_.resize(e - b);
-    next = this->next_.data();
-    prev = this->prev_.data();
+    s.next.resize(e - b);
+    s.prev.resize(e - b);
   }
+  std::uint32_t* next = s.next.data();
+  std::uint32_t* prev = s.prev.data();
+  std::size_t n = 0;
   for (std::uint32_t k = 0; k < e - b; ++k)
   {
     const Tri t = this->F_.Get(ids[k]);
@@ -1713,7 +1906,7 @@ void Decimator::Evaluate(std::uint32_t u)
     const std::uint32_t a = next[i];
     if (!in(next, i, a))
     {
-      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n);
+      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, s);
     }
   }
   for (std::size_t i = 0; i < n; ++i)
@@ -1721,13 +1914,13 @@ void Decimator::Evaluate(std::uint32_t u)
     const std::uint32_t a = prev[i];
     if (!in(next, n, a) && !in(prev, i, a))
     {
-      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n);
+      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, s);
     }
   }
 }
 
 void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
-  std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n)
+  std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n, Scratch& s)
 {
   const State sv = this->S_.Get(v);
   if (sv & kLocked)
@@ -1767,20 +1960,20 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   {
     return;
   }
-  this->Offer(u, v, pl, false);
+  this->Offer(u, v, pl, false, s);
   if (offerV)
   {
-    this->Offer(v, u, pl, true);
+    this->Offer(v, u, pl, true, s);
   }
 }
 
 // The heavy path for a vertex whose cheapest collapse was illegal: all its edges, in cost
 // order, the first legal one is its candidate. Edges to higher neighbours are still offered to
 // them.
-void Decimator::EvaluateFull(std::uint32_t u, State su)
+void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
 {
   this->C_.Set(u, this->none_);
-  Ring& ru = this->ru_;
+  Ring& ru = s.ru;
   this->LoadRing(u, ru, true);
   if (ru.faces.empty())
   {
@@ -1789,7 +1982,7 @@ void Decimator::EvaluateFull(std::uint32_t u, State su)
   const Quadric Qu = this->Q_.Get(u);
   const double maxErr = this->opt_.maximumError;
   const bool checkErr = std::isfinite(maxErr);
-  this->edges_.clear();
+  s.edges.clear();
   for (std::uint32_t k = 0; k < ru.nbs.size(); ++k)
   {
     const Nb& nb = ru.nbs[k];
@@ -1815,14 +2008,14 @@ void Decimator::EvaluateFull(std::uint32_t u, State su)
     }
     // (Its neighbours get this edge from their own evaluation: u is neither active nor a
     // survivor.)
-    this->edges_.push_back({ pl.cost, nb.v, k, pl });
+    s.edges.push_back({ pl.cost, nb.v, k, pl });
   }
-  std::sort(this->edges_.begin(), this->edges_.end(), [](const EdgeCand& a, const EdgeCand& b) {
+  std::sort(s.edges.begin(), s.edges.end(), [](const EdgeCand& a, const EdgeCand& b) {
     return a.cost < b.cost || (a.cost == b.cost && a.v < b.v);
   });
-  for (const EdgeCand& ec : this->edges_)
+  for (const EdgeCand& ec : s.edges)
   {
-    if (this->Legal(u, ru.nbs[ec.nbIndex], ec.pl.p))
+    if (this->Legal(u, ru.nbs[ec.nbIndex], ec.pl.p, s))
     {
       Cand c;
       c.cost = ec.cost;
@@ -1891,8 +2084,8 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
 void Decimator::Collapse(std::uint32_t u, const Cand& c)
 {
   const std::uint32_t v = c.partner;
-  const Ring& ru = this->ru_;
-  const Ring& rv = this->rv_;
+  const Ring& ru = this->scratch_[0].ru;
+  const Ring& rv = this->scratch_[0].rv;
   const State su = this->S_.Get(u), sv = this->S_.Get(v);
   std::uint64_t removed = 0;
   for (const RingFace& f : ru.faces)
@@ -1944,11 +2137,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   this->BindViews();
   // 1. Every vertex's cheapest collapse.
   this->progress_.BeginPhase("collapse", progressBase, progressBase + 0.6 * progressSpan);
-  for (std::uint64_t u = 0; u < nv; ++u)
-  {
-    this->Tick(u, nv);
-    this->Evaluate(std::uint32_t(u));
-  }
+  this->Sweep(nv);
   // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
   // about four times the collapses the goal needs (a collapse removes 2 faces, and both
   // endpoints may propose it). Ties in order of vertex index.
@@ -2077,9 +2266,10 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
     {
       continue;
     }
-    this->LoadRing(u, this->ru_, true);
-    const Nb* nb = this->ru_.Find(c.partner);
-    if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }))
+    Scratch& s0 = this->scratch_[0];
+    this->LoadRing(u, s0.ru, true);
+    const Nb* nb = s0.ru.Find(c.partner);
+    if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }, s0))
     {
       this->S_.Set(u, State(su | kNeedsLegal));
       ++illegal;

@@ -40,6 +40,9 @@ struct DecimateOptions
   // cheapest collapses; only their endpoints are exclusive), and never goes below the next
   // level's target.
   double passFraction = 0.25;
+  // Threads of the candidate sweep when in core (<= 0: the hardware's). The result does not
+  // depend on it.
+  int threads = 0;
   // A collapse is rejected when a surviving face's normal turns so that the cosine between its
   // new and old normal falls below this (0.2: about 78 degrees; flips are always rejected).
   double minNormalCosine = 0.2;
