@@ -65,6 +65,7 @@ TEST_F(CLI, VersionAndUsage)
   EXPECT_EQ(RunCli("simplify only-one-arg").status, 2);
   EXPECT_EQ(RunCli("simplify a.ply b.ply --algorithm nonsense").status, 2);
   EXPECT_EQ(RunCli("simplify a.ply b.ply --grid 0").status, 2);
+  EXPECT_EQ(RunCli("simplify a.ply b.ply --threads -1").status, 2);
 }
 
 TEST_F(CLI, InfoAndSimplify)
@@ -85,9 +86,9 @@ TEST_F(CLI, InfoAndSimplify)
   EXPECT_NE(json.find("\"input_triangles\": 8"), std::string::npos);
   EXPECT_NE(json.find("\"misses\""), std::string::npos);
 
-  // out of core at a tiny budget: same output bytes
+  // out of core at a tiny budget, on one thread: same output bytes
   Result o = RunCli("simplify " + P("octa.ply") + " " + P("out2.ply") +
-    " --grid 2 --quiet --memory-mb 0.0625 --tmpdir " + this->dir.string());
+    " --grid 2 --quiet --threads 1 --memory-mb 0.0625 --tmpdir " + this->dir.string());
   ASSERT_EQ(o.status, 0) << o.out;
   std::ifstream a(this->dir / "out.ply", std::ios::binary), b(this->dir / "out2.ply", std::ios::binary);
   EXPECT_EQ(std::string(std::istreambuf_iterator<char>(a), {}), std::string(std::istreambuf_iterator<char>(b), {}));

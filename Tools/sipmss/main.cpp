@@ -187,6 +187,7 @@ struct SimplifyArgs
   double boundaryWeight = 0;
   std::vector<std::string> tmpdirs;
   int lods = 1;
+  int threads = 0;
   bool quiet = false;
 };
 
@@ -227,6 +228,7 @@ int RunSimplify(const SimplifyArgs& a)
     o.storage = profile;
     o.boundaryQuadrics = a.boundaryWeight > 0;
     o.boundaryWeight = a.boundaryWeight;
+    o.threads = a.threads;
     stats = algorithms::Cluster(source, sink, o, progress);
   }
   else if (a.algorithm == "decimate" || a.algorithm == "two-stage")
@@ -239,6 +241,7 @@ int RunSimplify(const SimplifyArgs& a)
     }
     o.levelsOfDetail = a.lods;
     o.storage = profile;
+    o.threads = a.threads;
     std::function<void(int, const std::function<void(io::MeshSink&)>&)> onLevel;
     if (a.lods > 1)
     {
@@ -257,6 +260,7 @@ int RunSimplify(const SimplifyArgs& a)
       algorithms::TwoStageOptions t;
       t.gridDimension = a.grid > 0 ? a.grid : 300;
       t.decimate = o;
+      t.threads = a.threads;
       stats = algorithms::TwoStage(source, sink, t, progress, onLevel);
     }
   }
@@ -396,6 +400,9 @@ int main(int argc, char** argv)
   simplify->add_option("--lods", sa.lods, "decimate, two-stage: levels of detail, written as OUTPUT_lodK")
     ->check(CLI::Range(1, 64));
   simplify->add_option("--stats-json", sa.statsJson, "write run statistics as JSON");
+  simplify->add_option("--threads", sa.threads,
+    "threads (0 = all cores; the output does not depend on it)")
+    ->check(CLI::Range(0, 256));
   simplify->add_flag("--quiet", sa.quiet, "no progress bar and no summary");
 
   std::string ref, cand;
