@@ -62,6 +62,7 @@
 #include <exception>
 #include <mutex>
 #include <string>
+#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -90,9 +91,9 @@ constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edg
 constexpr State kCollapsed = 256;  // survived a collapse of this pass
 constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
 constexpr State kPromote = 1024;   // its best partner collapsed: its second best became the best
-// Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
 // An endpoint of a collapse of this pass: its ring in the CSR is stale until Compact.
 constexpr State kBusy = kRemoved | kCollapsed;
+// Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
 inline bool Active(State s)
 {
   return (s & (kSurvivor | kRecompute)) != 0 && (s & (kNeedsLegal | kLocked)) == 0;
@@ -418,6 +419,17 @@ public:
       return;
     }
     this->cv_.wait(lock, [&] { return gen != this->gen_; });
+  }
+  // One participant leaves for good (a thread that could not be started).
+  void Drop()
+  {
+    std::unique_lock<std::mutex> lock(this->m_);
+    if (--this->n_ > 0 && this->count_ == this->n_)
+    {
+      this->count_ = 0;
+      ++this->gen_;
+      this->cv_.notify_all();
+    }
   }
 
 private:
@@ -1683,10 +1695,6 @@ void Decimator::Apply(std::uint32_t x, std::uint32_t partner, const Placement& p
   this->C_.Set(x, c);
 }
 
-// The candidate sweep for vertex u: evaluates u's edges to higher neighbours once and offers
-// them to both endpoints (light path: the ring's faces only, no neighbour table). An edge u-a is
-// taken from the face where a follows u; an edge seen only with a before u is a boundary edge
-// (or inconsistently oriented) and is taken from there.
 // Step 1 of a pass: every active vertex evaluates its edges. In core, the vertex range is split
 // among threads_ threads; a thread writes only its own vertices' candidates and queues offers to
 // the others', which their owners apply between barriers, one chunk of vertices at a time (the
@@ -1784,14 +1792,49 @@ void Decimator::Sweep(std::uint64_t nv)
     }
   };
   std::vector<std::thread> workers;
+  bool started = true;
   for (int t = 1; t < T; ++t)
   {
-    workers.emplace_back(work, t);
+    try
+    {
+      workers.emplace_back(work, t);
+    }
+    catch (const std::system_error&)
+    {
+      // No thread: stop the others after their first chunk and sweep on this thread alone
+      // (evaluating a vertex twice gives the same candidates: offers are idempotent).
+      started = false;
+      stop = true;
+      for (int k = t; k < T; ++k)
+      {
+        barrier.Drop();
+      }
+      break;
+    }
   }
   work(0);
   for (std::thread& w : workers)
   {
     w.join();
+  }
+  if (!started)
+  {
+    for (const std::exception_ptr& e : errors)
+    {
+      if (e)
+      {
+        std::rethrow_exception(e);
+      }
+    }
+    Scratch& s = this->scratch_[0];
+    s.lo = 0;
+    s.hi = kNone;
+    for (std::uint64_t u = 0; u < nv; ++u)
+    {
+      this->Tick(u, nv);
+      this->Evaluate(std::uint32_t(u), s);
+    }
+    return;
   }
   for (const std::exception_ptr& e : errors)
   {
@@ -1802,6 +1845,10 @@ void Decimator::Sweep(std::uint64_t nv)
   }
 }
 
+// The candidate sweep for vertex u: evaluates u's edges to higher neighbours once and offers
+// them to both endpoints (light path: the ring's faces only, no neighbour table). An edge u-a is
+// taken from the face where a follows u; an edge seen only with a before u is a boundary edge
+// (or inconsistently oriented) and is taken from there.
 void Decimator::Evaluate(std::uint32_t u, Scratch& s)
 {
   const State su = this->S_.Get(u);
