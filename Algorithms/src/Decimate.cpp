@@ -1283,53 +1283,23 @@ void Decimator::BuildQuadrics()
   this->quad_ = Array<Quadric>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->state_ = Array<State>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->cand_ = Array<Cand>(this->dml_, std::max<std::uint64_t>(nv, 1));
-  FillBlock(this->dml_, this->cand_, this->none_);
   this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->remap_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->BindViews();
-  // Face plane quadrics, weighted by area: computed once per face, added to its corners in face
-  // order (deterministic sums).
-  const Quadric zero = { { 0, 0, 0, 0, 0, 0, 0, 0, 0, 0 } };
-  FillBlock(this->dml_, this->quad_, zero);
-  this->BindViews();
-  for (std::uint64_t f = 0; f < this->nf_; ++f)
-  {
-    this->Tick(f, this->nf_ + nv);
-    const Tri t = this->F_.Get(f);
-    if (!Alive(t))
-    {
-      continue;
-    }
-    const Vec3 a = this->P_.Get(t.v[0]);
-    Vec3 nn = Cross(this->P_.Get(t.v[1]) - a, this->P_.Get(t.v[2]) - a);
-    const double len = std::sqrt(Dot(nn, nn));
-    if (!(len > 0))
-    {
-      continue;
-    }
-    nn = (1.0 / len) * nn;
-    Quadric fq = zero;
-    AddPlane(fq, nn, -Dot(nn, a), 0.5 * len);
-    for (int c = 0; c < 3; ++c)
-    {
-      Quadric Q = this->Q_.Get(t.v[c]);
-      AddTo(Q, fq);
-      this->Q_.Set(t.v[c], Q);
-    }
-  }
-  // Per vertex: edge multiplicities from the ring (topology flags, boundary constraint planes)
-  // and the initial quadric.
+  // One gather per vertex over its ring (faces in increasing order, so the sums are those of a
+  // scatter in face order, whatever the threads): the area-weighted face plane quadrics, the edge
+  // multiplicities (topology flags, boundary constraint planes), the initial quadric, and the
+  // empty candidate. Every vertex writes only its own records: in core the vertex range is split
+  // among threads (not with initialQuadric, a caller's callback).
   const double bw = this->opt_.boundaryWeight;
-  std::vector<Tri> tris;
-  std::vector<std::uint32_t> next, prev;
-  for (std::uint64_t u = 0; u < nv; ++u)
-  {
-    this->Tick(this->nf_ + u, this->nf_ + nv);
+  auto vertex = [this, bw](std::uint32_t u, std::vector<Tri>& tris, std::vector<std::uint32_t>& next,
+                  std::vector<std::uint32_t>& prev) {
     State flags = kRecompute;
     const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
     tris.clear();
     next.clear();
     prev.clear();
+    Quadric Q = { { 0, 0, 0, 0, 0, 0, 0, 0, 0, 0 } };
     for (std::uint32_t k = b; k < e; ++k)
     {
       const Tri t = this->F_.Get(this->RF_.Get(k));
@@ -1341,6 +1311,14 @@ void Decimator::BuildQuadrics()
       tris.push_back(t);
       next.push_back(t.v[(c + 1) % 3]);
       prev.push_back(t.v[(c + 2) % 3]);
+      const Vec3 a = this->P_.Get(t.v[0]);
+      Vec3 nn = Cross(this->P_.Get(t.v[1]) - a, this->P_.Get(t.v[2]) - a);
+      const double len = std::sqrt(Dot(nn, nn));
+      if (len > 0)
+      {
+        nn = (1.0 / len) * nn;
+        AddPlane(Q, nn, -Dot(nn, a), 0.5 * len);
+      }
     }
     const std::size_t n = tris.size();
     auto count = [](const std::vector<std::uint32_t>& list, std::uint32_t x) {
@@ -1351,19 +1329,12 @@ void Decimator::BuildQuadrics()
       }
       return m;
     };
-    Quadric Q;
-    bool changed = false;
     int boundaryEdges = 0;
     auto boundaryPlane = [&](std::uint32_t a, std::size_t face) {
       ++boundaryEdges;
       if (!(bw > 0))
       {
         return;
-      }
-      if (!changed)
-      {
-        Q = this->Q_.Get(u);
-        changed = true;
       }
       const Tri& t = tris[face];
       const Vec3 p0 = this->P_.Get(t.v[0]);
@@ -1388,7 +1359,7 @@ void Decimator::BuildQuadrics()
       const std::size_t m = count(next, a) + count(prev, a);
       if (m > 2)
       {
-        flags |= kComplex; // that edge is never collapsed; its other edges are, with care
+        flags |= kComplex; // a non-manifold edge: its face count is checked before collapses
       }
       else if (m == 1)
       {
@@ -1441,19 +1412,76 @@ void Decimator::BuildQuadrics()
         T.q[8] = az + iq[8];
         T.q[9] = o.x * ax + o.y * ay + o.z * az + 2.0 * (iq[3] * o.x + iq[6] * o.y + iq[8] * o.z) +
           iq[9];
-        if (!changed)
-        {
-          Q = this->Q_.Get(u);
-          changed = true;
-        }
         AddTo(Q, T);
       }
     }
-    if (changed)
-    {
-      this->Q_.Set(u, Q);
-    }
+    this->Q_.Set(u, Q);
     this->S_.Set(u, flags);
+    this->C_.Set(u, this->none_);
+  };
+  const bool inCore = this->Q_.Ptr(0) && this->S_.Ptr(0) && this->C_.Ptr(0) && this->P_.Ptr(0) &&
+    this->F_.Ptr(0) && this->RO_.Ptr(0) && this->RF_.Ptr(0);
+  const int T = (inCore && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
+  std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
+  std::atomic<bool> stop{ false };
+  auto work = [&](int t) {
+    try
+    {
+      std::vector<Tri> tris;
+      std::vector<std::uint32_t> next, prev;
+      const std::uint64_t lo = nv * std::uint64_t(t) / std::uint64_t(T);
+      const std::uint64_t hi = nv * std::uint64_t(t + 1) / std::uint64_t(T);
+      for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
+      {
+        if (t == 0)
+        {
+          this->Tick(u, hi); // progress and abort: the calling thread only
+        }
+        vertex(std::uint32_t(u), tris, next, prev);
+      }
+    }
+    catch (...)
+    {
+      errors[std::size_t(t)] = std::current_exception();
+      stop = true;
+    }
+  };
+  std::vector<std::thread> workers;
+  int started = 1;
+  for (int t = 1; t < T; ++t)
+  {
+    try
+    {
+      workers.emplace_back(work, t);
+      ++started;
+    }
+    catch (const std::system_error&)
+    {
+      break;
+    }
+  }
+  work(0);
+  for (std::thread& w : workers)
+  {
+    w.join();
+  }
+  for (const std::exception_ptr& e : errors)
+  {
+    if (e)
+    {
+      std::rethrow_exception(e);
+    }
+  }
+  // The ranges of threads that could not be started (gathers are independent: any order).
+  if (started < T)
+  {
+    std::vector<Tri> tris;
+    std::vector<std::uint32_t> next, prev;
+    for (std::uint64_t u = nv * std::uint64_t(started) / std::uint64_t(T); u < nv; ++u)
+    {
+      this->Tick(u, nv);
+      vertex(std::uint32_t(u), tris, next, prev);
+    }
   }
 }
 
