@@ -960,20 +960,71 @@ std::size_t DML::ElementSize(BlockId id) const
 
 namespace
 {
-Block& CheckElement(DML::Impl& I, BlockId id, std::size_t elementSize, std::uint64_t index)
+[[noreturn]] __attribute__((noinline, cold)) void ThrowElement(
+  const Block* b, BlockId id, std::size_t elementSize, std::uint64_t index)
 {
-  Block& b = I.Get(id, Kind::Plain);
-  if (elementSize != b.elementSize)
+  if (!b)
+  {
+    throw std::invalid_argument("sipmss::storage: invalid block id " + std::to_string(id));
+  }
+  if (elementSize != b->elementSize)
   {
     throw std::invalid_argument("sipmss::storage: element size " + std::to_string(elementSize) +
-      " does not match block " + std::to_string(id) + " (" + std::to_string(b.elementSize) + ")");
+      " does not match block " + std::to_string(id) + " (" + std::to_string(b->elementSize) + ")");
   }
-  if (index >= b.count)
+  throw std::out_of_range("sipmss::storage: index " + std::to_string(index) +
+    " out of range of block " + std::to_string(id));
+}
+
+// The checks of every element access, inline (the throws are out of line).
+inline Block& CheckElement(DML::Impl& I, BlockId id, std::size_t elementSize, std::uint64_t index)
+{
+  if (static_cast<std::size_t>(id) >= I.blocks.size() ||
+    I.blocks[static_cast<std::size_t>(id)].kind != Kind::Plain)
   {
-    throw std::out_of_range("sipmss::storage: index " + std::to_string(index) +
-      " out of range of block " + std::to_string(id));
+    ThrowElement(nullptr, id, elementSize, index);
+  }
+  Block& b = I.blocks[static_cast<std::size_t>(id)];
+  if (elementSize != b.elementSize || index >= b.count)
+  {
+    ThrowElement(&b, id, elementSize, index);
   }
   return b;
+}
+
+// Element access out of core when the element is on the block's last used page: the same
+// bookkeeping as PageFor's one-entry cache (reference bit, dirty bit, hit), without its division
+// and calls. (LRU moves the frame on every access: PageFor does that.)
+inline unsigned char* LastPageElement(DML::Impl& I, Block& b, std::uint64_t index, bool write)
+{
+  if (b.lastFrame < 0 || index - b.lastFirst >= b.perPage || I.replacement == Replacement::Lru)
+  {
+    return nullptr;
+  }
+  detail::Frame& f = I.cache.frames[static_cast<std::size_t>(b.lastFrame)];
+  f.ref = true;
+  f.dirty = f.dirty || write;
+  ++I.stats.hits;
+  return f.data + (index - b.lastFirst) * b.elementSize;
+}
+
+// A copy of one element: fixed-size copies for the common sizes (no call).
+inline void CopyElement(void* dst, const void* src, std::size_t n)
+{
+  switch (n)
+  {
+    case 1: std::memcpy(dst, src, 1); break;
+    case 2: std::memcpy(dst, src, 2); break;
+    case 4: std::memcpy(dst, src, 4); break;
+    case 8: std::memcpy(dst, src, 8); break;
+    case 12: std::memcpy(dst, src, 12); break;
+    case 16: std::memcpy(dst, src, 16); break;
+    case 24: std::memcpy(dst, src, 24); break;
+    case 32: std::memcpy(dst, src, 32); break;
+    case 56: std::memcpy(dst, src, 56); break;
+    case 80: std::memcpy(dst, src, 80); break;
+    default: std::memcpy(dst, src, n); break;
+  }
 }
 
 Block& CheckRange(DML::Impl& I, BlockId id, std::uint64_t first, std::uint64_t count)
@@ -996,6 +1047,11 @@ void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* d
     std::memcpy(dst, b.mem + index * elementSize, elementSize);
     return;
   }
+  if (unsigned char* data = LastPageElement(I, b, index, false))
+  {
+    CopyElement(dst, data, elementSize);
+    return;
+  }
   I.EnsureCache();
   const std::uint64_t page = index / b.perPage;
   const unsigned char* data = I.PageFor(id, b, page, false, true);
@@ -1009,6 +1065,11 @@ void DML::Write(BlockId id, std::size_t elementSize, std::uint64_t index, const 
   if (b.mem)
   {
     std::memcpy(b.mem + index * elementSize, src, elementSize);
+    return;
+  }
+  if (unsigned char* data = LastPageElement(I, b, index, true))
+  {
+    CopyElement(data, src, elementSize);
     return;
   }
   I.EnsureCache();

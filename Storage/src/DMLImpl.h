@@ -163,6 +163,7 @@ struct Block
 
   // Page-cache state of this block.
   std::uint64_t lastPage = 0;  // one-entry lookup cache for sequential access
+  std::uint64_t lastFirst = 0; // lastPage * perPage: its first element
   std::int32_t lastFrame = -1; // -1: none
   std::int32_t hand = -1;      // clock hand / LRU end of this block's frame ring; -1: no frames
   std::uint32_t resident = 0;  // frames held

@@ -278,6 +278,7 @@ unsigned char* DML::Impl::PageFor(BlockId id, Block& b, std::uint64_t page, bool
     }
     b.lastFrame = fi;
     b.lastPage = page;
+    b.lastFirst = page * b.perPage;
   }
   Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
   f.ref = true;
