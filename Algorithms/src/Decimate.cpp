@@ -60,6 +60,7 @@
 #include <atomic>
 #include <condition_variable>
 #include <exception>
+#include <functional>
 #include <mutex>
 #include <string>
 #include <system_error>
@@ -440,6 +441,47 @@ private:
   std::uint64_t gen_ = 0;
 };
 
+// Runs work(0) on the calling thread and work(1..T-1) on new ones, and joins them. A thread that
+// cannot be started ends the list: onShort(started) runs before work(0), so that the caller can
+// release those that did start. Returns how many ran.
+int RunOnThreads(int T, const std::function<void(int)>& work, const std::function<void(int)>& onShort)
+{
+  std::vector<std::thread> workers;
+  int started = 1;
+  for (; started < T; ++started)
+  {
+    try
+    {
+      workers.emplace_back(work, started);
+    }
+    catch (const std::system_error&)
+    {
+      if (onShort)
+      {
+        onShort(started);
+      }
+      break;
+    }
+  }
+  work(0);
+  for (std::thread& w : workers)
+  {
+    w.join();
+  }
+  return started;
+}
+
+void RethrowFirst(const std::vector<std::exception_ptr>& errors)
+{
+  for (const std::exception_ptr& e : errors)
+  {
+    if (e)
+    {
+      std::rethrow_exception(e);
+    }
+  }
+}
+
 class Decimator;
 
 // The sink that streams the source into the DML.
@@ -518,6 +560,11 @@ private:
 
   void BindViews();
   void LoadRing(std::uint32_t x, Ring& r, bool positions);
+  bool AllInCore() const
+  {
+    return this->S_.Ptr(0) && this->C_.Ptr(0) && this->Q_.Ptr(0) && this->P_.Ptr(0) &&
+      this->F_.Ptr(0) && this->RO_.Ptr(0) && this->RF_.Ptr(0);
+  }
   void Sweep(std::uint64_t nv);
   void Evaluate(std::uint32_t u, Scratch& s);
   void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
@@ -1057,7 +1104,7 @@ void Decimator::BuildRings()
   // opposite orientations cancel (a zero-volume double-sided pair: keeping one of them would
   // leave three faces on each of its edges). A group is settled by its first live member; the
   // net orientation decides what survives: nothing, or its first member of that orientation.
-  std::vector<std::uint32_t> ids;
+  std::vector<std::uint32_t> ids, ring;
   auto sameSet = [](const Tri& a, const std::uint32_t s[3]) {
     std::uint32_t r[3] = { a.v[0], a.v[1], a.v[2] };
     SmallSort(r, 3);
@@ -1120,7 +1167,6 @@ void Decimator::BuildRings()
     if (net == 0)
     {
       int single = 0, pairs = 0, agree = 0;
-      std::vector<std::uint32_t> ring;
       for (int k = 0; k < 3; ++k)
       {
         const std::uint32_t a = t.v[k], c = t.v[(k + 1) % 3];
@@ -1419,9 +1465,7 @@ void Decimator::BuildQuadrics()
     this->S_.Set(u, flags);
     this->C_.Set(u, this->none_);
   };
-  const bool inCore = this->Q_.Ptr(0) && this->S_.Ptr(0) && this->C_.Ptr(0) && this->P_.Ptr(0) &&
-    this->F_.Ptr(0) && this->RO_.Ptr(0) && this->RF_.Ptr(0);
-  const int T = (inCore && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
+  const int T = (this->AllInCore() && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
   std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
   std::atomic<bool> stop{ false };
   auto work = [&](int t) {
@@ -1446,32 +1490,8 @@ void Decimator::BuildQuadrics()
       stop = true;
     }
   };
-  std::vector<std::thread> workers;
-  int started = 1;
-  for (int t = 1; t < T; ++t)
-  {
-    try
-    {
-      workers.emplace_back(work, t);
-      ++started;
-    }
-    catch (const std::system_error&)
-    {
-      break;
-    }
-  }
-  work(0);
-  for (std::thread& w : workers)
-  {
-    w.join();
-  }
-  for (const std::exception_ptr& e : errors)
-  {
-    if (e)
-    {
-      std::rethrow_exception(e);
-    }
-  }
+  const int started = RunOnThreads(T, work, nullptr);
+  RethrowFirst(errors);
   // The ranges of threads that could not be started (gathers are independent: any order).
   if (started < T)
   {
@@ -1732,11 +1752,7 @@ void Decimator::Sweep(std::uint64_t nv)
 {
   constexpr std::uint64_t kChunk = 16384;
   constexpr std::uint64_t kParallelMin = 8192;
-  const bool inCore = this->S_.Ptr(0) && this->C_.Ptr(0) && this->Q_.Ptr(0) && this->P_.Ptr(0) &&
-    this->F_.Ptr(0) && this->RO_.Ptr(0) && this->RF_.Ptr(0);
-  const int T = (inCore && nv >= kParallelMin) ? this->threads_ : 1;
-  if (T <= 1)
-  {
+  auto sequential = [this, nv]() {
     Scratch& s = this->scratch_[0];
     s.lo = 0;
     s.hi = kNone;
@@ -1745,6 +1761,11 @@ void Decimator::Sweep(std::uint64_t nv)
       this->Tick(u, nv);
       this->Evaluate(std::uint32_t(u), s);
     }
+  };
+  const int T = (this->AllInCore() && nv >= kParallelMin) ? this->threads_ : 1;
+  if (T <= 1)
+  {
+    sequential();
     return;
   }
   if (this->scratch_.size() < std::size_t(T))
@@ -1819,57 +1840,19 @@ void Decimator::Sweep(std::uint64_t nv)
       }
     }
   };
-  std::vector<std::thread> workers;
-  bool started = true;
-  for (int t = 1; t < T; ++t)
+  // A thread that cannot be started: the others stop after their first chunk, and this thread
+  // sweeps alone (evaluating a vertex twice gives the same candidates: offers are idempotent).
+  const int started = RunOnThreads(T, work, [&](int n) {
+    stop = true;
+    for (int k = n; k < T; ++k)
+    {
+      barrier.Drop();
+    }
+  });
+  RethrowFirst(errors);
+  if (started < T)
   {
-    try
-    {
-      workers.emplace_back(work, t);
-    }
-    catch (const std::system_error&)
-    {
-      // No thread: stop the others after their first chunk and sweep on this thread alone
-      // (evaluating a vertex twice gives the same candidates: offers are idempotent).
-      started = false;
-      stop = true;
-      for (int k = t; k < T; ++k)
-      {
-        barrier.Drop();
-      }
-      break;
-    }
-  }
-  work(0);
-  for (std::thread& w : workers)
-  {
-    w.join();
-  }
-  if (!started)
-  {
-    for (const std::exception_ptr& e : errors)
-    {
-      if (e)
-      {
-        std::rethrow_exception(e);
-      }
-    }
-    Scratch& s = this->scratch_[0];
-    s.lo = 0;
-    s.hi = kNone;
-    for (std::uint64_t u = 0; u < nv; ++u)
-    {
-      this->Tick(u, nv);
-      this->Evaluate(std::uint32_t(u), s);
-    }
-    return;
-  }
-  for (const std::exception_ptr& e : errors)
-  {
-    if (e)
-    {
-      std::rethrow_exception(e);
-    }
+    sequential();
   }
 }
 
