@@ -78,6 +78,13 @@ using storage::DML;
 constexpr std::uint32_t kNone = 0xffffffffu;
 constexpr int kCostBins = 1 << 15;
 constexpr int kGroups = 4;
+// Step 3 in chunks (StepChunks): by default at most kStepChunks chunks of at least
+// kStepChunkMinSize vertices (measured on Dragon-size: 8192 defers 4x more collapses to the
+// sequential part than 32768), for passes over at least two chunks; the last kStepTail faces of
+// a pass's goal are collapsed one at a time.
+constexpr std::uint64_t kStepChunks = 64;
+constexpr std::uint64_t kStepChunkMinSize = 32768;
+constexpr std::uint64_t kStepTail = 4096;
 
 // Per-vertex state bits.
 using State = std::uint16_t;
@@ -396,6 +403,7 @@ struct Scratch
   std::vector<EdgeCand> edges;
   std::vector<std::uint32_t> ids, next = std::vector<std::uint32_t>(64),
                                   prev = std::vector<std::uint32_t>(64);
+  std::vector<std::uint8_t> abuf, abuf2; // point data of a collapse
   std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
   std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
 };
@@ -574,11 +582,34 @@ private:
   void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner,
     Scratch& s);
   void Apply(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
-  bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s);
+  bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded = false);
   bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
   Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const;
-  void Collapse(std::uint32_t u, const Cand& c);
-  void InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t);
+  std::uint64_t Collapse(std::uint32_t u, const Cand& c, Scratch& s);
+  void InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s);
+  enum class Try
+  {
+    Skip,
+    Done,
+    Illegal,
+    Defer
+  };
+  Try TryCollapse(std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi,
+    std::uint64_t& removed);
+  struct StepRun
+  {
+    std::uint64_t removed = 0, done = 0, illegal = 0;
+  };
+  std::uint64_t StepChunkSize(std::uint64_t nv) const
+  {
+    return this->opt_.stepChunkSize ? this->opt_.stepChunkSize
+                                    : std::max(kStepChunkMinSize, (nv + kStepChunks - 1) / kStepChunks);
+  }
+  std::uint64_t Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo, std::uint32_t hi,
+    std::uint64_t budget, Scratch& s, StepRun& run, std::vector<std::uint32_t>* deferred,
+    bool tick);
+  void StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
+    std::uint64_t goal, StepRun& total);
   void EnsureVertexCapacity(std::uint64_t n);
   void EnsureFaceCapacity(std::uint64_t n);
   void Tick(std::uint64_t i, std::uint64_t n)
@@ -641,7 +672,7 @@ private:
   std::vector<std::uint32_t> hist_;
   std::vector<std::uint64_t> starts_;
   std::vector<Vec3> vbuf_;
-  std::vector<std::uint8_t> abuf_, abuf2_;
+  std::vector<std::uint8_t> abuf_;
   std::vector<Tri> tbuf_;
 };
 
@@ -1608,13 +1639,16 @@ bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
 }
 
 // Is collapsing u (ring in ru_, with positions) and nb.v to p legal? Loads rv_ (positions).
-bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s)
+bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded)
 {
   const std::uint32_t v = nb.v;
   const std::uint32_t m = nb.count;
   Ring& ru = s.ru;
   Ring& rv = s.rv;
-  this->LoadRing(v, rv, true);
+  if (!rvLoaded)
+  {
+    this->LoadRing(v, rv, true);
+  }
   // The collapse must leave faces (no vanishing component).
   if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
   {
@@ -2091,25 +2125,25 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
   }
 }
 
-void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t)
+void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s)
 {
   const std::size_t rec = this->recSize_;
   if (rec == 0 || t <= 0.0)
   {
     return;
   }
-  this->abuf_.resize(rec);
-  this->abuf2_.resize(rec);
+  s.abuf.resize(rec);
+  s.abuf2.resize(rec);
   if (t >= 1.0)
   {
-    this->A_.GetRange(std::uint64_t(v) * rec, rec, this->abuf_.data());
-    this->A_.SetRange(std::uint64_t(u) * rec, rec, this->abuf_.data());
+    this->A_.GetRange(std::uint64_t(v) * rec, rec, s.abuf.data());
+    this->A_.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
     return;
   }
-  this->A_.GetRange(std::uint64_t(u) * rec, rec, this->abuf_.data());
-  this->A_.GetRange(std::uint64_t(v) * rec, rec, this->abuf2_.data());
-  float* a = reinterpret_cast<float*>(this->abuf_.data());
-  const float* b = reinterpret_cast<const float*>(this->abuf2_.data());
+  this->A_.GetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+  this->A_.GetRange(std::uint64_t(v) * rec, rec, s.abuf2.data());
+  float* a = reinterpret_cast<float*>(s.abuf.data());
+  const float* b = reinterpret_cast<const float*>(s.abuf2.data());
   for (std::size_t i = 0; i < this->nFloats_; ++i)
   {
     a[i] = float(double(a[i]) + t * (double(b[i]) - double(a[i])));
@@ -2127,23 +2161,24 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
   }
   if (this->layout_.colors)
   {
-    std::uint8_t* ca = this->abuf_.data() + this->nFloats_ * sizeof(float);
-    const std::uint8_t* cb = this->abuf2_.data() + this->nFloats_ * sizeof(float);
+    std::uint8_t* ca = s.abuf.data() + this->nFloats_ * sizeof(float);
+    const std::uint8_t* cb = s.abuf2.data() + this->nFloats_ * sizeof(float);
     for (int i = 0; i < 4; ++i)
     {
       double x = double(ca[i]) + t * (double(cb[i]) - double(ca[i]));
       ca[i] = std::uint8_t(std::min(255.0, std::max(0.0, std::floor(x + 0.5))));
     }
   }
-  this->A_.SetRange(std::uint64_t(u) * rec, rec, this->abuf_.data());
+  this->A_.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
 }
 
-// Collapses u and c.partner (rings loaded in ru_ and rv_ by Legal) into u at c.p.
-void Decimator::Collapse(std::uint32_t u, const Cand& c)
+// Collapses u and c.partner (rings loaded in s.ru and s.rv) into u at c.p; returns the number of
+// faces removed.
+std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
 {
   const std::uint32_t v = c.partner;
-  const Ring& ru = this->scratch_[0].ru;
-  const Ring& rv = this->scratch_[0].rv;
+  const Ring& ru = s.ru;
+  const Ring& rv = s.rv;
   const State su = this->S_.Get(u), sv = this->S_.Get(v);
   std::uint64_t removed = 0;
   for (const RingFace& f : ru.faces)
@@ -2175,10 +2210,10 @@ void Decimator::Collapse(std::uint32_t u, const Cand& c)
   Quadric Q = this->Q_.Get(u);
   AddTo(Q, this->Q_.Get(v));
   this->Q_.Set(u, Q);
-  this->InterpolateAttributes(u, v, double(c.t));
+  this->InterpolateAttributes(u, v, double(c.t), s);
   this->S_.Set(v, State(kRemoved | kMarked));
   this->S_.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
-  this->liveFaces_ -= removed;
+  return removed;
 }
 
 inline std::uint32_t CostBin(double cost)
@@ -2187,6 +2222,274 @@ inline std::uint32_t CostBin(double cost)
   std::uint32_t bits;
   std::memcpy(&bits, &f, 4);
   return bits >> 16; // non-negative floats order like their bits; 15 bits: ~0.8% wide bins
+}
+
+// One candidate of step 3: collapses u with its candidate's partner if both are free and the
+// collapse is legal. With a vertex range [lo, hi) (a chunk), the collapse must stay inside it:
+// u, the partner and every vertex of their rings in the range, else it is deferred. Collapses
+// that stay inside disjoint ranges touch disjoint data (a face they change or a position they
+// move has all its vertices in the range), so chunks can run at the same time.
+Decimator::Try Decimator::TryCollapse(
+  std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi, std::uint64_t& removed)
+{
+  const State su = this->S_.Get(u);
+  if (su & kBusy)
+  {
+    return Try::Skip;
+  }
+  const Cand c = this->C_.Get(u);
+  const std::uint32_t v = c.partner;
+  if (v < lo || v >= hi)
+  {
+    return Try::Defer;
+  }
+  if (this->S_.Get(v) & kBusy)
+  {
+    return Try::Skip;
+  }
+  auto inside = [lo, hi](const Ring& r) {
+    for (const Nb& n : r.nbs)
+    {
+      if (n.v < lo || n.v >= hi)
+      {
+        return false;
+      }
+    }
+    return true;
+  };
+  const bool chunked = lo != 0 || hi != kNone;
+  this->LoadRing(u, s.ru, true);
+  if (chunked && !inside(s.ru))
+  {
+    return Try::Defer;
+  }
+  const Nb* nb = s.ru.Find(v);
+  if (nb)
+  {
+    this->LoadRing(v, s.rv, true);
+    if (chunked && !inside(s.rv))
+    {
+      return Try::Defer;
+    }
+  }
+  if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }, s, true))
+  {
+    this->S_.Set(u, State(su | kNeedsLegal));
+    return Try::Illegal;
+  }
+  removed += this->Collapse(u, c, s);
+  return Try::Done;
+}
+
+// Runs TryCollapse on the candidates at positions [first, last) of the order until `budget`
+// faces are removed; deferred ones are appended to *deferred. Returns where it stopped.
+std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo,
+  std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run,
+  std::vector<std::uint32_t>* deferred, bool tick)
+{
+  // In core: prefetch the data of the candidates ahead (two stages: their state, candidate and
+  // ring offsets; then, for those still free, the partner's and the ring's first lines).
+  const std::uint32_t* Op = this->O_.Ptr(0);
+  const State* Sp = this->S_.Ptr(0);
+  const Cand* Cp = this->C_.Ptr(0);
+  const std::uint32_t* ROp = this->RO_.Ptr(0);
+  const std::uint32_t* RFp = this->RF_.Ptr(0);
+  const Vec3* Pp = this->P_.Ptr(0);
+  const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp;
+  constexpr std::uint64_t kAhead = 12;
+  std::uint64_t i = first;
+  for (; i < last && run.removed < budget; ++i)
+  {
+    if (tick)
+    {
+      this->Tick(i - first, last - first);
+    }
+    if (prefetch)
+    {
+      if (i + 2 * kAhead < last)
+      {
+        const std::uint32_t w = Op[i + 2 * kAhead];
+        Prefetch(Sp + w);
+        Prefetch(Cp + w);
+        Prefetch(ROp + w);
+      }
+      if (i + kAhead < last)
+      {
+        const std::uint32_t w = Op[i + kAhead];
+        const std::uint32_t x = Cp[w].partner;
+        if (!(Sp[w] & kBusy) && x >= lo && x < hi)
+        {
+          Prefetch(Sp + x);
+          Prefetch(ROp + x);
+          Prefetch(RFp + ROp[w]);
+          Prefetch(Pp + w);
+          Prefetch(Pp + x);
+        }
+      }
+    }
+    const std::uint32_t u = this->O_.Get(i);
+    switch (this->TryCollapse(u, s, lo, hi, run.removed))
+    {
+      case Try::Done:
+        ++run.done;
+        break;
+      case Try::Illegal:
+        ++run.illegal;
+        break;
+      case Try::Defer:
+        if (deferred)
+        {
+          deferred->push_back(u);
+        }
+        break;
+      case Try::Skip:
+        break;
+    }
+  }
+  return i;
+}
+
+// Step 3 for the candidates at positions [groupBegin, groupEnd) of the order, which are in
+// vertex order. The vertices are cut into fixed chunks (their size depends on nv only). In
+// rounds: every chunk runs its candidates up to a quota (a share of the faces still to remove
+// this pass, by its candidates left), keeping only collapses inside the chunk (the chunks in
+// parallel when in core, else one after the other: the same result); then the deferred ones run
+// in order, one at a time, up to the pass's goal. Near the goal, the rest runs one at a time.
+// Neither the thread count nor the storage mode changes the result.
+void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
+  std::uint64_t goal, StepRun& total)
+{
+  const std::uint64_t size = this->StepChunkSize(nv);
+  const std::size_t n = std::size_t((nv + size - 1) / size);
+  // The chunk boundaries in the group (it is in vertex order).
+  std::vector<std::uint64_t> cursor(n + 1);
+  for (std::size_t c = 0; c <= n; ++c)
+  {
+    const std::uint64_t vb = std::min<std::uint64_t>(nv, c * size);
+    std::uint64_t l = groupBegin, h = groupEnd;
+    while (l < h)
+    {
+      const std::uint64_t m = l + (h - l) / 2;
+      if (this->O_.Get(m) < vb)
+      {
+        l = m + 1;
+      }
+      else
+      {
+        h = m;
+      }
+    }
+    cursor[c] = l;
+  }
+  std::vector<std::uint64_t> end(cursor.begin() + 1, cursor.end());
+  cursor.pop_back();
+  const int T = (this->AllInCore() && (!this->recSize_ || this->A_.Ptr(0))) ? this->threads_ : 1;
+  if (this->scratch_.size() < std::size_t(T))
+  {
+    this->scratch_.resize(std::size_t(T));
+  }
+  std::vector<std::vector<std::uint32_t>> deferred(n);
+  std::vector<StepRun> runs(n);
+  std::vector<std::uint64_t> quota(n);
+  while (this->liveFaces_ > goal)
+  {
+    std::uint64_t left = 0;
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      left += end[c] - cursor[c];
+    }
+    const std::uint64_t R = this->liveFaces_ - goal;
+    if (left == 0)
+    {
+      return;
+    }
+    if (R < kStepTail)
+    {
+      // The rest one at a time, in order.
+      StepRun run;
+      for (std::size_t c = 0; c < n && run.removed < R; ++c)
+      {
+        cursor[c] = this->Step(cursor[c], end[c], 0, kNone, R, this->scratch_[0], run, nullptr, false);
+      }
+      this->liveFaces_ -= run.removed;
+      total.done += run.done;
+      total.illegal += run.illegal;
+      return;
+    }
+    // A: the chunks, each up to its quota (9/10 of R shared by candidates left).
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      quota[c] = (end[c] - cursor[c]) * (R - R / 10) / left;
+      runs[c] = StepRun();
+      deferred[c].clear();
+    }
+    std::atomic<std::size_t> next{ 0 };
+    std::atomic<bool> stop{ false };
+    std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
+    auto work = [&](int t) {
+      Scratch& s = this->scratch_[std::size_t(t)];
+      try
+      {
+        for (std::size_t c; !stop.load(std::memory_order_relaxed) && (c = next++) < n;)
+        {
+          if (t == 0)
+          {
+            this->Tick(c, n); // progress and abort: the calling thread only
+          }
+          const std::uint32_t lo = std::uint32_t(c * size);
+          const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], &deferred[c], false);
+        }
+      }
+      catch (...)
+      {
+        errors[std::size_t(t)] = std::current_exception();
+        stop = true;
+      }
+    };
+    // Chunks are taken from a shared counter: if a thread cannot start, the others take its share.
+    if (T > 1)
+    {
+      RunOnThreads(T, work, nullptr);
+    }
+    else
+    {
+      work(0);
+    }
+    RethrowFirst(errors);
+    // B: the deferred ones, in order.
+    StepRun b;
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      this->liveFaces_ -= runs[c].removed;
+      total.done += runs[c].done;
+      total.illegal += runs[c].illegal;
+    }
+    for (std::size_t c = 0; c < n && this->liveFaces_ > goal + b.removed; ++c)
+    {
+      for (std::uint32_t u : deferred[c])
+      {
+        if (this->liveFaces_ <= goal + b.removed)
+        {
+          break;
+        }
+        switch (this->TryCollapse(u, this->scratch_[0], 0, kNone, b.removed))
+        {
+          case Try::Done:
+            ++b.done;
+            break;
+          case Try::Illegal:
+            ++b.illegal;
+            break;
+          default:
+            break;
+        }
+      }
+    }
+    this->liveFaces_ -= std::min(b.removed, this->liveFaces_);
+    total.done += b.done;
+    total.illegal += b.illegal;
+  }
 }
 
 bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan)
@@ -2273,69 +2576,24 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   // 3. Collapse in cost order, endpoints of earlier collapses excluded. Legality is checked
   // here, on the current faces and positions (the costs of pairs with no busy endpoint are as in
   // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
-  // in the next passes.
+  // in the next passes. A pass that may end on a level goes strictly in order, one collapse at
+  // a time; the others go group by group through StepChunks (in parallel when in core).
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.7 * progressSpan, progressBase + 0.85 * progressSpan);
-  std::uint64_t done = 0, illegal = 0;
-  // In core: prefetch the data of the candidates ahead (two stages: their state, candidate and
-  // ring offsets; then, for those still unmarked, the partner's and the ring's first lines).
-  const std::uint32_t* Op = this->O_.Ptr(0);
-  const State* Sp = this->S_.Ptr(0);
-  const Cand* Cp = this->C_.Ptr(0);
-  const std::uint32_t* ROp = this->RO_.Ptr(0);
-  const std::uint32_t* RFp = this->RF_.Ptr(0);
-  const Vec3* Pp = this->P_.Ptr(0);
-  const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp;
-  constexpr std::uint64_t kAhead = 12;
-  for (std::uint64_t i = 0; i < taken && this->liveFaces_ > goal; ++i)
+  StepRun run;
+  if (groups && nv >= 2 * this->StepChunkSize(nv))
   {
-    this->Tick(i, taken);
-    if (prefetch)
+    for (std::size_t g = 0; g < keys && this->liveFaces_ > goal; ++g)
     {
-      if (i + 2 * kAhead < taken)
-      {
-        const std::uint32_t w = Op[i + 2 * kAhead];
-        Prefetch(Sp + w);
-        Prefetch(Cp + w);
-        Prefetch(ROp + w);
-      }
-      if (i + kAhead < taken)
-      {
-        const std::uint32_t w = Op[i + kAhead];
-        if (!(Sp[w] & kBusy))
-        {
-          const std::uint32_t x = Cp[w].partner;
-          Prefetch(Sp + x);
-          Prefetch(ROp + x);
-          Prefetch(RFp + ROp[w]);
-          Prefetch(Pp + w);
-          Prefetch(Pp + x);
-        }
-      }
+      this->StepChunks(g ? start[g - 1] : 0, start[g], nv, goal, run);
     }
-    const std::uint32_t u = this->O_.Get(i);
-    const State su = this->S_.Get(u);
-    if (su & kBusy)
-    {
-      continue;
-    }
-    const Cand c = this->C_.Get(u);
-    if (this->S_.Get(c.partner) & kBusy)
-    {
-      continue;
-    }
-    Scratch& s0 = this->scratch_[0];
-    this->LoadRing(u, s0.ru, true);
-    const Nb* nb = s0.ru.Find(c.partner);
-    if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }, s0))
-    {
-      this->S_.Set(u, State(su | kNeedsLegal));
-      ++illegal;
-      continue;
-    }
-    this->Collapse(u, c);
-    ++done;
   }
+  else
+  {
+    this->Step(0, taken, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], run, nullptr, true);
+    this->liveFaces_ -= run.removed;
+  }
+  const std::uint64_t done = run.done, illegal = run.illegal;
   // 4. Compact into fresh blocks.
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.85 * progressSpan, progressBase + progressSpan);

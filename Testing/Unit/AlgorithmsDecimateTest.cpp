@@ -13,6 +13,7 @@
 #include <cstring>
 #include <filesystem>
 #include <map>
+#include <numeric>
 #include <set>
 #include <string>
 #include <vector>
@@ -622,6 +623,87 @@ TEST(AlgorithmsDecimate, SweepThreadsDoNotChangeTheResult)
     EXPECT_EQ(0, std::memcmp(a.out.scalars.data(), b.out.scalars.data(), a.out.scalars.size() * 4))
       << threads;
   }
+}
+
+// The vertices renumbered along z with their point data (the scanner order the step's chunks
+// are made for: neighbours have near indices).
+Mesh SortedAlongZ(const Mesh& m)
+{
+  const std::size_t n = m.Vertices();
+  std::vector<std::uint32_t> order(n), rank(n);
+  std::iota(order.begin(), order.end(), 0u);
+  std::stable_sort(order.begin(), order.end(),
+    [&m](std::uint32_t a, std::uint32_t b) { return m.xyz[3 * a + 2] < m.xyz[3 * b + 2]; });
+  Mesh r = m;
+  const std::size_t ns = m.scalarNames.size();
+  for (std::size_t k = 0; k < n; ++k)
+  {
+    const std::uint32_t i = order[k];
+    rank[i] = std::uint32_t(k);
+    std::copy_n(&m.xyz[3 * i], 3, &r.xyz[3 * k]);
+    if (!m.normals.empty())
+    {
+      std::copy_n(&m.normals[3 * i], 3, &r.normals[3 * k]);
+    }
+    if (!m.rgba.empty())
+    {
+      std::copy_n(&m.rgba[4 * i], 4, &r.rgba[4 * k]);
+    }
+    if (ns)
+    {
+      std::copy_n(&m.scalars[ns * i], ns, &r.scalars[ns * k]);
+    }
+  }
+  for (std::uint32_t& v : r.tris)
+  {
+    v = rank[v];
+  }
+  return r;
+}
+
+TEST(AlgorithmsDecimate, StepChunksDoNotDependOnThreadsOrMode)
+{
+  // 10,242 vertices along z in chunks of 512: the collapse step of the first passes runs chunk
+  // by chunk (in parallel in core), collapses that leave a chunk one at a time afterwards.
+  // Threads and the storage mode must not change the result; the chunks do (another order).
+  Mesh s = SortedAlongZ(ColoredSphere(5));
+  alg::DecimateOptions o;
+  o.targetTriangles = 1500;
+  o.stepChunkSize = 512;
+  o.threads = 1;
+  Outcome a = Simplify(MemorySource(s), o);
+  ExpectValid(a.out);
+  EXPECT_EQ(a.out.Triangles(), 1500u);
+  for (auto& [e, n] : EdgeUse(a.out))
+  {
+    EXPECT_EQ(n, 2); // still closed and manifold
+  }
+  auto same = [&a](const Outcome& b, const char* what) {
+    ASSERT_EQ(a.out.Vertices(), b.out.Vertices()) << what;
+    EXPECT_TRUE(a.out.tris == b.out.tris) << what;
+    EXPECT_EQ(0, std::memcmp(a.out.xyz.data(), b.out.xyz.data(), a.out.xyz.size() * sizeof(float)))
+      << what;
+    EXPECT_EQ(0, std::memcmp(a.out.scalars.data(), b.out.scalars.data(), a.out.scalars.size() * 4))
+      << what;
+    EXPECT_TRUE(a.out.rgba == b.out.rgba) << what;
+  };
+  for (int threads : { 2, 5 })
+  {
+    o.threads = threads;
+    same(Simplify(MemorySource(s), o), threads == 2 ? "2 threads" : "5 threads");
+  }
+  o.threads = 2;
+  o.storage.policy = st::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 64 * 1024;
+  Outcome c = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(c.stats.storage.usedOutOfCore);
+  same(c, "out of core");
+  // One chunk (the step one collapse at a time): a different order, a different result.
+  o.storage = {};
+  o.stepChunkSize = s.Vertices();
+  Outcome d = Simplify(MemorySource(s), o);
+  EXPECT_EQ(d.out.Triangles(), 1500u);
+  EXPECT_FALSE(a.out.tris == d.out.tris && a.out.xyz == d.out.xyz);
 }
 
 TEST(AlgorithmsDecimate, UnannouncedAndInterleavedInputGiveTheSameResult)

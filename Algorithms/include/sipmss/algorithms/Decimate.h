@@ -40,9 +40,13 @@ struct DecimateOptions
   // cheapest collapses; only their endpoints are exclusive), and never goes below the next
   // level's target.
   double passFraction = 0.25;
-  // Threads of the candidate sweep when in core (<= 0: the hardware's). The result does not
-  // depend on it.
+  // Threads of the candidate sweep, the collapse step and the quadrics when in core (<= 0: the
+  // hardware's). The result does not depend on it.
   int threads = 0;
+  // Vertices per chunk of the collapse step (collapses inside a chunk run in parallel with the
+  // other chunks'; the others one at a time). 0: automatic (at least 32768, at most 64 chunks).
+  // The result depends on it, not on the threads or the storage mode.
+  std::uint64_t stepChunkSize = 0;
   // A collapse is rejected when a surviving face's normal turns so that the cosine between its
   // new and old normal falls below this (0.2: about 78 degrees; flips are always rejected).
   double minNormalCosine = 0.2;
