@@ -190,17 +190,20 @@ inline double Trace(const Quadric& Q)
 // cost2/partner2: the cheapest of the other edges (the second best), so that a vertex whose best
 // partner collapsed can take it without evaluating all its edges again; cost2 is NaN when not
 // known exactly. t < 0: the placement of the best edge is still to be computed (a promotion).
+// Single precision (32 bytes, two to a cache line): the array is the largest per-vertex one
+// after the quadrics and every pass reads and writes it at random. Costs are rounded to float
+// before any comparison (Apply), so the order of offers still cannot change the outcome; p
+// carries the float precision of the output's coordinates.
 struct Cand
 {
-  double cost;
-  double p[3];
+  float cost;
+  float p[3];
   std::uint32_t partner;
   float t;
-  double cost2;
+  float cost2;
   std::uint32_t partner2;
-  std::uint32_t pad;
 };
-static_assert(sizeof(Cand) == 56, "Cand layout");
+static_assert(sizeof(Cand) == 32, "Cand layout");
 inline bool Before(double a, std::uint32_t pa, double b, std::uint32_t pb)
 {
   return a < b || (a == b && pa < pb); // false when b is NaN (unknown)
@@ -667,8 +670,8 @@ private:
   // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
   std::vector<Scratch> scratch_ = std::vector<Scratch>(1);
   std::vector<std::uint32_t> partStart_; // first vertex of each sweep thread's range
-  const Cand none_ = { std::numeric_limits<double>::infinity(), { 0, 0, 0 }, kNone, 0.0f,
-    std::numeric_limits<double>::infinity(), kNone, 0 };
+  const Cand none_ = { std::numeric_limits<float>::infinity(), { 0, 0, 0 }, kNone, 0.0f,
+    std::numeric_limits<float>::infinity(), kNone };
   std::vector<std::uint32_t> hist_;
   std::vector<std::uint64_t> starts_;
   std::vector<Vec3> vbuf_;
@@ -1745,29 +1748,29 @@ void Decimator::Offer(
 
 void Decimator::Apply(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
 {
+  const float cost = float(pl.cost); // compared as stored
   if (const Cand* cp = this->C_.Ptr(x))
   {
-    if (!Before(pl.cost, partner, cp->cost, cp->partner) &&
-      !Before(pl.cost, partner, cp->cost2, cp->partner2))
+    if (!Before(cost, partner, cp->cost, cp->partner) && !Before(cost, partner, cp->cost2, cp->partner2))
     {
       return;
     }
   }
   Cand c = this->C_.Get(x);
-  if (Before(pl.cost, partner, c.cost, c.partner))
+  if (Before(cost, partner, c.cost, c.partner))
   {
     c.cost2 = c.cost;
     c.partner2 = c.partner;
-    c.cost = pl.cost;
-    c.p[0] = pl.p.x;
-    c.p[1] = pl.p.y;
-    c.p[2] = pl.p.z;
+    c.cost = cost;
+    c.p[0] = float(pl.p.x);
+    c.p[1] = float(pl.p.y);
+    c.p[2] = float(pl.p.z);
     c.partner = partner;
     c.t = float(fromPartner ? 1.0 - pl.t : pl.t);
   }
-  else if (partner != c.partner && Before(pl.cost, partner, c.cost2, c.partner2))
+  else if (partner != c.partner && Before(cost, partner, c.cost2, c.partner2))
   {
-    c.cost2 = pl.cost;
+    c.cost2 = cost;
     c.partner2 = partner;
   }
   else
@@ -1921,9 +1924,9 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
         const Placement pl = this->Place(Q, this->P_.Get(u), this->P_.Get(v), su, this->S_.Get(v));
         // c.cost stays: the same edge's cost as computed before (equal up to rounding), which
         // keeps the outcome independent of whether an offer to u came before or after this.
-        c.p[0] = pl.p.x;
-        c.p[1] = pl.p.y;
-        c.p[2] = pl.p.z;
+        c.p[0] = float(pl.p.x);
+        c.p[1] = float(pl.p.y);
+        c.p[2] = float(pl.p.z);
         c.t = float(pl.t);
         this->C_.Set(u, c);
       }
@@ -2110,15 +2113,14 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
     if (this->Legal(u, ru.nbs[ec.nbIndex], ec.pl.p, s))
     {
       Cand c;
-      c.cost = ec.cost;
-      c.p[0] = ec.pl.p.x;
-      c.p[1] = ec.pl.p.y;
-      c.p[2] = ec.pl.p.z;
+      c.cost = float(ec.cost);
+      c.p[0] = float(ec.pl.p.x);
+      c.p[1] = float(ec.pl.p.y);
+      c.p[2] = float(ec.pl.p.z);
       c.partner = ec.v;
       c.t = float(ec.pl.t);
-      c.cost2 = std::numeric_limits<double>::quiet_NaN();
+      c.cost2 = std::numeric_limits<float>::quiet_NaN();
       c.partner2 = kNone;
-      c.pad = 0;
       this->C_.Set(u, c);
       return;
     }
@@ -2699,7 +2701,7 @@ void Decimator::Compact()
         }
         else
         {
-          c.cost2 = std::numeric_limits<double>::quiet_NaN();
+          c.cost2 = std::numeric_limits<float>::quiet_NaN();
           c.partner2 = kNone;
         }
       }
@@ -2709,7 +2711,7 @@ void Decimator::Compact()
         c.cost = c.cost2;
         c.partner = x2;
         c.t = -1.0f;
-        c.cost2 = std::numeric_limits<double>::quiet_NaN();
+        c.cost2 = std::numeric_limits<float>::quiet_NaN();
         c.partner2 = kNone;
         if (x2 == kNone)
         {
