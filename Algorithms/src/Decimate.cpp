@@ -2939,6 +2939,7 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
     }
   }
   const double fraction = std::min(0.9, std::max(0.01, this->opt_.passFraction));
+  const double farFraction = std::min(0.9, std::max(fraction, this->opt_.farPassFraction));
   auto emitLevel = [&](int level) {
     if (onLevel)
     {
@@ -2964,7 +2965,11 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
         continue;
       }
       const std::uint64_t T = this->liveFaces_;
-      const std::uint64_t step = std::max<std::uint64_t>(1, std::uint64_t(double(T) * fraction));
+      // Far from the level, the cheapest collapses cost orders of magnitude less than the
+      // level's error and their exact order matters less: larger passes (fewer sweeps).
+      const bool far = double(T) > this->opt_.farRatio * double(std::max<std::uint64_t>(levels[level], 1));
+      const std::uint64_t step =
+        std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
       const std::uint64_t goal = std::max(levels[level], T > step ? T - step : 0);
       const double done = F0 > target ? double(F0 - T) / double(F0 - target) : 1.0;
       if (!this->Pass(goal, goal == levels[level], 0.35 + 0.6 * done, 0.6 * (1.0 - done) * fraction))
