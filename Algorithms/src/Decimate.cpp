@@ -85,6 +85,8 @@ constexpr int kGroups = 4;
 constexpr std::uint64_t kStepChunks = 64;
 constexpr std::uint64_t kStepChunkMinSize = 32768;
 constexpr std::uint64_t kStepTail = 4096;
+// Compact's random-access steps run on all cores from this many vertices.
+constexpr std::uint64_t kParallelCompactMin = 65536;
 
 // Per-vertex state bits.
 using State = std::uint16_t;
@@ -490,6 +492,38 @@ void RethrowFirst(const std::vector<std::exception_ptr>& errors)
     {
       std::rethrow_exception(e);
     }
+  }
+}
+
+// Runs body(t, begin, end, stop) on [0, n) cut into T ranges, range t on thread t (0: the
+// calling one); the ranges of threads that could not be started run on the calling thread
+// afterwards. The bodies must be independent of each other (each writes only its own range's
+// records) and should return early once `stop` is set (another one threw, e.g. an abort).
+using RangeBody =
+  std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
+void ForRanges(int T, std::uint64_t n, const RangeBody& body)
+{
+  auto begin = [n, T](int t) { return n * std::uint64_t(t) / std::uint64_t(T); };
+  std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
+  std::atomic<bool> stop{ false };
+  const int started = RunOnThreads(
+    T,
+    [&](int t) {
+      try
+      {
+        body(t, begin(t), begin(t + 1), stop);
+      }
+      catch (...)
+      {
+        errors[std::size_t(t)] = std::current_exception();
+        stop = true;
+      }
+    },
+    nullptr);
+  RethrowFirst(errors);
+  if (started < T)
+  {
+    body(0, begin(started), n, stop);
   }
 }
 
@@ -1500,43 +1534,18 @@ void Decimator::BuildQuadrics()
     this->C_.Set(u, this->none_);
   };
   const int T = (this->AllInCore() && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
-  std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
-  std::atomic<bool> stop{ false };
-  auto work = [&](int t) {
-    try
-    {
-      std::vector<Tri> tris;
-      std::vector<std::uint32_t> next, prev;
-      const std::uint64_t lo = nv * std::uint64_t(t) / std::uint64_t(T);
-      const std::uint64_t hi = nv * std::uint64_t(t + 1) / std::uint64_t(T);
-      for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
-      {
-        if (t == 0)
-        {
-          this->Tick(u, hi); // progress and abort: the calling thread only
-        }
-        vertex(std::uint32_t(u), tris, next, prev);
-      }
-    }
-    catch (...)
-    {
-      errors[std::size_t(t)] = std::current_exception();
-      stop = true;
-    }
-  };
-  const int started = RunOnThreads(T, work, nullptr);
-  RethrowFirst(errors);
-  // The ranges of threads that could not be started (gathers are independent: any order).
-  if (started < T)
-  {
+  ForRanges(T, nv, [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
     std::vector<Tri> tris;
     std::vector<std::uint32_t> next, prev;
-    for (std::uint64_t u = nv * std::uint64_t(started) / std::uint64_t(T); u < nv; ++u)
+    for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
     {
-      this->Tick(u, nv);
+      if (t == 0)
+      {
+        this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
+      }
       vertex(std::uint32_t(u), tris, next, prev);
     }
-  }
+  });
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -2618,19 +2627,51 @@ void Decimator::Compact()
   this->remap_.Resize(std::max<std::uint64_t>(nv, 1));
   this->BindViews();
   View<std::uint32_t> R(this->dml_, this->remap_);
+  // In core, the steps that read at random (degrees, the carried candidates, the faces' new
+  // numbers) run on all cores, each thread on its own range; the moves stay sequential (in
+  // place, downwards). Same result either way.
+  const int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
+                  (!this->recSize_ || this->A_.Ptr(0)))
+    ? this->threads_
+    : 1;
   // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with).
   FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
-  for (std::uint64_t f = 0; f < nf; ++f)
+  if (T > 1)
   {
-    this->Tick(f, total);
-    const Tri t = this->F_.Get(f);
-    if (!Alive(t))
+    std::uint32_t* RO = const_cast<std::uint32_t*>(this->RO_.Ptr(0));
+    const Tri* F = this->F_.Ptr(0);
+    ForRanges(T, nf, [&](int t, std::uint64_t b, std::uint64_t e, const std::atomic<bool>& stop) {
+      for (std::uint64_t f = b; f < e && !stop.load(std::memory_order_relaxed); ++f)
+      {
+        if (t == 0)
+        {
+          this->Tick(f - b, total * (e - b) / nf);
+        }
+        const Tri t3 = F[f];
+        if (Alive(t3))
+        {
+          for (int c = 0; c < 3; ++c)
+          {
+            __atomic_fetch_add(RO + t3.v[c], 1u, __ATOMIC_RELAXED);
+          }
+        }
+      }
+    });
+  }
+  else
+  {
+    for (std::uint64_t f = 0; f < nf; ++f)
     {
-      continue;
-    }
-    for (int c = 0; c < 3; ++c)
-    {
-      this->RO_.Set(t.v[c], this->RO_.Get(t.v[c]) + 1);
+      this->Tick(f, total);
+      const Tri t = this->F_.Get(f);
+      if (!Alive(t))
+      {
+        continue;
+      }
+      for (int c = 0; c < 3; ++c)
+      {
+        this->RO_.Set(t.v[c], this->RO_.Get(t.v[c]) + 1);
+      }
     }
   }
   // 2. New vertex numbers; RO[k] = end of k's ring (k <= v: RO[k] was read already). R holds the
@@ -2656,20 +2697,10 @@ void Decimator::Compact()
   const std::uint64_t nv2 = k;
   this->RO_.Set(nv2, end);
   // 3. Vertex data, and the candidates carried to the next pass.
-  const std::size_t rec = this->recSize_;
-  this->abuf_.resize(rec);
-  for (std::uint64_t v = 0; v < nv; ++v)
-  {
-    this->Tick(nf + nv + v, total);
-    const std::uint32_t rv = R.Get(v);
-    if (rv == kNone)
-    {
-      continue;
-    }
-    const std::uint64_t w = rv & ~kTop;
+  auto carry = [this, &R, kTop](std::uint64_t v, State& flags, Cand& c) {
     const State sv = this->S_.Get(v);
-    State flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
-    Cand c = this->none_;
+    flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
+    c = this->none_;
     if (sv & kCollapsed)
     {
       flags = State((flags & ~kNeedsLegal) | kSurvivor); // every edge changed
@@ -2731,6 +2762,51 @@ void Decimator::Compact()
         }
       }
     }
+  };
+  if (T > 1)
+  {
+    // The new state and candidate in place (reads: the vertex's own records and R), then the
+    // moves.
+    ForRanges(T, nv, [&](int t, std::uint64_t b, std::uint64_t e, const std::atomic<bool>& stop) {
+      for (std::uint64_t v = b; v < e && !stop.load(std::memory_order_relaxed); ++v)
+      {
+        if (t == 0)
+        {
+          this->Tick(nf + nv + (v - b) * T, total);
+        }
+        if (R.Get(v) != kNone)
+        {
+          State flags;
+          Cand c;
+          carry(v, flags, c);
+          this->S_.Set(v, flags);
+          this->C_.Set(v, c);
+        }
+      }
+    });
+  }
+  const std::size_t rec = this->recSize_;
+  this->abuf_.resize(rec);
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    if (T <= 1)
+    {
+      this->Tick(nf + nv + v, total);
+    }
+    const std::uint32_t rv = R.Get(v);
+    if (rv == kNone)
+    {
+      continue;
+    }
+    const std::uint64_t w = rv & ~kTop;
+    if (T <= 1)
+    {
+      State flags;
+      Cand c;
+      carry(v, flags, c);
+      this->S_.Set(v, flags);
+      this->C_.Set(v, c);
+    }
     if (w != v)
     {
       this->P_.Set(w, this->P_.Get(v));
@@ -2740,26 +2816,50 @@ void Decimator::Compact()
         this->A_.GetRange(v * rec, rec, this->abuf_.data());
         this->A_.SetRange(w * rec, rec, this->abuf_.data());
       }
+      this->S_.Set(w, this->S_.Get(v));
+      this->C_.Set(w, this->C_.Get(v));
     }
-    this->S_.Set(w, flags);
-    this->C_.Set(w, c);
   }
-  // 4. Faces, ascending: new index f2 <= f.
+  // 4. Faces, ascending: new index f2 <= f (in core: renumbered in place on all cores first).
+  if (T > 1)
+  {
+    Tri* F = const_cast<Tri*>(this->F_.Ptr(0));
+    const std::uint32_t* Rp = R.Ptr(0);
+    ForRanges(T, nf, [&](int t, std::uint64_t b, std::uint64_t e, const std::atomic<bool>& stop) {
+      for (std::uint64_t f = b; f < e && !stop.load(std::memory_order_relaxed); ++f)
+      {
+        if (t == 0)
+        {
+          this->Tick(nf + 2 * nv + (f - b) * T, total);
+        }
+        Tri& t3 = F[f];
+        if (Alive(t3))
+        {
+          for (int c = 0; c < 3; ++c)
+          {
+            t3.v[c] = Rp[t3.v[c]] & ~kTop;
+          }
+        }
+      }
+    });
+  }
   std::uint64_t f2 = 0;
   for (std::uint64_t f = 0; f < nf; ++f)
   {
-    this->Tick(nf + 2 * nv + f, total);
-    const Tri t = this->F_.Get(f);
+    Tri t = this->F_.Get(f);
     if (!Alive(t))
     {
       continue;
     }
-    Tri w;
-    for (int c = 0; c < 3; ++c)
+    if (T <= 1)
     {
-      w.v[c] = R.Get(t.v[c]) & ~kTop;
+      this->Tick(nf + 2 * nv + f, total);
+      for (int c = 0; c < 3; ++c)
+      {
+        t.v[c] = R.Get(t.v[c]) & ~kTop;
+      }
     }
-    this->F_.Set(f2++, w);
+    this->F_.Set(f2++, t);
   }
   // 5. Shrink, then the rings (faces in reverse: each list ascending, RO[k] ends at its start).
   const std::uint64_t nvb = std::max<std::uint64_t>(nv2, 1);
