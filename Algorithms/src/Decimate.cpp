@@ -85,6 +85,8 @@ constexpr int kGroups = 4;
 constexpr std::uint64_t kStepChunks = 64;
 constexpr std::uint64_t kStepChunkMinSize = 32768;
 constexpr std::uint64_t kStepTail = 4096;
+// BuildRings' passes 1 and 3 run on all cores from this many faces.
+constexpr std::uint64_t kParallelRingsMin = 65536;
 // Compact's random-access steps run on all cores from this many vertices.
 constexpr std::uint64_t kParallelCompactMin = 65536;
 
@@ -1107,37 +1109,68 @@ void Decimator::BuildRings()
   View<Tri> F(this->dml_, this->faces_);
   View<Vec3> P(this->dml_, this->pos_);
   View<std::uint32_t> RO(this->dml_, this->ringOff_);
-  // Pass 1 over the faces: validate, drop zero-area faces, count the degrees.
+  // In core, passes 1 and 3 run on all cores (each thread on its own faces; the degrees are
+  // counted with atomic adds); same result.
+  const int T = (nf >= kParallelRingsMin && F.Ptr(0) && P.Ptr(0) && RO.Ptr(0)) ? this->threads_ : 1;
+  // Pass 1 over the faces: validate, drop zero-area faces, count the degrees. The first bad
+  // face is reported, whatever the threads.
   std::uint64_t live = 0;
-  for (std::uint64_t f = 0; f < nf; ++f)
   {
-    this->Tick(f, 3 * nf);
-    Tri t = F.Get(f);
-    if (!Alive(t))
-    {
-      continue;
-    }
-    for (int k = 0; k < 3; ++k)
-    {
-      if (t.v[k] >= nv)
+    std::vector<std::uint64_t> lives(std::size_t(T), 0), drops(std::size_t(T), 0);
+    std::vector<std::uint64_t> bad(std::size_t(T), ~std::uint64_t(0));
+    ForRanges(T, nf, [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+      std::uint32_t* ROp = T > 1 ? const_cast<std::uint32_t*>(RO.Ptr(0)) : nullptr;
+      for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
       {
-        throw io::MeshIOError("decimate: triangle " + std::to_string(f) + " has vertex index " +
-          std::to_string(t.v[k]) + " >= vertex count " + std::to_string(nv));
+        if (th == 0)
+        {
+          this->Tick((f - fb) * T, 3 * nf);
+        }
+        Tri t = F.Get(f);
+        if (!Alive(t))
+        {
+          continue;
+        }
+        if (t.v[0] >= nv || t.v[1] >= nv || t.v[2] >= nv)
+        {
+          bad[std::size_t(th)] = std::min(bad[std::size_t(th)], f);
+          break;
+        }
+        Vec3 a = P.Get(t.v[0]), b = P.Get(t.v[1]), c = P.Get(t.v[2]);
+        Vec3 n = Cross(b - a, c - a);
+        if (Dot(n, n) == 0.0)
+        {
+          F.Set(f, kDeadTri);
+          ++drops[std::size_t(th)];
+          continue;
+        }
+        for (int k = 0; k < 3; ++k)
+        {
+          if (ROp)
+          {
+            __atomic_fetch_add(ROp + t.v[k], 1u, __ATOMIC_RELAXED);
+          }
+          else
+          {
+            RO.Set(t.v[k], RO.Get(t.v[k]) + 1);
+          }
+        }
+        ++lives[std::size_t(th)];
       }
-    }
-    Vec3 a = P.Get(t.v[0]), b = P.Get(t.v[1]), c = P.Get(t.v[2]);
-    Vec3 n = Cross(b - a, c - a);
-    if (Dot(n, n) == 0.0)
+    });
+    const std::uint64_t first = *std::min_element(bad.begin(), bad.end());
+    if (first != ~std::uint64_t(0))
     {
-      F.Set(f, kDeadTri);
-      ++this->dropped_;
-      continue;
+      const Tri t = F.Get(first);
+      const std::uint32_t v = t.v[0] >= nv ? t.v[0] : (t.v[1] >= nv ? t.v[1] : t.v[2]);
+      throw io::MeshIOError("decimate: triangle " + std::to_string(first) + " has vertex index " +
+        std::to_string(v) + " >= vertex count " + std::to_string(nv));
     }
-    for (int k = 0; k < 3; ++k)
+    for (int th = 0; th < T; ++th)
     {
-      RO.Set(t.v[k], RO.Get(t.v[k]) + 1);
+      live += lives[std::size_t(th)];
+      this->dropped_ += drops[std::size_t(th)];
     }
-    ++live;
   }
   // Inclusive prefix sums: RO[v] = end of v's list.
   std::uint32_t sum = 0;
@@ -1189,9 +1222,44 @@ void Decimator::BuildRings()
     }
     return 1;
   };
-  for (std::uint64_t f = 0; f < nf; ++f)
+  // The faces with another live face on the same vertex set (rare): found on all cores in core,
+  // then settled one at a time in face order.
+  std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T));
+  ForRanges(T, nf, [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+    std::vector<std::uint32_t> list;
+    for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
+    {
+      if (th == 0)
+      {
+        this->Tick(2 * nf + (f - fb) * T, 3 * nf);
+      }
+      const Tri t = F.Get(f);
+      if (!Alive(t))
+      {
+        continue;
+      }
+      std::uint32_t s[3] = { t.v[0], t.v[1], t.v[2] };
+      SmallSort(s, 3);
+      const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
+      list.resize(e - b);
+      RF.GetRange(b, e - b, list.data());
+      for (std::uint32_t g : list)
+      {
+        if (g != f && Alive(F.Get(g)) && sameSet(F.Get(g), s))
+        {
+          found[std::size_t(th)].push_back(f);
+          break;
+        }
+      }
+    }
+  });
+  std::vector<std::uint64_t> dups; // ascending: the ranges are
+  for (const std::vector<std::uint64_t>& list : found)
   {
-    this->Tick(2 * nf + f, 3 * nf);
+    dups.insert(dups.end(), list.begin(), list.end());
+  }
+  for (std::uint64_t f : dups)
+  {
     const Tri t = F.Get(f);
     if (!Alive(t))
     {

@@ -908,6 +908,62 @@ TEST(AlgorithmsDecimate, DropsDegenerateAndDuplicateTriangles)
   ExpectValid(r.out);
 }
 
+TEST(AlgorithmsDecimate, LargeInputCleanupDoesNotDependOnThreads)
+{
+  // 80,000 triangles: the validation and the search for faces on one vertex set run on all
+  // cores. Duplicates, double-sided pairs and zero-area faces spread over the grid must be
+  // dropped the same way with 1 and 2 threads; a bad index is reported at the first bad face.
+  Mesh g = Grid(200, Bumps);
+  const std::size_t n = g.Triangles();
+  for (std::size_t f = 7; f < n; f += 997)
+  {
+    const std::uint32_t a = g.tris[3 * f], b = g.tris[3 * f + 1], c = g.tris[3 * f + 2];
+    if (f % 3 == 0)
+    {
+      g.tris.insert(g.tris.end(), { b, c, a }); // a copy
+    }
+    else if (f % 3 == 1)
+    {
+      g.tris.insert(g.tris.end(), { c, b, a }); // the other side
+    }
+    else
+    {
+      g.tris.insert(g.tris.end(), { a, a, b }); // zero area
+    }
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 5000;
+  o.threads = 1;
+  Outcome a = Simplify(MemorySource(g), o);
+  o.threads = 2;
+  Outcome b = Simplify(MemorySource(g), o);
+  EXPECT_GT(a.stats.droppedInputFaces, 0u);
+  EXPECT_EQ(a.stats.droppedInputFaces, b.stats.droppedInputFaces);
+  EXPECT_TRUE(a.out.tris == b.out.tris);
+  EXPECT_TRUE(a.out.xyz == b.out.xyz);
+  ExpectValid(b.out);
+  // Two bad faces, far apart: the first one is named.
+  Mesh bad = g;
+  const std::uint32_t nv = std::uint32_t(bad.Vertices());
+  bad.tris[3 * (n - 10) + 1] = nv + 5;
+  bad.tris[3 * 1234 + 2] = nv + 7;
+  for (int threads : { 1, 2 })
+  {
+    o.threads = threads;
+    try
+    {
+      Simplify(MemorySource(bad), o);
+      ADD_FAILURE() << "no error with " << threads << " threads";
+    }
+    catch (const std::exception& e)
+    {
+      EXPECT_NE(std::string(e.what()).find("triangle 1234 has vertex index " + std::to_string(nv + 7)),
+        std::string::npos)
+        << e.what();
+    }
+  }
+}
+
 TEST(AlgorithmsDecimate, NonManifoldEdgesCollapse)
 {
   // Three flat sheets meeting on one spine (a "book", as clustering makes where parts touch):
