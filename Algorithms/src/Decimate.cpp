@@ -2366,16 +2366,23 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run,
   std::vector<std::uint32_t>* deferred, bool tick)
 {
-  // In core: prefetch the data of the candidates ahead (two stages: their state, candidate and
-  // ring offsets; then, for those still free, the partner's and the ring's first lines).
+  // In core: prefetch the data of the candidates ahead, in stages, each reading what the one
+  // before fetched: their state, candidate and ring offsets; for those still free, the
+  // partner's, the ring's face ids and both positions; the ring's faces and the partner's face
+  // ids; the positions of the ring's vertices and the partner's faces.
   const std::uint32_t* Op = this->O_.Ptr(0);
   const State* Sp = this->S_.Ptr(0);
   const Cand* Cp = this->C_.Ptr(0);
   const std::uint32_t* ROp = this->RO_.Ptr(0);
   const std::uint32_t* RFp = this->RF_.Ptr(0);
   const Vec3* Pp = this->P_.Ptr(0);
-  const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp;
-  constexpr std::uint64_t kAhead = 12;
+  const Tri* Fp = this->F_.Ptr(0);
+  const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
+  constexpr std::uint64_t kAhead = 16;
+  auto freePair = [&](std::uint32_t w, std::uint32_t& x) {
+    x = Cp[w].partner;
+    return !(Sp[w] & kBusy) && x >= lo && x < hi && !(Sp[x] & kBusy);
+  };
   std::uint64_t i = first;
   for (; i < last && run.removed < budget; ++i)
   {
@@ -2385,6 +2392,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
     }
     if (prefetch)
     {
+      std::uint32_t x;
       if (i + 2 * kAhead < last)
       {
         const std::uint32_t w = Op[i + 2 * kAhead];
@@ -2395,7 +2403,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
       if (i + kAhead < last)
       {
         const std::uint32_t w = Op[i + kAhead];
-        const std::uint32_t x = Cp[w].partner;
+        x = Cp[w].partner;
         if (!(Sp[w] & kBusy) && x >= lo && x < hi)
         {
           Prefetch(Sp + x);
@@ -2403,6 +2411,36 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
           Prefetch(RFp + ROp[w]);
           Prefetch(Pp + w);
           Prefetch(Pp + x);
+        }
+      }
+      if (i + kAhead / 2 < last)
+      {
+        const std::uint32_t w = Op[i + kAhead / 2];
+        if (freePair(w, x))
+        {
+          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
+          {
+            Prefetch(Fp + RFp[k]);
+          }
+          Prefetch(RFp + ROp[x]);
+        }
+      }
+      if (i + kAhead / 4 < last)
+      {
+        const std::uint32_t w = Op[i + kAhead / 4];
+        if (freePair(w, x))
+        {
+          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
+          {
+            const Tri& t = Fp[RFp[k]];
+            Prefetch(Pp + t.v[0]);
+            Prefetch(Pp + t.v[1]);
+            Prefetch(Pp + t.v[2]);
+          }
+          for (std::uint32_t k = ROp[x], e = ROp[x + 1]; k < e; ++k)
+          {
+            Prefetch(Fp + RFp[k]);
+          }
         }
       }
     }
