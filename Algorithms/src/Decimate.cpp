@@ -613,6 +613,45 @@ private:
       this->F_.Ptr(0) && this->RO_.Ptr(0) && this->RF_.Ptr(0);
   }
   void Sweep(std::uint64_t nv);
+  // In core: the faces of an active vertex kAhead ahead in the sweep, and the data of the
+  // neighbours of one kAhead / 2 ahead (its faces were fetched before).
+  void PrefetchSweep(std::uint64_t u, std::uint64_t end) const
+  {
+    constexpr std::uint64_t kAhead = 8;
+    const State* Sp = this->S_.Ptr(0);
+    const std::uint32_t* ROp = this->RO_.Ptr(0);
+    const std::uint32_t* RFp = this->RF_.Ptr(0);
+    const Tri* Fp = this->F_.Ptr(0);
+    if (!Sp || !ROp || !RFp || !Fp)
+    {
+      return;
+    }
+    if (u + kAhead < end && Active(Sp[u + kAhead]))
+    {
+      for (std::uint32_t k = ROp[u + kAhead], e = ROp[u + kAhead + 1]; k < e; ++k)
+      {
+        Prefetch(Fp + RFp[k]);
+      }
+    }
+    const Quadric* Qp = this->Q_.Ptr(0);
+    const Vec3* Pp = this->P_.Ptr(0);
+    const Cand* Cp = this->C_.Ptr(0);
+    const std::uint64_t w = u + kAhead / 2;
+    if (w < end && Qp && Pp && Cp && Active(Sp[w]))
+    {
+      for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
+      {
+        const Tri& t = Fp[RFp[k]];
+        for (int c = 0; c < 3; ++c)
+        {
+          Prefetch(Qp + t.v[c]);
+          Prefetch(Sp + t.v[c]);
+          Prefetch(Pp + t.v[c]);
+          Prefetch(Cp + t.v[c]);
+        }
+      }
+    }
+  }
   void Evaluate(std::uint32_t u, Scratch& s);
   void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
     std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
@@ -1873,6 +1912,7 @@ void Decimator::Sweep(std::uint64_t nv)
     for (std::uint64_t u = 0; u < nv; ++u)
     {
       this->Tick(u, nv);
+      this->PrefetchSweep(u, nv);
       this->Evaluate(std::uint32_t(u), s);
     }
   };
@@ -1921,6 +1961,7 @@ void Decimator::Sweep(std::uint64_t nv)
           {
             this->Tick(u - s.lo, s.hi - s.lo); // progress and abort: the calling thread only
           }
+          this->PrefetchSweep(u, e);
           this->Evaluate(std::uint32_t(u), s);
         }
       }
