@@ -103,6 +103,7 @@ constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edg
 constexpr State kCollapsed = 256;  // survived a collapse of this pass
 constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
 constexpr State kPromote = 1024;   // its best partner collapsed: its second best became the best
+constexpr State kDeferred = 2048;  // step 3: its collapse leaves its chunk, it runs after the round
 // An endpoint of a collapse of this pass: its ring in the CSR is stale until Compact.
 constexpr State kBusy = kRemoved | kCollapsed;
 // Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
@@ -684,8 +685,7 @@ private:
                                     : std::max(kStepChunkMinSize, (nv + kStepChunks - 1) / kStepChunks);
   }
   std::uint64_t Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo, std::uint32_t hi,
-    std::uint64_t budget, Scratch& s, StepRun& run, std::vector<std::uint32_t>* deferred,
-    bool tick);
+    std::uint64_t budget, Scratch& s, StepRun& run, bool tick);
   void StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
     std::uint64_t goal, StepRun& total);
   void EnsureVertexCapacity(std::uint64_t n);
@@ -2402,10 +2402,10 @@ Decimator::Try Decimator::TryCollapse(
 }
 
 // Runs TryCollapse on the candidates at positions [first, last) of the order until `budget`
-// faces are removed; deferred ones are appended to *deferred. Returns where it stopped.
+// faces are removed; deferred ones get kDeferred (no list: the footprint stays in the DML).
+// Returns where it stopped.
 std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo,
-  std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run,
-  std::vector<std::uint32_t>* deferred, bool tick)
+  std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run, bool tick)
 {
   // In core: prefetch the data of the candidates ahead, in stages, each reading what the one
   // before fetched: their state, candidate and ring offsets; for those still free, the
@@ -2495,10 +2495,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         ++run.illegal;
         break;
       case Try::Defer:
-        if (deferred)
-        {
-          deferred->push_back(u);
-        }
+        this->S_.Set(u, State(this->S_.Get(u) | kDeferred));
         break;
       case Try::Skip:
         break;
@@ -2546,7 +2543,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   {
     this->scratch_.resize(std::size_t(T));
   }
-  std::vector<std::vector<std::uint32_t>> deferred(n);
+  std::vector<std::uint64_t> roundStart(n);
   std::vector<StepRun> runs(n);
   std::vector<std::uint64_t> quota(n);
   while (this->liveFaces_ > goal)
@@ -2567,7 +2564,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       StepRun run;
       for (std::size_t c = 0; c < n && run.removed < R; ++c)
       {
-        cursor[c] = this->Step(cursor[c], end[c], 0, kNone, R, this->scratch_[0], run, nullptr, false);
+        cursor[c] = this->Step(cursor[c], end[c], 0, kNone, R, this->scratch_[0], run, false);
       }
       this->liveFaces_ -= run.removed;
       total.done += run.done;
@@ -2579,7 +2576,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     {
       quota[c] = (end[c] - cursor[c]) * (R - R / 10) / left;
       runs[c] = StepRun();
-      deferred[c].clear();
+      roundStart[c] = cursor[c];
     }
     std::atomic<std::size_t> next{ 0 };
     std::atomic<bool> stop{ false };
@@ -2596,7 +2593,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
           }
           const std::uint32_t lo = std::uint32_t(c * size);
           const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], &deferred[c], false);
+          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], false);
         }
       }
       catch (...)
@@ -2623,13 +2620,20 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       total.done += runs[c].done;
       total.illegal += runs[c].illegal;
     }
-    for (std::size_t c = 0; c < n && this->liveFaces_ > goal + b.removed; ++c)
+    for (std::size_t c = 0; c < n; ++c)
     {
-      for (std::uint32_t u : deferred[c])
+      for (std::uint64_t i = roundStart[c]; i < cursor[c]; ++i)
       {
+        const std::uint32_t u = this->O_.Get(i);
+        const State su = this->S_.Get(u);
+        if (!(su & kDeferred))
+        {
+          continue;
+        }
+        this->S_.Set(u, State(su & ~kDeferred)); // (all of them, also past the goal)
         if (this->liveFaces_ <= goal + b.removed)
         {
-          break;
+          continue;
         }
         switch (this->TryCollapse(u, this->scratch_[0], 0, kNone, b.removed))
         {
@@ -2748,7 +2752,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   }
   else
   {
-    this->Step(0, taken, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], run, nullptr, true);
+    this->Step(0, taken, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], run, true);
     this->liveFaces_ -= run.removed;
   }
   const std::uint64_t done = run.done, illegal = run.illegal;
