@@ -37,12 +37,20 @@
 //                  Neighbours stay free: their rings are exact (faces are relabelled in place)
 //                  and their candidates' costs unchanged, and legality is checked against the
 //                  current positions, so collapses of one pass may share faces and a pass
-//                  removes up to about a third of the triangles;
+//                  removes up to about a third of the triangles. Passes that cannot end on a
+//                  level go group by group through fixed vertex chunks: a collapse whose
+//                  endpoints and ring vertices all lie in one chunk touches only that chunk's
+//                  data, so the chunks run at once (in core: on all cores); the others run one
+//                  at a time after each round, in order;
 //               4. compacts the live vertices and faces (in place, order kept), shrinks the
 //                  blocks, rebuilds the rings and calls Reconfigure(): the run moves in core as
 //                  the mesh shrinks.
-//             A pass removes at most passFraction of the triangles and never goes below the next
+//             A pass removes at most passFraction of the triangles (farPassFraction while the
+//             mesh has more than farRatio times the level's) and never goes below the next
 //             level's target, so levels and the final target are met exactly (or one below).
+//             In core, the rings' validation and duplicate search, the quadrics, the sweep, the
+//             step's chunks and compaction's random-access steps run on all cores; the output is
+//             the same for any thread count and storage mode.
 //   write     the final level is streamed to the output sink.
 // Every loop over many elements ticks the progress (abort within a few milliseconds).
 #include "sipmss/algorithms/Decimate.h"
