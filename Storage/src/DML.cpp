@@ -88,6 +88,7 @@ DML::Impl::Impl(std::unique_ptr<FileBackend> b)
   , lists(detail::Counted<detail::ListInfo>(&this->acc))
   , dirs(detail::Counted<detail::PrivateDir>(&this->acc))
   , bases(detail::Counted<void*>(&this->acc))
+  , fast(detail::Counted<FastPage>(&this->acc))
   , cache(&this->acc)
 {
   this->acc.owner = this;
@@ -164,6 +165,42 @@ void DML::Impl::SyncBases() noexcept
   }
   this->owner->bases_ = this->bases.data();
   this->owner->baseCount_ = this->bases.size();
+  this->SyncAllFast();
+}
+
+void DML::Impl::SyncFast(BlockId id) noexcept
+{
+  if (id < 0 || static_cast<std::size_t>(id) >= this->fast.size())
+  {
+    return;
+  }
+  FastPage& p = this->fast[static_cast<std::size_t>(id)];
+  p = FastPage{};
+  const Block& b = this->blocks[static_cast<std::size_t>(id)];
+  if (b.kind != Kind::Plain || b.mem || b.lastFrame < 0 || !this->cache.built ||
+    this->replacement == Replacement::Lru || b.lastFirst >= b.count)
+  {
+    return; // (LRU moves the frame on every access: the slow path does that)
+  }
+  detail::Frame& f = this->cache.frames[static_cast<std::size_t>(b.lastFrame)];
+  p.data = f.data;
+  p.first = b.lastFirst;
+  p.count = std::min<std::uint64_t>(b.perPage, b.count - b.lastFirst);
+  p.elementSize = b.elementSize;
+  p.ref = &f.ref;
+  p.dirty = &f.dirty;
+}
+
+void DML::Impl::SyncAllFast() noexcept
+{
+  // Within capacity (reserved in NewSlot, like bases): resize does not allocate.
+  this->fast.resize(std::min(this->blocks.size(), this->fast.capacity()));
+  for (std::size_t i = 0; i < this->fast.size(); ++i)
+  {
+    this->SyncFast(static_cast<BlockId>(i));
+  }
+  this->owner->fast_ = this->fast.data();
+  this->owner->fastCount_ = this->fast.size();
 }
 
 Block& DML::Impl::Get(BlockId id, Kind kind)
@@ -198,8 +235,10 @@ BlockId DML::Impl::NewSlot(Kind kind, std::size_t elementSize, double weight)
     if (this->blocks.size() == this->blocks.capacity())
     {
       const std::size_t cap = std::max<std::size_t>(8, this->blocks.capacity() * 2);
-      this->ReleaseFrames(HeapCost(cap * sizeof(Block)) + HeapCost(cap * sizeof(void*)));
+      this->ReleaseFrames(HeapCost(cap * sizeof(Block)) + HeapCost(cap * sizeof(void*)) +
+        HeapCost(cap * sizeof(FastPage)));
       this->bases.reserve(cap);
+      this->fast.reserve(cap);
       this->blocks.reserve(cap);
     }
     this->blocks.emplace_back();
@@ -892,6 +931,7 @@ Mode DML::GetMode() const
 Stats DML::GetStats() const
 {
   Stats s = this->impl_->stats;
+  s.hits += this->fastHits_;
   s.mode = this->impl_->mode;
   s.bytesHeld = this->impl_->acc.held;
   s.peakBytes = this->impl_->acc.peak;
@@ -1038,7 +1078,7 @@ Block& CheckRange(DML::Impl& I, BlockId id, std::uint64_t first, std::uint64_t c
 }
 } // namespace
 
-void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
+void DML::ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
   Impl& I = *this->impl_;
   Block& b = CheckElement(I, id, elementSize, index);
@@ -1058,7 +1098,7 @@ void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* d
   std::memcpy(dst, data + (index - page * b.perPage) * elementSize, elementSize);
 }
 
-void DML::Write(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
+void DML::WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
 {
   Impl& I = *this->impl_;
   Block& b = CheckElement(I, id, elementSize, index);

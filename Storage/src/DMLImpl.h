@@ -261,6 +261,9 @@ struct DML::Impl
   // Mirror of the in-core base pointers read by the inline DML::BasePointer(); its capacity
   // follows blocks' capacity so SyncBases() never allocates.
   detail::CVector<void*> bases;
+  // Mirror of the out-of-core blocks' last pages read by the inline DML::Read/Write (same
+  // capacity rule as bases).
+  detail::CVector<FastPage> fast;
   DML* owner = nullptr;
   std::uint64_t nextFileSeq = 0;
   std::uint64_t nextDir = 0; // round robin over profile.directories
@@ -295,7 +298,9 @@ struct DML::Impl
   void Transfer(BlockId id, detail::Block& b, std::uint64_t off, std::uint64_t n,
     unsigned char* buf, bool write);
   void Shutdown() noexcept;
-  void SyncBases() noexcept;
+  void SyncBases() noexcept; // also SyncAllFast
+  void SyncFast(BlockId id) noexcept;
+  void SyncAllFast() noexcept;
 
   // --- PageCache.cpp
   void EnsureCache();

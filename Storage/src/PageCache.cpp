@@ -140,6 +140,7 @@ void DML::Impl::EnsureCache()
   }
   C.built = true;
   C.quotasDirty = true;
+  this->SyncAllFast();
 }
 
 void DML::Impl::DestroyCache(bool writeBack)
@@ -179,6 +180,7 @@ void DML::Impl::DestroyCache(bool writeBack)
   C.freeData = C.freeEmpty = -1;
   C.withData = C.pinnedFrames = 0;
   C.built = false;
+  this->SyncAllFast();
 }
 
 std::uint64_t DML::Impl::CacheCost() const
@@ -279,6 +281,7 @@ unsigned char* DML::Impl::PageFor(BlockId id, Block& b, std::uint64_t page, bool
     b.lastFrame = fi;
     b.lastPage = page;
     b.lastFirst = page * b.perPage;
+    this->SyncFast(id);
   }
   Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
   f.ref = true;
@@ -626,6 +629,7 @@ void DML::Impl::Evict(std::int32_t fi, bool writeBack)
   if (b.lastFrame == fi)
   {
     b.lastFrame = -1;
+    this->SyncFast(f.block);
   }
   if (f.pins > 0)
   {
@@ -663,6 +667,7 @@ void DML::Impl::DropBlockPages(BlockId id, std::uint64_t fromPage)
     fi = next;
   }
   b.lastFrame = -1;
+  this->SyncFast(id);
   this->cache.quotasDirty = true;
 }
 

@@ -121,6 +121,56 @@ TEST(StorageDML, OutOfCoreBasicsAndCleanup)
   EXPECT_TRUE(ListDir(tmp.Path()).empty()); // the destructor removes the private directory
 }
 
+TEST(StorageDML, InlineElementAccessFollowsThePageCache)
+{
+  // Out of core, Read and Write of one element are served inline from the block's last used
+  // page. That page must stop being used when it is evicted (written back if dirty), when the
+  // block shrinks inside it, and when the block moves in core.
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::Automatic));
+  Array<std::uint64_t> a(dml, 50000);
+  Array<std::uint64_t> b(dml, 50000);
+  ASSERT_EQ(dml.GetMode(), Mode::OutOfCore);
+  for (std::uint64_t i = 0; i < 50000; ++i)
+  {
+    a.Set(i, 3 * i);
+  }
+  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  ASSERT_GT(per, 4u);
+  // a's page 10 is the last used one; written inline, then evicted by a sweep over b.
+  for (std::uint64_t i = 10 * per; i < 11 * per; ++i)
+  {
+    a.Set(i, a.Get(i) + 1);
+  }
+  for (std::uint64_t i = 0; i < 50000; ++i)
+  {
+    b.Set(i, i);
+  }
+  for (std::uint64_t i = 0; i < 50000; i += 1 + i % 5)
+  {
+    ASSERT_EQ(a.Get(i), 3 * i + (i >= 10 * per && i < 11 * per)) << i;
+  }
+  // Shrink inside the last used page: the elements past the new end are gone.
+  const std::uint64_t end = 20 * per + per / 2;
+  ASSERT_EQ(a.Get(end + 1), 3 * (end + 1));
+  a.Resize(end);
+  EXPECT_EQ(a.Get(end - 1), 3 * (end - 1)); // its page is the last used one again
+  EXPECT_THROW(a.Get(end + 1), std::out_of_range);
+  EXPECT_THROW(a.Set(end, 0), std::out_of_range);
+  // In core after freeing b: the same values from the block's memory.
+  b.Close();
+  a.Resize(4000);
+  ASSERT_EQ(dml.Reconfigure(), Mode::InCore);
+  for (std::uint64_t i = 0; i < 4000; ++i)
+  {
+    ASSERT_EQ(a.Get(i), 3 * i + (i >= 10 * per && i < 11 * per)) << i;
+  }
+  const Stats st = dml.GetStats();
+  EXPECT_GT(st.hits, 100000u); // inline hits are counted
+  EXPECT_GT(st.misses, 0u);
+}
+
 TEST(StorageDML, ElementsLargerThanAPage)
 {
   TempDir tmp;

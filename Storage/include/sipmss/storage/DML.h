@@ -11,6 +11,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -114,6 +115,19 @@ enum class Access : std::uint8_t
   Write // the page is marked dirty
 };
 
+// Out of core: a block's last used page, published by the DML for the inline element access of
+// Read and Write (the same bookkeeping as its own last-page path: reference bit, dirty bit, hit
+// count). count == 0: none.
+struct FastPage
+{
+  unsigned char* data = nullptr;
+  std::uint64_t first = 0; // element index of data[0]
+  std::uint64_t count = 0; // elements valid from data (never past the block's end)
+  std::size_t elementSize = 0;
+  bool* ref = nullptr;
+  bool* dirty = nullptr;
+};
+
 // A pinned run of consecutive elements of one block (never crosses a page).
 struct Span
 {
@@ -186,11 +200,53 @@ private:
   // date by Impl so that BasePointer() is inline: a compare and two loads, no call.
   void* const* bases_ = nullptr;
   std::size_t baseCount_ = 0;
+  // The same for the out-of-core blocks' last used pages (kept up to date by Impl: every change of
+  // a block's last page, eviction, resize, mode switch or cache rebuild re-publishes it).
+  const FastPage* fast_ = nullptr;
+  std::size_t fastCount_ = 0;
+  std::uint64_t fastHits_ = 0;
+  void ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst);
+  void WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
 };
 
 inline void* DML::BasePointer(BlockId id) const
 {
   return static_cast<std::size_t>(id) < this->baseCount_ ? this->bases_[id] : nullptr;
+}
+
+// One element: inline when out of core on the block's last used page (the hot case of loops
+// over neighbouring elements), else ReadElement/WriteElement (in core, other pages, errors).
+inline void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
+{
+  if (static_cast<std::size_t>(id) < this->fastCount_)
+  {
+    const FastPage& p = this->fast_[id];
+    if (index - p.first < p.count && elementSize == p.elementSize)
+    {
+      *p.ref = true;
+      ++this->fastHits_;
+      std::memcpy(dst, p.data + (index - p.first) * elementSize, elementSize);
+      return;
+    }
+  }
+  this->ReadElement(id, elementSize, index, dst);
+}
+
+inline void DML::Write(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
+{
+  if (static_cast<std::size_t>(id) < this->fastCount_)
+  {
+    const FastPage& p = this->fast_[id];
+    if (index - p.first < p.count && elementSize == p.elementSize)
+    {
+      *p.ref = true;
+      *p.dirty = true;
+      ++this->fastHits_;
+      std::memcpy(p.data + (index - p.first) * elementSize, src, elementSize);
+      return;
+    }
+  }
+  this->WriteElement(id, elementSize, index, src);
 }
 
 // Typed convenience over one fixed-size block.
