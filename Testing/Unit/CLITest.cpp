@@ -8,6 +8,9 @@
 #include <fstream>
 #include <string>
 
+#include <sys/wait.h>
+#include <unistd.h>
+
 namespace fs = std::filesystem;
 
 namespace
@@ -128,6 +131,35 @@ TEST_F(CLI, BadInputLeavesNothing)
   Result m = RunCli("simplify " + P("missing.ply") + " " + P("o.ply") + " --quiet");
   EXPECT_EQ(m.status, 1);
   EXPECT_NE(m.out.find("missing.ply"), std::string::npos) << m.out;
+}
+
+TEST_F(CLI, StaleTemporariesOfKilledRunsAreRemoved)
+{
+  // A run killed with SIGKILL leaves .sipmss-<pid>-OUTPUT; the next run to OUTPUT removes it
+  // when no process has that pid, and touches nothing else.
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0)
+  {
+    ::_exit(0);
+  }
+  int st = 0;
+  ASSERT_EQ(::waitpid(child, &st, 0), child);
+  const std::string dead = std::to_string(child);
+  auto touch = [this](const std::string& name) { std::ofstream(this->dir / name) << "partial"; };
+  touch(".sipmss-" + dead + "-out.ply");   // stale: removed
+  touch(".sipmss-" + dead + "-other.ply"); // another output's: kept
+  touch(".sipmss-1-out.ply");              // a live process's: kept
+  touch(".sipmss-x" + dead + "-out.ply");  // not ours: kept
+  fs::create_directory(this->dir / (".sipmss-" + dead + "0-out.ply")); // not a file: kept
+  Result s = RunCli("simplify " + P("octa.ply") + " " + P("out.ply") + " --grid 2 --quiet");
+  ASSERT_EQ(s.status, 0) << s.out;
+  EXPECT_TRUE(fs::exists(this->dir / "out.ply"));
+  EXPECT_FALSE(fs::exists(this->dir / (".sipmss-" + dead + "-out.ply")));
+  EXPECT_TRUE(fs::exists(this->dir / (".sipmss-" + dead + "-other.ply")));
+  EXPECT_TRUE(fs::exists(this->dir / ".sipmss-1-out.ply"));
+  EXPECT_TRUE(fs::exists(this->dir / (".sipmss-x" + dead + "-out.ply")));
+  EXPECT_TRUE(fs::is_directory(this->dir / (".sipmss-" + dead + "0-out.ply")));
 }
 
 TEST_F(CLI, InterruptCleansUp)

@@ -19,7 +19,10 @@
 #include <nlohmann/json.hpp>
 
 #include <sys/resource.h>
+#include <sys/stat.h>
 #include <unistd.h>
+
+#include <cerrno>
 
 #include <cmath>
 #include <csignal>
@@ -88,6 +91,9 @@ private:
 
 // Writes a streamed mesh to a temporary name next to OUTPUT; Commit() renames it into place.
 // If the run fails or is abandoned, the temporary file is removed and OUTPUT is untouched.
+// A run killed outright (SIGKILL, power loss) cannot remove its temporary: the next run to the
+// same OUTPUT removes those of processes that no longer exist (like the DML's stale block
+// directories; same caveat: pids mean something on this host only).
 class FileSink final : public io::MeshSink
 {
 public:
@@ -98,6 +104,7 @@ public:
     // the writer picks the format from it
     this->temp_ = this->output_.parent_path() /
       (".sipmss-" + std::to_string(::getpid()) + "-" + this->output_.filename().string());
+    this->RemoveStaleTemporaries();
   }
   ~FileSink() override
   {
@@ -129,6 +136,36 @@ public:
   }
 
 private:
+  // Regular files .sipmss-<pid>-<OUTPUT's name> beside OUTPUT whose pid has no process.
+  void RemoveStaleTemporaries() const
+  {
+    const std::string suffix = "-" + this->output_.filename().string();
+    const fs::path dir = this->output_.parent_path().empty() ? fs::path(".") : this->output_.parent_path();
+    std::error_code ec;
+    for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec))
+    {
+      const std::string name = it->path().filename().string();
+      if (name.size() <= 8 + suffix.size() || name.compare(0, 8, ".sipmss-") != 0 ||
+        name.compare(name.size() - suffix.size(), suffix.size(), suffix) != 0)
+      {
+        continue;
+      }
+      const std::string digits = name.substr(8, name.size() - 8 - suffix.size());
+      if (digits.find_first_not_of("0123456789") != std::string::npos || digits.size() > 9)
+      {
+        continue;
+      }
+      const long pid = std::stol(digits);
+      struct stat st{};
+      if (pid > 0 && pid != ::getpid() && ::kill(static_cast<pid_t>(pid), 0) != 0 &&
+        errno == ESRCH && ::lstat(it->path().c_str(), &st) == 0 && S_ISREG(st.st_mode))
+      {
+        std::error_code rm;
+        fs::remove(it->path(), rm);
+      }
+    }
+  }
+
   fs::path output_, temp_;
   std::unique_ptr<io::MeshWriter> writer_;
   bool committed_ = false;
