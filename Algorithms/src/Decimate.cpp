@@ -1300,7 +1300,7 @@ void Decimator::BuildRings()
       }
     }
   });
-  std::vector<std::uint64_t> dups; // ascending: the ranges are
+  std::vector<std::uint64_t> dups; // ascending (the ranges are in order)
   for (const std::vector<std::uint64_t>& list : found)
   {
     dups.insert(dups.end(), list.begin(), list.end());
