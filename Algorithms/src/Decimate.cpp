@@ -1269,6 +1269,17 @@ void Decimator::BuildRings()
     }
     return 1;
   };
+  // t's vertex set sorted into s, and the faces of its lowest vertex into list (where any face
+  // on the same set is).
+  auto setAndRing = [&RO, &RF](const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
+    s[0] = t.v[0];
+    s[1] = t.v[1];
+    s[2] = t.v[2];
+    SmallSort(s, 3);
+    const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
+    list.resize(e - b);
+    RF.GetRange(b, e - b, list.data());
+  };
   // The faces with another live face on the same vertex set (rare): found on all cores in core,
   // then settled one at a time in face order.
   std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T));
@@ -1285,14 +1296,12 @@ void Decimator::BuildRings()
       {
         continue;
       }
-      std::uint32_t s[3] = { t.v[0], t.v[1], t.v[2] };
-      SmallSort(s, 3);
-      const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
-      list.resize(e - b);
-      RF.GetRange(b, e - b, list.data());
+      std::uint32_t s[3];
+      setAndRing(t, s, list);
       for (std::uint32_t g : list)
       {
-        if (g != f && Alive(F.Get(g)) && sameSet(F.Get(g), s))
+        const Tri u = g != f ? F.Get(g) : kDeadTri;
+        if (Alive(u) && sameSet(u, s))
         {
           found[std::size_t(th)].push_back(f);
           break;
@@ -1312,11 +1321,8 @@ void Decimator::BuildRings()
     {
       continue;
     }
-    std::uint32_t s[3] = { t.v[0], t.v[1], t.v[2] };
-    SmallSort(s, 3);
-    const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
-    ids.resize(e - b);
-    RF.GetRange(b, e - b, ids.data());
+    std::uint32_t s[3];
+    setAndRing(t, s, ids);
     bool first = true, others = false;
     int net = 1;
     for (std::uint32_t g : ids)
@@ -2963,8 +2969,13 @@ void Decimator::Compact()
       State flags;
       Cand c;
       carry(v, flags, c);
-      this->S_.Set(v, flags);
-      this->C_.Set(v, c);
+      this->S_.Set(w, flags);
+      this->C_.Set(w, c);
+    }
+    else if (w != v)
+    {
+      this->S_.Set(w, this->S_.Get(v)); // carried in place above
+      this->C_.Set(w, this->C_.Get(v));
     }
     if (w != v)
     {
@@ -2975,8 +2986,6 @@ void Decimator::Compact()
         this->A_.GetRange(v * rec, rec, this->abuf_.data());
         this->A_.SetRange(w * rec, rec, this->abuf_.data());
       }
-      this->S_.Set(w, this->S_.Get(v));
-      this->C_.Set(w, this->C_.Get(v));
     }
   }
   // 4. Faces, ascending: new index f2 <= f (in core: renumbered in place on all cores first).

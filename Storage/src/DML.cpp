@@ -1032,41 +1032,6 @@ inline Block& CheckElement(DML::Impl& I, BlockId id, std::size_t elementSize, st
   return b;
 }
 
-// Element access out of core when the element is on the block's last used page: the same
-// bookkeeping as PageFor's one-entry cache (reference bit, dirty bit, hit), without its division
-// and calls. (LRU moves the frame on every access: PageFor does that.)
-inline unsigned char* LastPageElement(DML::Impl& I, Block& b, std::uint64_t index, bool write)
-{
-  if (b.lastFrame < 0 || index - b.lastFirst >= b.perPage || I.replacement == Replacement::Lru)
-  {
-    return nullptr;
-  }
-  detail::Frame& f = I.cache.frames[static_cast<std::size_t>(b.lastFrame)];
-  f.ref = true;
-  f.dirty = f.dirty || write;
-  ++I.stats.hits;
-  return f.data + (index - b.lastFirst) * b.elementSize;
-}
-
-// A copy of one element: fixed-size copies for the common sizes (no call).
-inline void CopyElement(void* dst, const void* src, std::size_t n)
-{
-  switch (n)
-  {
-    case 1: std::memcpy(dst, src, 1); break;
-    case 2: std::memcpy(dst, src, 2); break;
-    case 4: std::memcpy(dst, src, 4); break;
-    case 8: std::memcpy(dst, src, 8); break;
-    case 12: std::memcpy(dst, src, 12); break;
-    case 16: std::memcpy(dst, src, 16); break;
-    case 24: std::memcpy(dst, src, 24); break;
-    case 32: std::memcpy(dst, src, 32); break;
-    case 56: std::memcpy(dst, src, 56); break;
-    case 80: std::memcpy(dst, src, 80); break;
-    default: std::memcpy(dst, src, n); break;
-  }
-}
-
 Block& CheckRange(DML::Impl& I, BlockId id, std::uint64_t first, std::uint64_t count)
 {
   Block& b = I.Get(id, Kind::Plain);
@@ -1078,6 +1043,8 @@ Block& CheckRange(DML::Impl& I, BlockId id, std::uint64_t first, std::uint64_t c
 }
 } // namespace
 
+// The slow paths of the inline Read/Write (DML.h), which serve the published last page: here
+// in core, checks, and any other page (PageFor keeps its own one-entry cache too).
 void DML::ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
   Impl& I = *this->impl_;
@@ -1085,11 +1052,6 @@ void DML::ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, 
   if (b.mem)
   {
     std::memcpy(dst, b.mem + index * elementSize, elementSize);
-    return;
-  }
-  if (unsigned char* data = LastPageElement(I, b, index, false))
-  {
-    CopyElement(dst, data, elementSize);
     return;
   }
   I.EnsureCache();
@@ -1105,11 +1067,6 @@ void DML::WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index,
   if (b.mem)
   {
     std::memcpy(b.mem + index * elementSize, src, elementSize);
-    return;
-  }
-  if (unsigned char* data = LastPageElement(I, b, index, true))
-  {
-    CopyElement(data, src, elementSize);
     return;
   }
   I.EnsureCache();

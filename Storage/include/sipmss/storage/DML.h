@@ -116,7 +116,7 @@ enum class Access : std::uint8_t
 };
 
 // Out of core: a block's last used page, published by the DML for the inline element access of
-// Read and Write (the same bookkeeping as its own last-page path: reference bit, dirty bit, hit
+// Read and Write (the same bookkeeping as PageFor's one-entry cache: reference bit, dirty bit, hit
 // count). count == 0: none.
 struct FastPage
 {
