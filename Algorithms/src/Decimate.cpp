@@ -244,8 +244,11 @@ public:
   }
   void Refresh() { this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_)); }
   // Direct pointer to element i when in core, else nullptr.
-  const T* Ptr(std::uint64_t i) const { return this->base_ ? this->base_ + i : nullptr; }
-  T Get(std::uint64_t i) const
+  SIPMSS_ALWAYS_INLINE const T* Ptr(std::uint64_t i) const
+  {
+    return this->base_ ? this->base_ + i : nullptr;
+  }
+  SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const
   {
     if (this->base_)
     {
@@ -255,7 +258,7 @@ public:
     this->dml_->Read(this->id_, sizeof(T), i, &v);
     return v;
   }
-  void Set(std::uint64_t i, const T& v)
+  SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
   {
     if (this->base_)
     {

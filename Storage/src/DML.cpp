@@ -170,37 +170,43 @@ void DML::Impl::SyncBases() noexcept
 
 void DML::Impl::SyncFast(BlockId id) noexcept
 {
-  if (id < 0 || static_cast<std::size_t>(id) >= this->fast.size())
+  if (id < 0 || static_cast<std::size_t>(id) * kFastPages >= this->fast.size())
   {
     return;
   }
-  FastPage& p = this->fast[static_cast<std::size_t>(id)];
-  p = FastPage{};
+  FastPage* e = &this->fast[static_cast<std::size_t>(id) * kFastPages];
   const Block& b = this->blocks[static_cast<std::size_t>(id)];
-  if (b.kind != Kind::Plain || b.mem || b.lastFrame < 0 || !this->cache.built ||
-    this->replacement == Replacement::Lru || b.lastFirst >= b.count)
+  const bool none = b.kind != Kind::Plain || b.mem || !this->cache.built ||
+    this->replacement == Replacement::Lru; // (LRU moves the frame on every access: the slow path)
+  for (std::size_t k = 0; k < kFastPages; ++k)
   {
-    return; // (LRU moves the frame on every access: the slow path does that)
+    FastPage& p = e[k];
+    p = FastPage{};
+    if (none || b.recentFrame[k] < 0 || b.recentFirst[k] >= b.count)
+    {
+      continue;
+    }
+    detail::Frame& f = this->cache.frames[static_cast<std::size_t>(b.recentFrame[k])];
+    p.data = f.data;
+    p.first = b.recentFirst[k];
+    p.count = std::min<std::uint64_t>(b.perPage, b.count - b.recentFirst[k]);
+    p.elementSize = b.elementSize;
+    p.ref = &f.ref;
+    p.dirty = &f.dirty;
   }
-  detail::Frame& f = this->cache.frames[static_cast<std::size_t>(b.lastFrame)];
-  p.data = f.data;
-  p.first = b.lastFirst;
-  p.count = std::min<std::uint64_t>(b.perPage, b.count - b.lastFirst);
-  p.elementSize = b.elementSize;
-  p.ref = &f.ref;
-  p.dirty = &f.dirty;
 }
 
 void DML::Impl::SyncAllFast() noexcept
 {
   // Within capacity (reserved in NewSlot, like bases): resize does not allocate.
-  this->fast.resize(std::min(this->blocks.size(), this->fast.capacity()));
-  for (std::size_t i = 0; i < this->fast.size(); ++i)
+  const std::size_t n = std::min(this->blocks.size(), this->fast.capacity() / kFastPages);
+  this->fast.resize(n * kFastPages);
+  for (std::size_t i = 0; i < n; ++i)
   {
     this->SyncFast(static_cast<BlockId>(i));
   }
   this->owner->fast_ = this->fast.data();
-  this->owner->fastCount_ = this->fast.size();
+  this->owner->fastCount_ = n;
 }
 
 Block& DML::Impl::Get(BlockId id, Kind kind)
@@ -236,9 +242,9 @@ BlockId DML::Impl::NewSlot(Kind kind, std::size_t elementSize, double weight)
     {
       const std::size_t cap = std::max<std::size_t>(8, this->blocks.capacity() * 2);
       this->ReleaseFrames(HeapCost(cap * sizeof(Block)) + HeapCost(cap * sizeof(void*)) +
-        HeapCost(cap * sizeof(FastPage)));
+        HeapCost(cap * kFastPages * sizeof(FastPage)));
       this->bases.reserve(cap);
-      this->fast.reserve(cap);
+      this->fast.reserve(cap * kFastPages);
       this->blocks.reserve(cap);
     }
     this->blocks.emplace_back();
@@ -660,7 +666,7 @@ void DML::Impl::LoadBlock(BlockId id)
   }
   b.mem = mem;
   b.capacityBytes = cap;
-  b.lastFrame = -1;
+  b.ClearRecent();
   this->RemoveFile(b);
 }
 
@@ -1233,6 +1239,11 @@ std::uint64_t DMLTestAccess::FileBytes(const DML& dml, BlockId id)
     return 0;
   }
   return static_cast<std::uint64_t>(st.st_size);
+}
+
+std::uint64_t DMLTestAccess::InlineHits(const DML& dml)
+{
+  return dml.fastHits_;
 }
 
 } // namespace sipmss::storage

@@ -162,9 +162,19 @@ struct Block
   std::uint64_t perPage = 1; // elements per page: floor(pageSize / elementSize)
 
   // Page-cache state of this block.
-  std::uint64_t lastPage = 0;  // one-entry lookup cache for sequential access
-  std::uint64_t lastFirst = 0; // lastPage * perPage: its first element
-  std::int32_t lastFrame = -1; // -1: none
+  // The last kFastPages pages used, most recent first (loops over neighbouring elements move
+  // between a few pages): looked up before the hash table, and published for the inline access.
+  std::int32_t recentFrame[kFastPages] = {}; // -1: none (ClearRecent)
+  std::uint64_t recentPage[kFastPages] = {};
+  std::uint64_t recentFirst[kFastPages] = {}; // recentPage * perPage: its first element
+  Block() { this->ClearRecent(); }
+  void ClearRecent()
+  {
+    for (std::int32_t& f : this->recentFrame)
+    {
+      f = -1;
+    }
+  }
   std::int32_t hand = -1;      // clock hand / LRU end of this block's frame ring; -1: no frames
   std::uint32_t resident = 0;  // frames held
   std::uint32_t quota = 1;     // target share of frames (StaticWeight or Adaptive)

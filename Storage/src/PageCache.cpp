@@ -134,7 +134,7 @@ void DML::Impl::EnsureCache()
   for (auto& b : this->blocks)
   {
     b.perPage = std::max<std::uint64_t>(1, C.pageSize / std::max<std::size_t>(b.elementSize, 1));
-    b.lastFrame = -1;
+    b.ClearRecent();
     b.hand = -1;
     b.resident = 0;
   }
@@ -170,7 +170,7 @@ void DML::Impl::DestroyCache(bool writeBack)
   }
   for (auto& b : this->blocks)
   {
-    b.lastFrame = -1;
+    b.ClearRecent();
     b.hand = -1;
     b.resident = 0;
   }
@@ -261,26 +261,48 @@ void DML::Impl::RingRemove(Block& b, std::int32_t fi)
 unsigned char* DML::Impl::PageFor(BlockId id, Block& b, std::uint64_t page, bool write, bool fetch)
 {
   std::int32_t fi = -1;
-  if (b.lastFrame >= 0 && b.lastPage == page)
+  if (b.recentFrame[0] >= 0 && b.recentPage[0] == page)
   {
-    fi = b.lastFrame;
+    fi = b.recentFrame[0];
     ++this->stats.hits;
   }
   else
   {
-    fi = this->Lookup(id, page);
-    if (fi >= 0)
+    // One of the other recent pages, else the hash table, else a fault (which may evict some of
+    // the recent pages: Evict clears their entries). The page becomes the most recent.
+    std::size_t k = 1;
+    while (k < kFastPages && !(b.recentFrame[k] >= 0 && b.recentPage[k] == page))
     {
+      ++k;
+    }
+    if (k < kFastPages)
+    {
+      fi = b.recentFrame[k];
       ++this->stats.hits;
     }
     else
     {
-      fi = this->Fault(id, b, page, fetch);
-      ++this->stats.misses;
+      k = kFastPages - 1; // the oldest entry goes
+      fi = this->Lookup(id, page);
+      if (fi >= 0)
+      {
+        ++this->stats.hits;
+      }
+      else
+      {
+        fi = this->Fault(id, b, page, fetch);
+        ++this->stats.misses;
+      }
     }
-    b.lastFrame = fi;
-    b.lastPage = page;
-    b.lastFirst = page * b.perPage;
+    for (; k > 0; --k)
+    {
+      b.recentFrame[k] = b.recentFrame[k - 1];
+      b.recentPage[k] = b.recentPage[k - 1];
+      b.recentFirst[k] = b.recentFirst[k - 1];
+    }
+    b.recentFrame[0] = fi;
+    b.recentPage[0] = page;
+    b.recentFirst[0] = page * b.perPage;
     this->SyncFast(id);
   }
   Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
@@ -626,9 +648,17 @@ void DML::Impl::Evict(std::int32_t fi, bool writeBack)
   f.hashNext = -1;
   this->RingRemove(b, fi);
   --b.resident;
-  if (b.lastFrame == fi)
+  bool recent = false;
+  for (std::int32_t& r : b.recentFrame)
   {
-    b.lastFrame = -1;
+    if (r == fi)
+    {
+      r = -1;
+      recent = true;
+    }
+  }
+  if (recent)
+  {
     this->SyncFast(f.block);
   }
   if (f.pins > 0)
@@ -666,7 +696,7 @@ void DML::Impl::DropBlockPages(BlockId id, std::uint64_t fromPage)
     }
     fi = next;
   }
-  b.lastFrame = -1;
+  b.ClearRecent();
   this->SyncFast(id);
   this->cache.quotasDirty = true;
 }
@@ -717,7 +747,7 @@ std::int32_t DML::Impl::PinPage(BlockId id, Block& b, std::uint64_t page, bool w
         std::to_string(C.pinnedFrames) + " pinned)");
     }
   }
-  fi = static_cast<std::int32_t>(this->PageFor(id, b, page, write, true) ? b.lastFrame : -1);
+  fi = static_cast<std::int32_t>(this->PageFor(id, b, page, write, true) ? b.recentFrame[0] : -1);
   Frame& f = C.frames[static_cast<std::size_t>(fi)];
   if (f.pins++ == 0)
   {

@@ -171,6 +171,88 @@ TEST(StorageDML, InlineElementAccessFollowsThePageCache)
   EXPECT_GT(st.misses, 0u);
 }
 
+TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
+{
+  // Out of core, the last kFastPages pages a block used are served inline, so a loop that
+  // alternates between a few pages (the neighbours of a vertex) stays off the slow path. Each
+  // of them, not only the last one, must stop being used when its frame is evicted.
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::OutOfCore));
+  constexpr std::uint64_t n = 50000;
+  Array<std::uint64_t> a(dml, n);
+  std::vector<std::uint64_t> init(n);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    init[i] = 3 * i;
+  }
+  dml.WriteRange(a.Id(), 0, n, init.data()); // straight to the file: a holds no frames yet
+  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  ASSERT_GT(per, 4u);
+  ASSERT_GE(kFastPages, 2u);
+  // Alternate between kFastPages pages of a: after the first round, every access is inline.
+  std::uint64_t pages[kFastPages];
+  for (std::size_t k = 0; k < kFastPages; ++k)
+  {
+    pages[k] = 2 + 3 * k;
+  }
+  const std::uint64_t inlineBefore = DMLTestAccess::InlineHits(dml);
+  const std::uint64_t missesBefore = dml.GetStats().misses;
+  for (std::uint64_t j = 0; j < per; ++j)
+  {
+    for (std::uint64_t page : pages)
+    {
+      const std::uint64_t i = page * per + j;
+      a.Set(i, a.Get(i) + 1);
+    }
+  }
+  EXPECT_GE(DMLTestAccess::InlineHits(dml) - inlineBefore, 2 * per * kFastPages - 2 * kFastPages);
+  EXPECT_EQ(dml.GetStats().misses, missesBefore + kFastPages);
+  // Those dirty, recent pages are a's only frames. Many other blocks now take their share of
+  // the frames, which leaves a one or two: most of its recent pages are evicted (written back).
+  // Reads of a must then come from the file, not from frames that now hold other blocks.
+  const std::uint32_t slots = DMLTestAccess::FrameSlots(dml);
+  ASSERT_GT(slots, 0u);
+  std::vector<Array<std::uint64_t>> others;
+  for (std::uint32_t k = 0; k < slots; ++k)
+  {
+    others.emplace_back(dml, 4 * per);
+    for (std::uint64_t i = 0; i < 4 * per; ++i)
+    {
+      others.back().Set(i, 7 * i + k);
+    }
+  }
+  auto expected = [&](std::uint64_t i) {
+    for (std::uint64_t page : pages)
+    {
+      if (i / per == page)
+      {
+        return 3 * i + 1;
+      }
+    }
+    return 3 * i;
+  };
+  for (std::size_t k = kFastPages; k-- > 0;)
+  {
+    for (std::uint64_t j = 0; j < per; ++j)
+    {
+      const std::uint64_t i = pages[k] * per + j;
+      ASSERT_EQ(a.Get(i), expected(i)) << "page " << pages[k] << " element " << j;
+    }
+  }
+  for (std::uint64_t i = 0; i < n; i += 1 + i % 7)
+  {
+    ASSERT_EQ(a.Get(i), expected(i)) << i;
+  }
+  for (std::uint32_t k = 0; k < slots; ++k)
+  {
+    for (std::uint64_t i = 0; i < 4 * per; i += 1 + i % 5)
+    {
+      ASSERT_EQ(others[k].Get(i), 7 * i + k) << k << " " << i;
+    }
+  }
+}
+
 TEST(StorageDML, ElementsLargerThanAPage)
 {
   TempDir tmp;

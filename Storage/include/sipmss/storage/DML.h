@@ -17,6 +17,14 @@
 #include <string>
 #include <vector>
 
+// Element access sits in the innermost loops of the algorithms, whose functions are large enough
+// that the compiler's inlining budget runs out before these small bodies: force them inline.
+#if defined(__GNUC__) || defined(__clang__)
+#define SIPMSS_ALWAYS_INLINE inline __attribute__((always_inline))
+#else
+#define SIPMSS_ALWAYS_INLINE inline
+#endif
+
 namespace sipmss::storage
 {
 
@@ -115,9 +123,10 @@ enum class Access : std::uint8_t
   Write // the page is marked dirty
 };
 
-// Out of core: a block's last used page, published by the DML for the inline element access of
-// Read and Write (the same bookkeeping as PageFor's one-entry cache: reference bit, dirty bit, hit
-// count). count == 0: none.
+// Out of core: a block's last two used pages (kFastPages entries per block), published by the DML
+// for the inline element access of Read and Write (the same bookkeeping as PageFor's two-entry
+// cache: reference bit, dirty bit, hit count). count == 0: none.
+constexpr std::size_t kFastPages = 4;
 struct FastPage
 {
   unsigned char* data = nullptr;
@@ -200,50 +209,61 @@ private:
   // date by Impl so that BasePointer() is inline: a compare and two loads, no call.
   void* const* bases_ = nullptr;
   std::size_t baseCount_ = 0;
-  // The same for the out-of-core blocks' last used pages (kept up to date by Impl: every change of
-  // a block's last page, eviction, resize, mode switch or cache rebuild re-publishes it).
+  // The same for the out-of-core blocks' last two used pages, kFastPages entries per block (kept up
+  // to date by Impl: every change of a block's last pages, eviction, resize, mode switch or cache
+  // rebuild re-publishes them).
   const FastPage* fast_ = nullptr;
-  std::size_t fastCount_ = 0;
+  std::size_t fastCount_ = 0; // blocks
   std::uint64_t fastHits_ = 0;
   void ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst);
   void WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
 };
 
-inline void* DML::BasePointer(BlockId id) const
+SIPMSS_ALWAYS_INLINE void* DML::BasePointer(BlockId id) const
 {
   return static_cast<std::size_t>(id) < this->baseCount_ ? this->bases_[id] : nullptr;
 }
 
-// One element: inline when out of core on the block's last used page (the hot case of loops
-// over neighbouring elements), else ReadElement/WriteElement (in core, other pages, errors).
-inline void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
+// One element: inline when out of core on one of the block's last two used pages (the hot case
+// of loops over neighbouring elements), else ReadElement/WriteElement (in core, other pages,
+// errors).
+SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
   if (static_cast<std::size_t>(id) < this->fastCount_)
   {
-    const FastPage& p = this->fast_[id];
-    if (index - p.first < p.count && elementSize == p.elementSize)
+    const FastPage* e = this->fast_ + static_cast<std::size_t>(id) * kFastPages;
+    for (std::size_t k = 0; k < kFastPages; ++k)
     {
-      *p.ref = true;
-      ++this->fastHits_;
-      std::memcpy(dst, p.data + (index - p.first) * elementSize, elementSize);
-      return;
+      const FastPage& p = e[k];
+      if (index - p.first < p.count && elementSize == p.elementSize)
+      {
+        *p.ref = true;
+        ++this->fastHits_;
+        std::memcpy(dst, p.data + (index - p.first) * elementSize, elementSize);
+        return;
+      }
     }
   }
   this->ReadElement(id, elementSize, index, dst);
 }
 
-inline void DML::Write(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
+SIPMSS_ALWAYS_INLINE void DML::Write(
+  BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
 {
   if (static_cast<std::size_t>(id) < this->fastCount_)
   {
-    const FastPage& p = this->fast_[id];
-    if (index - p.first < p.count && elementSize == p.elementSize)
+    const FastPage* e = this->fast_ + static_cast<std::size_t>(id) * kFastPages;
+    for (std::size_t k = 0; k < kFastPages; ++k)
     {
-      *p.ref = true;
-      *p.dirty = true;
-      ++this->fastHits_;
-      std::memcpy(p.data + (index - p.first) * elementSize, src, elementSize);
-      return;
+      const FastPage& p = e[k];
+      if (index - p.first < p.count && elementSize == p.elementSize)
+      {
+        *p.ref = true;
+        *p.dirty = true;
+        ++this->fastHits_;
+        std::memcpy(p.data + (index - p.first) * elementSize, src, elementSize);
+        return;
+      }
     }
   }
   this->WriteElement(id, elementSize, index, src);

@@ -24,6 +24,7 @@ struct DMLTestAccess
   static std::size_t PageSize(const DML& dml);      // 0 until the page cache exists
   static std::uint32_t FrameSlots(const DML& dml);  // frame slots of the page cache
   static std::uint64_t FileBytes(const DML& dml, BlockId id); // st_size of the block's file
+  static std::uint64_t InlineHits(const DML& dml); // element accesses served inline (Read/Write)
 };
 
 namespace detail
