@@ -118,6 +118,10 @@ public:
     {
       throw StorageError("cannot create block file", path, errno);
     }
+    // The DML caches pages itself and reads one page where it misses: kernel readahead around
+    // those reads only fills the OS cache with pages nobody asked for, zeroing the sparse parts
+    // of the file (measured: 6% of a Lucy-size run at 8 MB). Advice only.
+    (void)::posix_fadvise(fd, 0, 0, POSIX_FADV_RANDOM);
     return fd;
   }
   void Close(int handle) override { ::close(handle); }
