@@ -23,6 +23,7 @@ int vtkSIPMSSCluster::RequestData(
       sipmss::algorithms::ClusterOptions options;
       options.maximumGridDimension = this->MaximumGridDimension;
       options.storage = profile;
+      options.threads = this->NumberOfThreads;
       options.boundaryQuadrics = this->BoundaryWeight > 0;
       options.boundaryWeight = this->BoundaryWeight;
       if (this->UseBounds)

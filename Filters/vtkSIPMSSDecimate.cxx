@@ -52,6 +52,7 @@ int vtkSIPMSSDecimate::RequestData(
       options.boundaryWeight = this->BoundaryWeight;
       options.weldDistance = this->WeldDistance;
       options.storage = profile;
+      options.threads = this->NumberOfThreads;
       auto onLevel = [levels](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
         vtkNew<vtkPolyData> lod;
         vtkSIPMSSPolyDataBridge::PolyDataSink lodSink(lod);

@@ -110,6 +110,7 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "TemporaryDirectories: "
      << (this->TemporaryDirectories ? this->TemporaryDirectories : "(default)") << "\n";
   os << indent << "OperationMode: " << this->OperationMode << "\n";
+  os << indent << "NumberOfThreads: " << this->NumberOfThreads << "\n";
   os << indent << "UsedInCore: " << this->UsedInCore << "\n";
   os << indent << "UsedOutOfCore: " << this->UsedOutOfCore << "\n";
   os << indent << "PeakStorageBytes: " << this->PeakStorageBytes << "\n";

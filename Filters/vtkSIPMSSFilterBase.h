@@ -90,6 +90,15 @@ public:
 
   ///@{
   /**
+   * Threads of the in-core parts of the run. 0 (default): all cores. The output does not depend
+   * on it. Lower it when several filters or MPI ranks share a machine (pvbatch under mpirun).
+   */
+  vtkSetClampMacro(NumberOfThreads, int, 0, 256);
+  vtkGetMacro(NumberOfThreads, int);
+  ///@}
+
+  ///@{
+  /**
    * Statistics of the last run.
    */
   vtkGetMacro(UsedInCore, bool);
@@ -123,6 +132,7 @@ protected:
   double MemoryBudgetMB = 0.0;
   char* TemporaryDirectories = nullptr;
   int OperationMode = AUTOMATIC;
+  int NumberOfThreads = 0;
 
   bool UsedInCore = false;
   bool UsedOutOfCore = false;

@@ -69,6 +69,21 @@ int TestSphere()
   b->Update();
   SIPMSS_CHECK(b->GetUsedOutOfCore());
   SIPMSS_CHECK(SameMesh(out, b->GetOutput()));
+
+  // One thread (a's ran on all cores): the same mesh.
+  vtkNew<vtkSIPMSSDecimate> c;
+  c->SetInputData(in);
+  c->SetTargetNumberOfTriangles(1000);
+  c->SetNumberOfLevelsOfDetail(3);
+  c->SetOperationMode(vtkSIPMSSFilterBase::IN_CORE);
+  SIPMSS_CHECK(c->GetNumberOfThreads() == 0);
+  c->SetNumberOfThreads(1);
+  SIPMSS_CHECK(c->GetNumberOfThreads() == 1);
+  c->SetNumberOfThreads(-3); // clamped
+  SIPMSS_CHECK(c->GetNumberOfThreads() == 0);
+  c->SetNumberOfThreads(1);
+  c->Update();
+  SIPMSS_CHECK(SameMesh(out, c->GetOutput()));
   return EXIT_SUCCESS;
 }
 

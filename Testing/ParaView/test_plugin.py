@@ -30,6 +30,10 @@ decimate.NumberOfLevelsOfDetail = 2
 decimate.UpdatePipeline()
 n_dec = decimate.GetDataInformation().GetNumberOfCells()
 assert 800 <= n_dec <= 1000, n_dec
+assert decimate.NumberOfThreads == 0, decimate.NumberOfThreads  # all cores
+decimate.NumberOfThreads = 1
+decimate.UpdatePipeline()
+assert decimate.GetDataInformation().GetNumberOfCells() == n_dec
 
 # stream a file without loading it first (the "SIPMSS Cluster File" source)
 with tempfile.TemporaryDirectory() as tmp:

@@ -22,6 +22,7 @@ assert n > 100, n
 
 decimate = SIPMSSDecimate(Input=surface)
 decimate.TargetReduction = 0.75
+decimate.NumberOfThreads = 1  # one thread per rank: the ranks share the cores
 decimate.UpdatePipeline()
 n_in = surface.GetDataInformation().GetNumberOfCells()
 n_dec = decimate.GetDataInformation().GetNumberOfCells()

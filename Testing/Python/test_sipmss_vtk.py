@@ -50,6 +50,16 @@ class SIPMSSPythonTest(unittest.TestCase):
         n_out = f.GetOutput().GetNumberOfPolys()
         self.assertLessEqual(n_out, round(n_in * 0.2))
         self.assertGreater(n_out, round(n_in * 0.15))
+        # one thread instead of all cores: the same mesh
+        self.assertEqual(f.GetNumberOfThreads(), 0)
+        g = vtkSIPMSSDecimate()
+        g.SetInputConnection(src.GetOutputPort())
+        g.SetTargetReduction(0.8)
+        g.SetNumberOfThreads(1)
+        g.Update()
+        self.assertEqual(g.GetOutput().GetNumberOfPolys(), n_out)
+        for i in range(0, f.GetOutput().GetNumberOfPoints(), 97):
+            self.assertEqual(f.GetOutput().GetPoint(i), g.GetOutput().GetPoint(i))
 
     def test_stream_file_out_of_core(self):
         data = os.environ.get("SIPMSS_SHARED_DATA_DIR", "")
