@@ -612,6 +612,7 @@ private:
   void Read(const MeshSource& input);
   void Weld();
   void BuildRings();
+  void FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal);
   void BuildQuadrics();
   bool Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan);
   void Compact();
@@ -1145,6 +1146,67 @@ void Decimator::Weld()
 // ---------------------------------------------------------------------------------------------
 // rings
 
+// Fills the incident face lists of faces [0, nf) (dead ones skipped) from the ring offsets, which
+// hold the end of each list: faces in reverse, so each list ends up in increasing face order and
+// RO[v] at its start. In core on all cores, each thread owns a range of vertices and scans every
+// face (the reads are sequential, the writes it splits are not): the same lists.
+void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal)
+{
+  const Tri* F = this->F_.Ptr(0);
+  std::uint32_t* RO = const_cast<std::uint32_t*>(this->RO_.Ptr(0));
+  std::uint32_t* RF = const_cast<std::uint32_t*>(this->RF_.Ptr(0));
+  const std::uint64_t nv = this->nv_;
+  const int T = (nf >= kParallelRingsMin && F && RO && RF) ? this->threads_ : 1;
+  if (T <= 1)
+  {
+    for (std::uint64_t i = nf; i-- > 0;)
+    {
+      this->Tick(tickBase + (nf - i), tickTotal);
+      const Tri t = this->F_.Get(i);
+      if (!Alive(t))
+      {
+        continue;
+      }
+      for (int k = 0; k < 3; ++k)
+      {
+        const std::uint32_t e = this->RO_.Get(t.v[k]) - 1;
+        this->RO_.Set(t.v[k], e);
+        this->RF_.Set(e, std::uint32_t(i));
+      }
+    }
+    return;
+  }
+  ForRanges(T, nv, [&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    for (std::uint64_t i = nf; i-- > 0;)
+    {
+      if ((i & 4095) == 0)
+      {
+        if (stop.load(std::memory_order_relaxed))
+        {
+          return;
+        }
+        if (th == 0)
+        {
+          this->Tick(tickBase + (nf - i), tickTotal);
+        }
+      }
+      const Tri t = F[i];
+      if (!Alive(t))
+      {
+        continue;
+      }
+      for (int k = 0; k < 3; ++k)
+      {
+        const std::uint32_t x = t.v[k];
+        if (x >= lo && x < hi)
+        {
+          RF[--RO[x]] = std::uint32_t(i);
+        }
+      }
+    }
+  });
+}
+
 void Decimator::BuildRings()
 {
   PhaseTimer timer(this->stats_, this->dml_, "rings");
@@ -1235,22 +1297,9 @@ void Decimator::BuildRings()
   P.Refresh();
   RO.Refresh();
   View<std::uint32_t> RF(this->dml_, this->ringFace_);
-  // Pass 2 (faces in reverse): each list ends up in increasing face order, RO[v] = its start.
-  for (std::uint64_t i = nf; i-- > 0;)
-  {
-    this->Tick(nf + (nf - i), 3 * nf);
-    Tri t = F.Get(i);
-    if (!Alive(t))
-    {
-      continue;
-    }
-    for (int k = 0; k < 3; ++k)
-    {
-      std::uint32_t e = RO.Get(t.v[k]) - 1;
-      RO.Set(t.v[k], e);
-      RF.Set(e, std::uint32_t(i));
-    }
-  }
+  // Pass 2: the incident face lists.
+  this->BindViews();
+  this->FillRings(nf, nf, 3 * nf);
   // Faces on the same vertex set: copies of one orientation are one face, and two faces of
   // opposite orientations cancel (a zero-volume double-sided pair: keeping one of them would
   // leave three faces on each of its edges). A group is settled by its first live member; the
@@ -2954,40 +3003,70 @@ void Decimator::Compact()
     });
   }
   const std::size_t rec = this->recSize_;
-  this->abuf_.resize(rec);
-  for (std::uint64_t v = 0; v < nv; ++v)
+  if (T > 1)
   {
-    if (T <= 1)
+    // The moves, in place and downwards: the arrays are independent, so one thread moves the
+    // quadrics and another the positions, states, candidates and point data (memory-bound: one
+    // thread per stream).
+    const std::uint32_t* Rp = R.Ptr(0);
+    Quadric* Qp = const_cast<Quadric*>(this->Q_.Ptr(0));
+    Vec3* Pp = const_cast<Vec3*>(this->P_.Ptr(0));
+    State* Sp = const_cast<State*>(this->S_.Ptr(0));
+    Cand* Cp = const_cast<Cand*>(this->C_.Ptr(0));
+    std::uint8_t* Ap = rec ? const_cast<std::uint8_t*>(this->A_.Ptr(0)) : nullptr;
+    ForRanges(std::min(T, 2), 2, [&](int, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
+      for (std::uint64_t g = gb; g < ge; ++g)
+      {
+        for (std::uint64_t v = 0; v < nv; ++v)
+        {
+          const std::uint32_t rv = Rp[v];
+          const std::uint64_t w = rv & ~kTop;
+          if (rv == kNone || w == v)
+          {
+            continue;
+          }
+          if (g == 0)
+          {
+            Qp[w] = Qp[v];
+            continue;
+          }
+          Pp[w] = Pp[v];
+          Sp[w] = Sp[v]; // carried in place above
+          Cp[w] = Cp[v];
+          if (Ap)
+          {
+            std::memcpy(Ap + w * rec, Ap + v * rec, rec);
+          }
+        }
+      }
+    });
+  }
+  else
+  {
+    this->abuf_.resize(rec);
+    for (std::uint64_t v = 0; v < nv; ++v)
     {
       this->Tick(nf + nv + v, total);
-    }
-    const std::uint32_t rv = R.Get(v);
-    if (rv == kNone)
-    {
-      continue;
-    }
-    const std::uint64_t w = rv & ~kTop;
-    if (T <= 1)
-    {
+      const std::uint32_t rv = R.Get(v);
+      if (rv == kNone)
+      {
+        continue;
+      }
+      const std::uint64_t w = rv & ~kTop;
       State flags;
       Cand c;
       carry(v, flags, c);
       this->S_.Set(w, flags);
       this->C_.Set(w, c);
-    }
-    else if (w != v)
-    {
-      this->S_.Set(w, this->S_.Get(v)); // carried in place above
-      this->C_.Set(w, this->C_.Get(v));
-    }
-    if (w != v)
-    {
-      this->P_.Set(w, this->P_.Get(v));
-      this->Q_.Set(w, this->Q_.Get(v));
-      if (rec)
+      if (w != v)
       {
-        this->A_.GetRange(v * rec, rec, this->abuf_.data());
-        this->A_.SetRange(w * rec, rec, this->abuf_.data());
+        this->P_.Set(w, this->P_.Get(v));
+        this->Q_.Set(w, this->Q_.Get(v));
+        if (rec)
+        {
+          this->A_.GetRange(v * rec, rec, this->abuf_.data());
+          this->A_.SetRange(w * rec, rec, this->abuf_.data());
+        }
       }
     }
   }
@@ -3048,17 +3127,7 @@ void Decimator::Compact()
   this->nv_ = nv2;
   this->nf_ = nf2;
   this->BindViews();
-  for (std::uint64_t f = nf2; f-- > 0;)
-  {
-    this->Tick(2 * nf + 2 * nv + (nf2 - f), total);
-    const Tri t = this->F_.Get(f);
-    for (int c = 0; c < 3; ++c)
-    {
-      const std::uint32_t e = this->RO_.Get(t.v[c]) - 1;
-      this->RO_.Set(t.v[c], e);
-      this->RF_.Set(e, std::uint32_t(f));
-    }
-  }
+  this->FillRings(nf2, 2 * nf + 2 * nv, total);
   this->remap_.Resize(nvb);
   this->order_.Resize(nvb);
   this->dml_.Reconfigure();
