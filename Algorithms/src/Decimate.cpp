@@ -2844,9 +2844,9 @@ void Decimator::Compact()
   this->remap_.Resize(std::max<std::uint64_t>(nv, 1));
   this->BindViews();
   View<std::uint32_t> R(this->dml_, this->remap_);
-  // In core, the steps that read at random (degrees, the carried candidates, the faces' new
-  // numbers) run on all cores, each thread on its own range; the moves stay sequential (in
-  // place, downwards). Same result either way.
+  // In core on several threads: the degrees and the rings by vertex range (each thread scans
+  // all faces and writes only its own vertices), the moves (in place, downwards) one array
+  // group per thread. Same result either way.
   const int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
                   (!this->recSize_ || this->A_.Ptr(0)))
     ? this->threads_
@@ -2855,21 +2855,33 @@ void Decimator::Compact()
   FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
   if (T > 1)
   {
+    // Each thread counts the vertices of its range over all faces (sequential reads; no two
+    // threads write one counter, so no atomics).
     std::uint32_t* RO = const_cast<std::uint32_t*>(this->RO_.Ptr(0));
     const Tri* F = this->F_.Ptr(0);
-    ForRanges(T, nf, [&](int t, std::uint64_t b, std::uint64_t e, const std::atomic<bool>& stop) {
-      for (std::uint64_t f = b; f < e && !stop.load(std::memory_order_relaxed); ++f)
+    ForRanges(T, nv, [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+      for (std::uint64_t f = 0; f < nf; ++f)
       {
-        if (t == 0)
+        if ((f & 4095) == 0)
         {
-          this->Tick(f - b, total * (e - b) / nf);
+          if (stop.load(std::memory_order_relaxed))
+          {
+            return;
+          }
+          if (t == 0)
+          {
+            this->Tick(f, total);
+          }
         }
         const Tri t3 = F[f];
         if (Alive(t3))
         {
           for (int c = 0; c < 3; ++c)
           {
-            __atomic_fetch_add(RO + t3.v[c], 1u, __ATOMIC_RELAXED);
+            if (t3.v[c] >= lo && t3.v[c] < hi) // (only then written: others' are theirs)
+            {
+              ++RO[t3.v[c]];
+            }
           }
         }
       }
@@ -2980,59 +2992,66 @@ void Decimator::Compact()
       }
     }
   };
-  if (T > 1)
-  {
-    // The new state and candidate in place (reads: the vertex's own records and R), then the
-    // moves.
-    ForRanges(T, nv, [&](int t, std::uint64_t b, std::uint64_t e, const std::atomic<bool>& stop) {
-      for (std::uint64_t v = b; v < e && !stop.load(std::memory_order_relaxed); ++v)
-      {
-        if (t == 0)
-        {
-          this->Tick(nf + nv + (v - b) * T, total);
-        }
-        if (R.Get(v) != kNone)
-        {
-          State flags;
-          Cand c;
-          carry(v, flags, c);
-          this->S_.Set(v, flags);
-          this->C_.Set(v, c);
-        }
-      }
-    });
-  }
   const std::size_t rec = this->recSize_;
+  std::uint64_t f2 = 0;
   if (T > 1)
   {
-    // The moves, in place and downwards: the arrays are independent, so one thread moves the
-    // quadrics and another the positions, states, candidates and point data (memory-bound: one
-    // thread per stream).
+    // In place and downwards (carry reads only the vertex's own records and R): the arrays are
+    // independent, so one thread moves the quadrics and another carries the states and
+    // candidates and moves them, the positions and the point data (memory-bound: one thread per
+    // stream).
     const std::uint32_t* Rp = R.Ptr(0);
     Quadric* Qp = const_cast<Quadric*>(this->Q_.Ptr(0));
     Vec3* Pp = const_cast<Vec3*>(this->P_.Ptr(0));
     State* Sp = const_cast<State*>(this->S_.Ptr(0));
     Cand* Cp = const_cast<Cand*>(this->C_.Ptr(0));
     std::uint8_t* Ap = rec ? const_cast<std::uint8_t*>(this->A_.Ptr(0)) : nullptr;
+    Tri* Fp = const_cast<Tri*>(this->F_.Ptr(0));
     ForRanges(std::min(T, 2), 2, [&](int, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
       for (std::uint64_t g = gb; g < ge; ++g)
       {
+        if (g == 0)
+        {
+          // Step 4 too (it reads only R and the faces).
+          for (std::uint64_t f = 0; f < nf; ++f)
+          {
+            Tri t = Fp[f];
+            if (Alive(t))
+            {
+              for (int c = 0; c < 3; ++c)
+              {
+                t.v[c] = Rp[t.v[c]] & ~kTop;
+              }
+              Fp[f2++] = t;
+            }
+          }
+        }
         for (std::uint64_t v = 0; v < nv; ++v)
         {
           const std::uint32_t rv = Rp[v];
           const std::uint64_t w = rv & ~kTop;
-          if (rv == kNone || w == v)
+          if (rv == kNone)
           {
             continue;
           }
           if (g == 0)
           {
-            Qp[w] = Qp[v];
+            if (w != v)
+            {
+              Qp[w] = Qp[v];
+            }
+            continue;
+          }
+          State flags;
+          Cand c;
+          carry(v, flags, c); // (reads v's records: not in place)
+          Sp[w] = flags;
+          Cp[w] = c;
+          if (w == v)
+          {
             continue;
           }
           Pp[w] = Pp[v];
-          Sp[w] = Sp[v]; // carried in place above
-          Cp[w] = Cp[v];
           if (Ap)
           {
             std::memcpy(Ap + w * rec, Ap + v * rec, rec);
@@ -3070,46 +3089,23 @@ void Decimator::Compact()
       }
     }
   }
-  // 4. Faces, ascending: new index f2 <= f (in core: renumbered in place on all cores first).
-  if (T > 1)
+  // 4. Faces, ascending: new index f2 <= f (in core: on the quadrics' thread, above).
+  if (T <= 1)
   {
-    Tri* F = const_cast<Tri*>(this->F_.Ptr(0));
-    const std::uint32_t* Rp = R.Ptr(0);
-    ForRanges(T, nf, [&](int t, std::uint64_t b, std::uint64_t e, const std::atomic<bool>& stop) {
-      for (std::uint64_t f = b; f < e && !stop.load(std::memory_order_relaxed); ++f)
+    for (std::uint64_t f = 0; f < nf; ++f)
+    {
+      Tri t = this->F_.Get(f);
+      if (!Alive(t))
       {
-        if (t == 0)
-        {
-          this->Tick(nf + 2 * nv + (f - b) * T, total);
-        }
-        Tri& t3 = F[f];
-        if (Alive(t3))
-        {
-          for (int c = 0; c < 3; ++c)
-          {
-            t3.v[c] = Rp[t3.v[c]] & ~kTop;
-          }
-        }
+        continue;
       }
-    });
-  }
-  std::uint64_t f2 = 0;
-  for (std::uint64_t f = 0; f < nf; ++f)
-  {
-    Tri t = this->F_.Get(f);
-    if (!Alive(t))
-    {
-      continue;
-    }
-    if (T <= 1)
-    {
       this->Tick(nf + 2 * nv + f, total);
       for (int c = 0; c < 3; ++c)
       {
         t.v[c] = R.Get(t.v[c]) & ~kTop;
       }
+      this->F_.Set(f2++, t);
     }
-    this->F_.Set(f2++, t);
   }
   // 5. Shrink, then the rings (faces in reverse: each list ascending, RO[k] ends at its start).
   const std::uint64_t nvb = std::max<std::uint64_t>(nv2, 1);

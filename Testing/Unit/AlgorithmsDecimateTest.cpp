@@ -625,6 +625,36 @@ TEST(AlgorithmsDecimate, SweepThreadsDoNotChangeTheResult)
   }
 }
 
+// Defined below.
+Mesh SortedAlongZ(const Mesh& m);
+
+TEST(AlgorithmsDecimate, CompactionThreadsDoNotChangeTheResult)
+{
+  // 163,842 vertices with point data: compaction runs on several threads in the first passes
+  // (the degrees and the rings by vertex range, the moves by array), and the outcome must be
+  // the one of a single thread.
+  Mesh s = SortedAlongZ(ColoredSphere(7));
+  ASSERT_GE(s.Vertices(), 65536u);
+  alg::DecimateOptions o;
+  o.targetTriangles = 4000;
+  o.threads = 1;
+  Outcome a = Simplify(MemorySource(s), o);
+  ExpectValid(a.out);
+  EXPECT_EQ(a.out.Triangles(), 4000u);
+  for (int threads : { 2, 5 })
+  {
+    o.threads = threads;
+    Outcome b = Simplify(MemorySource(s), o);
+    ASSERT_EQ(a.out.Vertices(), b.out.Vertices()) << threads;
+    EXPECT_TRUE(a.out.tris == b.out.tris) << threads;
+    EXPECT_EQ(0, std::memcmp(a.out.xyz.data(), b.out.xyz.data(), a.out.xyz.size() * sizeof(float)))
+      << threads;
+    EXPECT_EQ(0, std::memcmp(a.out.scalars.data(), b.out.scalars.data(), a.out.scalars.size() * 4))
+      << threads;
+    EXPECT_TRUE(a.out.rgba == b.out.rgba) << threads;
+  }
+}
+
 // The vertices renumbered along z with their point data (the scanner order the step's chunks
 // are made for: neighbours have near indices).
 Mesh SortedAlongZ(const Mesh& m)
