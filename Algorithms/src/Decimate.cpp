@@ -48,9 +48,9 @@
 //             A pass removes at most passFraction of the triangles (farPassFraction while the
 //             mesh has more than farRatio times the level's) and never goes below the next
 //             level's target, so levels and the final target are met exactly (or one below).
-//             In core, the rings' validation and duplicate search, the quadrics, the sweep, the
-//             step's chunks and compaction's random-access steps run on all cores; the output is
-//             the same for any thread count and storage mode.
+//             In core, the rings (validation, fill, duplicate search), the quadrics, the sweep,
+//             the step's chunks and compaction (by vertex range or by array) run on all cores;
+//             the output is the same for any thread count and storage mode.
 //   write     the final level is streamed to the output sink.
 // Every loop over many elements ticks the progress (abort within a few milliseconds).
 #include "sipmss/algorithms/Decimate.h"
@@ -95,7 +95,7 @@ constexpr std::uint64_t kStepChunkMinSize = 32768;
 constexpr std::uint64_t kStepTail = 4096;
 // BuildRings' passes 1 and 3 run on all cores from this many faces.
 constexpr std::uint64_t kParallelRingsMin = 65536;
-// Compact's random-access steps run on all cores from this many vertices.
+// Compact runs on several threads from this many vertices.
 constexpr std::uint64_t kParallelCompactMin = 65536;
 
 // Per-vertex state bits.
@@ -613,6 +613,8 @@ private:
   void Weld();
   void BuildRings();
   void FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal);
+  void CountDegrees(std::uint64_t nf, const Tri* F, std::uint32_t* RO, std::uint64_t tickBase,
+    std::uint64_t tickTotal);
   void BuildQuadrics();
   bool Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan);
   void Compact();
@@ -1146,6 +1148,43 @@ void Decimator::Weld()
 // ---------------------------------------------------------------------------------------------
 // rings
 
+// RO[v] += the number of live faces of [0, nf) on v, in core on all cores: each thread owns a
+// range of vertices and scans every face (sequential reads; a thread writes only its own
+// vertices' counters, so no atomic adds, and never another's, not even adding zero).
+void Decimator::CountDegrees(std::uint64_t nf, const Tri* F, std::uint32_t* RO,
+  std::uint64_t tickBase, std::uint64_t tickTotal)
+{
+  ForRanges(this->threads_, this->nv_,
+    [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+      for (std::uint64_t f = 0; f < nf; ++f)
+      {
+        if ((f & 4095) == 0)
+        {
+          if (stop.load(std::memory_order_relaxed))
+          {
+            return;
+          }
+          if (t == 0 && tickTotal)
+          {
+            // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
+            this->progress_.Tick(double(tickBase + f) / double(tickTotal));
+          }
+        }
+        const Tri t3 = F[f];
+        if (Alive(t3))
+        {
+          for (int c = 0; c < 3; ++c)
+          {
+            if (t3.v[c] >= lo && t3.v[c] < hi)
+            {
+              ++RO[t3.v[c]];
+            }
+          }
+        }
+      }
+    });
+}
+
 // Fills the incident face lists of faces [0, nf) (dead ones skipped) from the ring offsets, which
 // hold the end of each list: faces in reverse, so each list ends up in increasing face order and
 // RO[v] at its start. In core on all cores, each thread owns a range of vertices and scans every
@@ -1185,9 +1224,9 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
         {
           return;
         }
-        if (th == 0)
+        if (th == 0 && tickTotal)
         {
-          this->Tick(tickBase + (nf - i), tickTotal);
+          this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
         }
       }
       const Tri t = F[i];
@@ -1221,8 +1260,8 @@ void Decimator::BuildRings()
   View<Tri> F(this->dml_, this->faces_);
   View<Vec3> P(this->dml_, this->pos_);
   View<std::uint32_t> RO(this->dml_, this->ringOff_);
-  // In core, passes 1 and 3 run on all cores (each thread on its own faces; the degrees are
-  // counted with atomic adds); same result.
+  // In core, passes 1 and 3 run on all cores (each thread on its own faces), the degrees and
+  // pass 2 by vertex range (CountDegrees, FillRings); same result.
   const int T = (nf >= kParallelRingsMin && F.Ptr(0) && P.Ptr(0) && RO.Ptr(0)) ? this->threads_ : 1;
   // Pass 1 over the faces: validate, drop zero-area faces, count the degrees. The first bad
   // face is reported, whatever the threads.
@@ -1231,12 +1270,11 @@ void Decimator::BuildRings()
     std::vector<std::uint64_t> lives(std::size_t(T), 0), drops(std::size_t(T), 0);
     std::vector<std::uint64_t> bad(std::size_t(T), ~std::uint64_t(0));
     ForRanges(T, nf, [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
-      std::uint32_t* ROp = T > 1 ? const_cast<std::uint32_t*>(RO.Ptr(0)) : nullptr;
       for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
       {
-        if (th == 0)
+        if (th == 0 && ((f - fb) & 1023) == 0)
         {
-          this->Tick((f - fb) * T, 3 * nf);
+          this->progress_.Tick(double((f - fb) * T) / double(4 * nf));
         }
         Tri t = F.Get(f);
         if (!Alive(t))
@@ -1256,13 +1294,9 @@ void Decimator::BuildRings()
           ++drops[std::size_t(th)];
           continue;
         }
-        for (int k = 0; k < 3; ++k)
+        if (T <= 1)
         {
-          if (ROp)
-          {
-            __atomic_fetch_add(ROp + t.v[k], 1u, __ATOMIC_RELAXED);
-          }
-          else
+          for (int k = 0; k < 3; ++k)
           {
             RO.Set(t.v[k], RO.Get(t.v[k]) + 1);
           }
@@ -1283,6 +1317,10 @@ void Decimator::BuildRings()
       live += lives[std::size_t(th)];
       this->dropped_ += drops[std::size_t(th)];
     }
+    if (T > 1)
+    {
+      this->CountDegrees(nf, F.Ptr(0), const_cast<std::uint32_t*>(RO.Ptr(0)), nf, 4 * nf);
+    }
   }
   // Inclusive prefix sums: RO[v] = end of v's list.
   std::uint32_t sum = 0;
@@ -1299,7 +1337,7 @@ void Decimator::BuildRings()
   View<std::uint32_t> RF(this->dml_, this->ringFace_);
   // Pass 2: the incident face lists.
   this->BindViews();
-  this->FillRings(nf, nf, 3 * nf);
+  this->FillRings(nf, 2 * nf, 4 * nf);
   // Faces on the same vertex set: copies of one orientation are one face, and two faces of
   // opposite orientations cancel (a zero-volume double-sided pair: keeping one of them would
   // leave three faces on each of its edges). A group is settled by its first live member; the
@@ -1339,9 +1377,9 @@ void Decimator::BuildRings()
     std::vector<std::uint32_t> list;
     for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
     {
-      if (th == 0)
+      if (th == 0 && ((f - fb) & 1023) == 0)
       {
-        this->Tick(2 * nf + (f - fb) * T, 3 * nf);
+        this->progress_.Tick(double(3 * nf + (f - fb) * T) / double(4 * nf));
       }
       const Tri t = F.Get(f);
       if (!Alive(t))
@@ -2855,37 +2893,8 @@ void Decimator::Compact()
   FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
   if (T > 1)
   {
-    // Each thread counts the vertices of its range over all faces (sequential reads; no two
-    // threads write one counter, so no atomics).
-    std::uint32_t* RO = const_cast<std::uint32_t*>(this->RO_.Ptr(0));
-    const Tri* F = this->F_.Ptr(0);
-    ForRanges(T, nv, [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-      for (std::uint64_t f = 0; f < nf; ++f)
-      {
-        if ((f & 4095) == 0)
-        {
-          if (stop.load(std::memory_order_relaxed))
-          {
-            return;
-          }
-          if (t == 0)
-          {
-            this->Tick(f, total);
-          }
-        }
-        const Tri t3 = F[f];
-        if (Alive(t3))
-        {
-          for (int c = 0; c < 3; ++c)
-          {
-            if (t3.v[c] >= lo && t3.v[c] < hi) // (only then written: others' are theirs)
-            {
-              ++RO[t3.v[c]];
-            }
-          }
-        }
-      }
-    });
+    this->CountDegrees(
+      nf, this->F_.Ptr(0), const_cast<std::uint32_t*>(this->RO_.Ptr(0)), 0, total);
   }
   else
   {
