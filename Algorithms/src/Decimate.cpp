@@ -622,6 +622,11 @@ private:
 
   void BindViews();
   void LoadRing(std::uint32_t x, Ring& r, bool positions);
+  // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
+  // (nothing reads a survivor's quadric before: it is busy for the rest of the pass), so the
+  // collapse step, which sweeps the vertices once per cost group, does not page the largest
+  // array in and out each time. The same sums either way.
+  bool lazySums_ = false;
   bool AllInCore() const
   {
     return this->S_.Ptr(0) && this->C_.Ptr(0) && this->Q_.Ptr(0) && this->P_.Ptr(0) &&
@@ -2431,9 +2436,12 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
     }
   }
   this->P_.Set(u, { c.p[0], c.p[1], c.p[2] });
-  Quadric Q = this->Q_.Get(u);
-  AddTo(Q, this->Q_.Get(v));
-  this->Q_.Set(u, Q);
+  if (!this->lazySums_)
+  {
+    Quadric Q = this->Q_.Get(u);
+    AddTo(Q, this->Q_.Get(v));
+    this->Q_.Set(u, Q);
+  }
   this->InterpolateAttributes(u, v, double(c.t), s);
   this->S_.Set(v, State(kRemoved | kMarked));
   this->S_.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
@@ -2762,6 +2770,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
 {
   const std::uint64_t nv = this->nv_;
   this->BindViews();
+  this->lazySums_ = !this->AllInCore(); // (the mode does not change before Compact)
   // 1. Every vertex's cheapest collapse.
   this->progress_.BeginPhase("collapse", progressBase, progressBase + 0.6 * progressSpan);
   this->Sweep(nv);
@@ -2929,9 +2938,18 @@ void Decimator::Compact()
     }
     end += deg;
     this->RO_.Set(k, end);
-    R.Set(v, std::uint32_t(k) | ((this->S_.Get(v) & kCollapsed) ? kTop : 0u));
+    const bool survivor = (this->S_.Get(v) & kCollapsed) != 0;
+    R.Set(v, std::uint32_t(k) | (survivor ? kTop : 0u));
+    if (survivor && this->lazySums_)
+    {
+      // Its collapse's partner (its candidate's) is still in place: nothing moved yet.
+      Quadric Q = this->Q_.Get(v);
+      AddTo(Q, this->Q_.Get(this->C_.Get(v).partner));
+      this->Q_.Set(v, Q);
+    }
     ++k;
   }
+  this->lazySums_ = false;
   const std::uint64_t nv2 = k;
   this->RO_.Set(nv2, end);
   // 3. Vertex data, and the candidates carried to the next pass.
