@@ -3034,29 +3034,19 @@ void Decimator::Compact()
     Cand* Cp = const_cast<Cand*>(this->C_.Ptr(0));
     std::uint8_t* Ap = rec ? const_cast<std::uint8_t*>(this->A_.Ptr(0)) : nullptr;
     Tri* Fp = const_cast<Tri*>(this->F_.Ptr(0));
+    // Group 0 runs on the calling thread, which ticks the progress (and so checks for an abort;
+    // the other group then finishes its loop before the exception is passed on).
     ForRanges(std::min(T, 2), 2, [&](int, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
       for (std::uint64_t g = gb; g < ge; ++g)
       {
-        if (g == 0)
-        {
-          // Step 4 too (it reads only R and the faces).
-          for (std::uint64_t f = 0; f < nf; ++f)
-          {
-            Tri t = Fp[f];
-            if (Alive(t))
-            {
-              for (int c = 0; c < 3; ++c)
-              {
-                t.v[c] = Rp[t.v[c]] & ~kTop;
-              }
-              Fp[f2++] = t;
-            }
-          }
-        }
         for (std::uint64_t v = 0; v < nv; ++v)
         {
           const std::uint32_t rv = Rp[v];
           const std::uint64_t w = rv & ~kTop;
+          if (g == 0 && (v & 4095) == 0)
+          {
+            this->progress_.Tick(double(nf + nv + v) / double(total));
+          }
           if (rv == kNone)
           {
             continue;
@@ -3082,6 +3072,26 @@ void Decimator::Compact()
           if (Ap)
           {
             std::memcpy(Ap + w * rec, Ap + v * rec, rec);
+          }
+        }
+        if (g == 0)
+        {
+          // Step 4 too (it reads only R and the faces).
+          for (std::uint64_t f = 0; f < nf; ++f)
+          {
+            if ((f & 4095) == 0)
+            {
+              this->progress_.Tick(double(nf + 2 * nv + f) / double(total));
+            }
+            Tri t = Fp[f];
+            if (Alive(t))
+            {
+              for (int c = 0; c < 3; ++c)
+              {
+                t.v[c] = Rp[t.v[c]] & ~kTop;
+              }
+              Fp[f2++] = t;
+            }
           }
         }
       }

@@ -123,9 +123,9 @@ enum class Access : std::uint8_t
   Write // the page is marked dirty
 };
 
-// Out of core: a block's last two used pages (kFastPages entries per block), published by the DML
-// for the inline element access of Read and Write (the same bookkeeping as PageFor's two-entry
-// cache: reference bit, dirty bit, hit count). count == 0: none.
+// Out of core: a block's last kFastPages used pages, published by the DML for the inline element
+// access of Read and Write (the same bookkeeping as PageFor's recent pages: reference bit, dirty
+// bit, hit count). count == 0: none.
 constexpr std::size_t kFastPages = 4;
 struct FastPage
 {
@@ -209,8 +209,8 @@ private:
   // date by Impl so that BasePointer() is inline: a compare and two loads, no call.
   void* const* bases_ = nullptr;
   std::size_t baseCount_ = 0;
-  // The same for the out-of-core blocks' last two used pages, kFastPages entries per block (kept up
-  // to date by Impl: every change of a block's last pages, eviction, resize, mode switch or cache
+  // The same for the out-of-core blocks' last used pages, kFastPages entries per block (kept up to
+  // date by Impl: every change of a block's recent pages, eviction, resize, mode switch or cache
   // rebuild re-publishes them).
   const FastPage* fast_ = nullptr;
   std::size_t fastCount_ = 0; // blocks
@@ -224,9 +224,9 @@ SIPMSS_ALWAYS_INLINE void* DML::BasePointer(BlockId id) const
   return static_cast<std::size_t>(id) < this->baseCount_ ? this->bases_[id] : nullptr;
 }
 
-// One element: inline when out of core on one of the block's last two used pages (the hot case
-// of loops over neighbouring elements), else ReadElement/WriteElement (in core, other pages,
-// errors).
+// One element: inline when out of core on one of the block's last kFastPages used pages (the hot
+// case of loops over neighbouring elements), else ReadElement/WriteElement (in core, other
+// pages, errors).
 SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
   if (static_cast<std::size_t>(id) < this->fastCount_)
