@@ -1081,7 +1081,7 @@ void DML::WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index,
   std::memcpy(data + (index - page * b.perPage) * elementSize, src, elementSize);
 }
 
-void DML::ReadRange(BlockId id, std::uint64_t first, std::uint64_t count, void* dst)
+void DML::ReadRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, void* dst)
 {
   Impl& I = *this->impl_;
   Block& b = CheckRange(I, id, first, count);
@@ -1089,7 +1089,7 @@ void DML::ReadRange(BlockId id, std::uint64_t first, std::uint64_t count, void* 
     false);
 }
 
-void DML::WriteRange(BlockId id, std::uint64_t first, std::uint64_t count, const void* src)
+void DML::WriteRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, const void* src)
 {
   Impl& I = *this->impl_;
   Block& b = CheckRange(I, id, first, count);

@@ -208,6 +208,29 @@ TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
   }
   EXPECT_GE(DMLTestAccess::InlineHits(dml) - inlineBefore, 2 * per * kFastPages - 2 * kFastPages);
   EXPECT_EQ(dml.GetStats().misses, missesBefore + kFastPages);
+  // A run inside a recent page is inline too (a vertex's list of faces), and writing one marks
+  // the page dirty: here a page that was only read so far (it must be written back below).
+  std::vector<bool> plus1000(n, false);
+  {
+    const std::uint64_t clean = 40;
+    ASSERT_EQ(a.Get(clean * per), 3 * clean * per); // a miss; the page becomes the most recent
+    std::vector<std::uint64_t> run(per / 2);
+    const std::uint64_t hits = DMLTestAccess::InlineHits(dml);
+    const std::uint64_t first = clean * per + per / 4;
+    dml.ReadRange(a.Id(), first, run.size(), run.data());
+    for (std::size_t j = 0; j < run.size(); ++j)
+    {
+      ASSERT_EQ(run[j], 3 * (first + j)) << j;
+      run[j] += 1000;
+    }
+    dml.WriteRange(a.Id(), first, run.size(), run.data());
+    EXPECT_EQ(DMLTestAccess::InlineHits(dml), hits + 2);
+    EXPECT_EQ(dml.GetStats().misses, missesBefore + kFastPages + 1);
+    for (std::size_t j = 0; j < run.size(); ++j)
+    {
+      plus1000[first + j] = true;
+    }
+  }
   // Those dirty, recent pages are a's only frames. Many other blocks now take their share of
   // the frames, which leaves a one or two: most of its recent pages are evicted (written back).
   // Reads of a must then come from the file, not from frames that now hold other blocks.
@@ -223,14 +246,15 @@ TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
     }
   }
   auto expected = [&](std::uint64_t i) {
+    const std::uint64_t extra = plus1000[i] ? 1000 : 0;
     for (std::uint64_t page : pages)
     {
       if (i / per == page)
       {
-        return 3 * i + 1;
+        return 3 * i + 1 + extra;
       }
     }
-    return 3 * i;
+    return 3 * i + extra;
   };
   for (std::size_t k = kFastPages; k-- > 0;)
   {

@@ -217,6 +217,25 @@ private:
   std::uint64_t fastHits_ = 0;
   void ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst);
   void WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
+  void ReadRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
+  void WriteRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, const void* src);
+  // The published recent page of block id holding elements [first, first + count), or nullptr.
+  SIPMSS_ALWAYS_INLINE const FastPage* FastRange(
+    BlockId id, std::uint64_t first, std::uint64_t count) const
+  {
+    if (static_cast<std::size_t>(id) < this->fastCount_ && count > 0)
+    {
+      const FastPage* e = this->fast_ + static_cast<std::size_t>(id) * kFastPages;
+      for (std::size_t k = 0; k < kFastPages; ++k)
+      {
+        if (first - e[k].first < e[k].count && count <= e[k].count - (first - e[k].first))
+        {
+          return e + k;
+        }
+      }
+    }
+    return nullptr;
+  }
 };
 
 SIPMSS_ALWAYS_INLINE void* DML::BasePointer(BlockId id) const
@@ -267,6 +286,35 @@ SIPMSS_ALWAYS_INLINE void DML::Write(
     }
   }
   this->WriteElement(id, elementSize, index, src);
+}
+
+// A run of elements: inline when out of core within one of the block's recent pages (a vertex's
+// list of faces), else ReadRangeSlow/WriteRangeSlow.
+SIPMSS_ALWAYS_INLINE void DML::ReadRange(
+  BlockId id, std::uint64_t first, std::uint64_t count, void* dst)
+{
+  if (const FastPage* p = this->FastRange(id, first, count))
+  {
+    *p->ref = true;
+    ++this->fastHits_;
+    std::memcpy(dst, p->data + (first - p->first) * p->elementSize, count * p->elementSize);
+    return;
+  }
+  this->ReadRangeSlow(id, first, count, dst);
+}
+
+SIPMSS_ALWAYS_INLINE void DML::WriteRange(
+  BlockId id, std::uint64_t first, std::uint64_t count, const void* src)
+{
+  if (const FastPage* p = this->FastRange(id, first, count))
+  {
+    *p->ref = true;
+    *p->dirty = true;
+    ++this->fastHits_;
+    std::memcpy(p->data + (first - p->first) * p->elementSize, src, count * p->elementSize);
+    return;
+  }
+  this->WriteRangeSlow(id, first, count, src);
 }
 
 // Typed convenience over one fixed-size block.
