@@ -2770,7 +2770,6 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
 {
   const std::uint64_t nv = this->nv_;
   this->BindViews();
-  this->lazySums_ = !this->AllInCore(); // (the mode does not change before Compact)
   // 1. Every vertex's cheapest collapse.
   this->progress_.BeginPhase("collapse", progressBase, progressBase + 0.6 * progressSpan);
   this->Sweep(nv);
@@ -2855,6 +2854,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   // a time; the others go group by group through StepChunks (in parallel when in core).
   this->progress_.BeginPhase(
     "collapse", progressBase + 0.7 * progressSpan, progressBase + 0.85 * progressSpan);
+  this->lazySums_ = !this->AllInCore(); // (the mode does not change before Compact)
   StepRun run;
   if (groups && nv >= 2 * this->StepChunkSize(nv))
   {
