@@ -95,6 +95,12 @@ TEST_F(CLI, InfoAndSimplify)
   ASSERT_EQ(o.status, 0) << o.out;
   std::ifstream a(this->dir / "out.ply", std::ios::binary), b(this->dir / "out2.ply", std::ios::binary);
   EXPECT_EQ(std::string(std::istreambuf_iterator<char>(a), {}), std::string(std::istreambuf_iterator<char>(b), {}));
+  // --tmpdir before the positionals, twice: one directory each, the positionals stay positionals
+  Result t = RunCli("simplify --tmpdir " + this->dir.string() + " --tmpdir " + this->dir.string() +
+    " " + P("octa.ply") + " " + P("out3.ply") + " --grid 2 --quiet --memory-mb 0.0625");
+  ASSERT_EQ(t.status, 0) << t.out;
+  std::ifstream c3(this->dir / "out3.ply", std::ios::binary), a2(this->dir / "out.ply", std::ios::binary);
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(a2), {}), std::string(std::istreambuf_iterator<char>(c3), {}));
 
   Result c = RunCli("compare " + P("octa.ply") + " " + P("octa.ply") + " --samples 2000");
   ASSERT_EQ(c.status, 0) << c.out;

@@ -433,7 +433,12 @@ int main(int argc, char** argv)
     ->check(CLI::Range(0.0, 1e9));
   simplify->add_option("--memory-mb", sa.memoryMB, "memory budget in MiB (0 = unbounded)")
     ->check(CLI::Range(0.0, 1e9));
-  simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)");
+  // One directory per --tmpdir (repeat it for more): a list option would also swallow the
+  // positionals after it (`--tmpdir /scratch in.ply out.ply`).
+  simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)")
+    ->expected(1)
+    ->allow_extra_args(false)
+    ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
   simplify->add_option("--lods", sa.lods, "decimate, two-stage: levels of detail, written as OUTPUT_lodK")
     ->check(CLI::Range(1, 64));
   simplify->add_option("--stats-json", sa.statsJson, "write run statistics as JSON");
