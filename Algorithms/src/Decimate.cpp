@@ -3131,12 +3131,12 @@ void Decimator::Compact()
   {
     for (std::uint64_t f = 0; f < nf; ++f)
     {
+      this->Tick(nf + 2 * nv + f, total);
       Tri t = this->F_.Get(f);
       if (!Alive(t))
       {
         continue;
       }
-      this->Tick(nf + 2 * nv + f, total);
       for (int c = 0; c < 3; ++c)
       {
         t.v[c] = R.Get(t.v[c]) & ~kTop;

@@ -356,6 +356,18 @@ Outcome Simplify(const alg::MeshSource& src, const alg::DecimateOptions& o)
   return r;
 }
 
+// The same output bytes: vertices, triangles, positions and point data.
+void ExpectSameOutput(const Outcome& a, const Outcome& b, const std::string& what)
+{
+  ASSERT_EQ(a.out.Vertices(), b.out.Vertices()) << what;
+  EXPECT_TRUE(a.out.tris == b.out.tris) << what;
+  EXPECT_EQ(0, std::memcmp(a.out.xyz.data(), b.out.xyz.data(), a.out.xyz.size() * sizeof(float)))
+    << what;
+  EXPECT_EQ(0, std::memcmp(a.out.scalars.data(), b.out.scalars.data(), a.out.scalars.size() * 4))
+    << what;
+  EXPECT_TRUE(a.out.rgba == b.out.rgba) << what;
+}
+
 void ExpectValid(const Mesh& m)
 {
   std::set<std::array<std::uint32_t, 3>> seen;
@@ -644,14 +656,7 @@ TEST(AlgorithmsDecimate, CompactionThreadsDoNotChangeTheResult)
   for (int threads : { 2, 5 })
   {
     o.threads = threads;
-    Outcome b = Simplify(MemorySource(s), o);
-    ASSERT_EQ(a.out.Vertices(), b.out.Vertices()) << threads;
-    EXPECT_TRUE(a.out.tris == b.out.tris) << threads;
-    EXPECT_EQ(0, std::memcmp(a.out.xyz.data(), b.out.xyz.data(), a.out.xyz.size() * sizeof(float)))
-      << threads;
-    EXPECT_EQ(0, std::memcmp(a.out.scalars.data(), b.out.scalars.data(), a.out.scalars.size() * 4))
-      << threads;
-    EXPECT_TRUE(a.out.rgba == b.out.rgba) << threads;
+    ExpectSameOutput(a, Simplify(MemorySource(s), o), std::to_string(threads) + " threads");
   }
 }
 
@@ -708,15 +713,7 @@ TEST(AlgorithmsDecimate, StepChunksDoNotDependOnThreadsOrMode)
   {
     EXPECT_EQ(n, 2); // still closed and manifold
   }
-  auto same = [&a](const Outcome& b, const char* what) {
-    ASSERT_EQ(a.out.Vertices(), b.out.Vertices()) << what;
-    EXPECT_TRUE(a.out.tris == b.out.tris) << what;
-    EXPECT_EQ(0, std::memcmp(a.out.xyz.data(), b.out.xyz.data(), a.out.xyz.size() * sizeof(float)))
-      << what;
-    EXPECT_EQ(0, std::memcmp(a.out.scalars.data(), b.out.scalars.data(), a.out.scalars.size() * 4))
-      << what;
-    EXPECT_TRUE(a.out.rgba == b.out.rgba) << what;
-  };
+  auto same = [&a](const Outcome& b, const char* what) { ExpectSameOutput(a, b, what); };
   for (int threads : { 2, 5 })
   {
     o.threads = threads;

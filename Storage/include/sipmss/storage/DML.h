@@ -219,7 +219,8 @@ private:
   void WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
   void ReadRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
   void WriteRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, const void* src);
-  // The published recent page of block id holding elements [first, first + count), or nullptr.
+  // The published recent page of block id holding elements [first, first + count), or nullptr
+  // (the fast path of Read/Write and ReadRange/WriteRange).
   SIPMSS_ALWAYS_INLINE const FastPage* FastRange(
     BlockId id, std::uint64_t first, std::uint64_t count) const
   {
@@ -248,20 +249,13 @@ SIPMSS_ALWAYS_INLINE void* DML::BasePointer(BlockId id) const
 // pages, errors).
 SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
-  if (static_cast<std::size_t>(id) < this->fastCount_)
+  const FastPage* p = this->FastRange(id, index, 1);
+  if (p && elementSize == p->elementSize)
   {
-    const FastPage* e = this->fast_ + static_cast<std::size_t>(id) * kFastPages;
-    for (std::size_t k = 0; k < kFastPages; ++k)
-    {
-      const FastPage& p = e[k];
-      if (index - p.first < p.count && elementSize == p.elementSize)
-      {
-        *p.ref = true;
-        ++this->fastHits_;
-        std::memcpy(dst, p.data + (index - p.first) * elementSize, elementSize);
-        return;
-      }
-    }
+    *p->ref = true;
+    ++this->fastHits_;
+    std::memcpy(dst, p->data + (index - p->first) * elementSize, elementSize);
+    return;
   }
   this->ReadElement(id, elementSize, index, dst);
 }
@@ -269,21 +263,14 @@ SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::ui
 SIPMSS_ALWAYS_INLINE void DML::Write(
   BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
 {
-  if (static_cast<std::size_t>(id) < this->fastCount_)
+  const FastPage* p = this->FastRange(id, index, 1);
+  if (p && elementSize == p->elementSize)
   {
-    const FastPage* e = this->fast_ + static_cast<std::size_t>(id) * kFastPages;
-    for (std::size_t k = 0; k < kFastPages; ++k)
-    {
-      const FastPage& p = e[k];
-      if (index - p.first < p.count && elementSize == p.elementSize)
-      {
-        *p.ref = true;
-        *p.dirty = true;
-        ++this->fastHits_;
-        std::memcpy(p.data + (index - p.first) * elementSize, src, elementSize);
-        return;
-      }
-    }
+    *p->ref = true;
+    *p->dirty = true;
+    ++this->fastHits_;
+    std::memcpy(p->data + (index - p->first) * elementSize, src, elementSize);
+    return;
   }
   this->WriteElement(id, elementSize, index, src);
 }
