@@ -300,6 +300,20 @@ private:
   T* base_ = nullptr;
 };
 
+// The views of one DML over the mesh's blocks: the Decimator's own, or those of a forked DML
+// (the out-of-core sweep's helper thread).
+struct Views
+{
+  View<Vec3> P;
+  View<Quadric> Q;
+  View<std::uint8_t> A;
+  View<State> S;
+  View<Tri> F;
+  View<std::uint32_t> RO, RF;
+  View<Cand> C;
+  View<std::uint32_t> O;
+};
+
 template <class T>
 inline void Prefetch(const T* p)
 {
@@ -425,6 +439,7 @@ struct Scratch
   std::vector<std::uint8_t> abuf, abuf2; // point data of a collapse
   std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
   std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
+  Views* w = nullptr; // the views this thread uses; nullptr: the Decimator's
 };
 
 // A reusable barrier for a fixed number of threads (C++17 has none).
@@ -621,7 +636,8 @@ private:
   void Emit(io::MeshSink& sink);
 
   void BindViews();
-  void LoadRing(std::uint32_t x, Ring& r, bool positions);
+  void BindViews(Views& w, DML& dml) const;
+  void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
   // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
   // (nothing reads a survivor's quadric before: it is busy for the rest of the pass), so the
   // collapse step, which sweeps the vertices once per cost group, does not page the largest
@@ -679,7 +695,7 @@ private:
   void EvaluateFull(std::uint32_t u, State su, Scratch& s);
   void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner,
     Scratch& s);
-  void Apply(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
+  void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
   bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded = false);
   bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
   Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const;
@@ -752,14 +768,16 @@ private:
   Array<std::uint32_t> order_; // the pass's candidates in processing order (<= nv_ of them)
   Array<std::uint32_t> remap_; // compaction: old vertex -> new
 
-  View<Vec3> P_;
-  View<Quadric> Q_;
-  View<std::uint8_t> A_;
-  View<State> S_;
-  View<Tri> F_;
-  View<std::uint32_t> RO_, RF_;
-  View<Cand> C_;
-  View<std::uint32_t> O_;
+  Views v_;
+  View<Vec3>& P_ = v_.P;
+  View<Quadric>& Q_ = v_.Q;
+  View<std::uint8_t>& A_ = v_.A;
+  View<State>& S_ = v_.S;
+  View<Tri>& F_ = v_.F;
+  View<std::uint32_t>&RO_ = v_.RO, &RF_ = v_.RF;
+  View<Cand>& C_ = v_.C;
+  View<std::uint32_t>& O_ = v_.O;
+  Views& W(const Scratch& s) { return s.w ? *s.w : this->v_; }
 
   // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
   std::vector<Scratch> scratch_ = std::vector<Scratch>(1);
@@ -1520,28 +1538,32 @@ void Decimator::BuildRings()
 
 void Decimator::BindViews()
 {
-  this->P_ = View<Vec3>(this->dml_, this->pos_);
-  this->Q_ = this->quad_.IsOpen() ? View<Quadric>(this->dml_, this->quad_) : View<Quadric>();
-  this->A_ = this->recSize_ ? View<std::uint8_t>(this->dml_, this->attr_) : View<std::uint8_t>();
-  this->S_ = this->state_.IsOpen() ? View<State>(this->dml_, this->state_) : View<State>();
-  this->F_ = View<Tri>(this->dml_, this->faces_);
-  this->RO_ = View<std::uint32_t>(this->dml_, this->ringOff_);
-  this->RF_ = View<std::uint32_t>(this->dml_, this->ringFace_);
-  this->C_ = this->cand_.IsOpen() ? View<Cand>(this->dml_, this->cand_) : View<Cand>();
-  this->O_ = this->order_.IsOpen() ? View<std::uint32_t>(this->dml_, this->order_)
-                                   : View<std::uint32_t>();
+  this->BindViews(this->v_, this->dml_);
 }
 
-void Decimator::LoadRing(std::uint32_t x, Ring& r, bool positions)
+void Decimator::BindViews(Views& w, DML& dml) const
+{
+  w.P = View<Vec3>(dml, this->pos_);
+  w.Q = this->quad_.IsOpen() ? View<Quadric>(dml, this->quad_) : View<Quadric>();
+  w.A = this->recSize_ ? View<std::uint8_t>(dml, this->attr_) : View<std::uint8_t>();
+  w.S = this->state_.IsOpen() ? View<State>(dml, this->state_) : View<State>();
+  w.F = View<Tri>(dml, this->faces_);
+  w.RO = View<std::uint32_t>(dml, this->ringOff_);
+  w.RF = View<std::uint32_t>(dml, this->ringFace_);
+  w.C = this->cand_.IsOpen() ? View<Cand>(dml, this->cand_) : View<Cand>();
+  w.O = this->order_.IsOpen() ? View<std::uint32_t>(dml, this->order_) : View<std::uint32_t>();
+}
+
+void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
 {
   r.x = x;
   r.faces.clear();
   r.nbs.clear();
   r.keys.clear();
-  const std::uint32_t b = this->RO_.Get(x), e = this->RO_.Get(x + 1);
+  const std::uint32_t b = w.RO.Get(x), e = w.RO.Get(x + 1);
   r.ids.resize(e - b);
-  this->RF_.GetRange(b, e - b, r.ids.data());
-  if (const Tri* fp = this->F_.Ptr(0))
+  w.RF.GetRange(b, e - b, r.ids.data());
+  if (const Tri* fp = w.F.Ptr(0))
   {
     for (std::uint32_t id : r.ids)
     {
@@ -1550,7 +1572,7 @@ void Decimator::LoadRing(std::uint32_t x, Ring& r, bool positions)
   }
   for (std::uint32_t id : r.ids)
   {
-    const Tri t = this->F_.Get(id);
+    const Tri t = w.F.Get(id);
     if (!Alive(t))
     {
       continue;
@@ -1587,17 +1609,17 @@ void Decimator::LoadRing(std::uint32_t x, Ring& r, bool positions)
   }
   if (positions)
   {
-    if (const Vec3* pp = this->P_.Ptr(0))
+    if (const Vec3* pp = w.P.Ptr(0))
     {
       for (const Nb& n : r.nbs)
       {
         Prefetch(pp + n.v);
       }
     }
-    r.px = this->P_.Get(x);
+    r.px = w.P.Get(x);
     for (Nb& n : r.nbs)
     {
-      n.p = this->P_.Get(n.v);
+      n.p = w.P.Get(n.v);
     }
   }
 }
@@ -1875,7 +1897,7 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, 
   Ring& rv = s.rv;
   if (!rvLoaded)
   {
-    this->LoadRing(v, rv, true);
+    this->LoadRing(this->W(s), v, rv, true);
   }
   // The collapse must leave faces (no vanishing component).
   if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
@@ -1968,20 +1990,21 @@ void Decimator::Offer(
     s.out[t].push_back({ x, partner, fromPartner, pl });
     return;
   }
-  this->Apply(x, partner, pl, fromPartner);
+  this->Apply(this->W(s), x, partner, pl, fromPartner);
 }
 
-void Decimator::Apply(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
+void Decimator::Apply(
+  Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
 {
   const float cost = float(pl.cost); // compared as stored
-  if (const Cand* cp = this->C_.Ptr(x))
+  if (const Cand* cp = w.C.Ptr(x))
   {
     if (!Before(cost, partner, cp->cost, cp->partner) && !Before(cost, partner, cp->cost2, cp->partner2))
     {
       return;
     }
   }
-  Cand c = this->C_.Get(x);
+  Cand c = w.C.Get(x);
   if (Before(cost, partner, c.cost, c.partner))
   {
     c.cost2 = c.cost;
@@ -2002,7 +2025,7 @@ void Decimator::Apply(std::uint32_t x, std::uint32_t partner, const Placement& p
   {
     return;
   }
-  this->C_.Set(x, c);
+  w.C.Set(x, c);
 }
 
 // Step 1 of a pass: every active vertex evaluates its edges. In core, the vertex range is split
@@ -2014,6 +2037,7 @@ void Decimator::Sweep(std::uint64_t nv)
 {
   constexpr std::uint64_t kChunk = 16384;
   constexpr std::uint64_t kParallelMin = 8192;
+  constexpr std::uint64_t kForkMin = 65536;
   auto sequential = [this, nv]() {
     Scratch& s = this->scratch_[0];
     s.lo = 0;
@@ -2025,7 +2049,35 @@ void Decimator::Sweep(std::uint64_t nv)
       this->Evaluate(std::uint32_t(u), s);
     }
   };
-  const int T = (this->AllInCore() && nv >= kParallelMin) ? this->threads_ : 1;
+  int T = (this->AllInCore() && nv >= kParallelMin) ? this->threads_ : 1;
+  // Out of core on two threads: the second works through a forked DML (its own page cache,
+  // half of the budget's room) on the upper half of the vertices, cut at a page of the
+  // candidates, the only block the sweep writes. Each thread writes only its own range's
+  // candidates (the others' offers are queued, as in core), so no page is written by both.
+  std::unique_ptr<DML> fork;
+  Views forkViews;
+  std::uint32_t mid = 0;
+  if (T == 1 && this->threads_ > 1 && nv >= kForkMin && this->dml_.GetProfile().memoryBudget > 0)
+  {
+    const std::uint64_t per = this->dml_.PageElements(this->cand_.Id());
+    mid = per ? std::uint32_t(nv / 2 / per * per) : 0;
+    if (mid > 0)
+    {
+      try
+      {
+        fork = this->dml_.Fork(this->dml_.GetProfile().memoryBudget / 2);
+      }
+      catch (const storage::BudgetError&)
+      {
+        fork.reset(); // too little room to share: one thread
+      }
+    }
+    if (fork)
+    {
+      this->BindViews(forkViews, *fork);
+      T = 2;
+    }
+  }
   if (T <= 1)
   {
     sequential();
@@ -2040,6 +2092,20 @@ void Decimator::Sweep(std::uint64_t nv)
   {
     this->partStart_[std::size_t(t)] = std::uint32_t(nv * std::uint64_t(t) / std::uint64_t(T));
   }
+  if (fork)
+  {
+    this->partStart_[1] = mid;
+    this->scratch_[1].w = &forkViews;
+  }
+  // Joins the fork (on every exit): its dirty candidates go back to the files.
+  auto join = [this, &fork]() {
+    if (fork)
+    {
+      this->scratch_[1].w = nullptr;
+      std::unique_ptr<DML> f = std::move(fork);
+      this->dml_.Join(*f);
+    }
+  };
   std::uint64_t rounds = 0;
   for (int t = 0; t < T; ++t)
   {
@@ -2088,7 +2154,7 @@ void Decimator::Sweep(std::uint64_t nv)
           {
             for (const Deferred& d : this->scratch_[std::size_t(o)].out[std::size_t(t)])
             {
-              this->Apply(d.x, d.partner, d.pl, d.fromPartner);
+              this->Apply(this->W(s), d.x, d.partner, d.pl, d.fromPartner);
             }
           }
         }
@@ -2106,13 +2172,29 @@ void Decimator::Sweep(std::uint64_t nv)
   };
   // A thread that cannot be started: the others stop after their first chunk, and this thread
   // sweeps alone (evaluating a vertex twice gives the same candidates: offers are idempotent).
-  const int started = RunOnThreads(T, work, [&](int n) {
-    stop = true;
-    for (int k = n; k < T; ++k)
+  int started = 0;
+  try
+  {
+    started = RunOnThreads(T, work, [&](int n) {
+      stop = true;
+      for (int k = n; k < T; ++k)
+      {
+        barrier.Drop();
+      }
+    });
+  }
+  catch (...)
+  {
+    try
     {
-      barrier.Drop();
+      join();
     }
-  });
+    catch (...)
+    {
+    }
+    throw;
+  }
+  join();
   RethrowFirst(errors);
   if (started < T)
   {
@@ -2126,7 +2208,8 @@ void Decimator::Sweep(std::uint64_t nv)
 // (or inconsistently oriented) and is taken from there.
 void Decimator::Evaluate(std::uint32_t u, Scratch& s)
 {
-  const State su = this->S_.Get(u);
+  Views& w = this->W(s);
+  const State su = w.S.Get(u);
   if (su & kLocked)
   {
     return;
@@ -2142,30 +2225,30 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     // was promoted: the placement of that edge is computed here.
     if (su & kPromote)
     {
-      Cand c = this->C_.Get(u);
+      Cand c = w.C.Get(u);
       if (c.t < 0)
       {
         const std::uint32_t v = c.partner;
-        Quadric Q = this->Q_.Get(v);
-        AddTo(Q, this->Q_.Get(u));
-        const Placement pl = this->Place(Q, this->P_.Get(u), this->P_.Get(v), su, this->S_.Get(v));
+        Quadric Q = w.Q.Get(v);
+        AddTo(Q, w.Q.Get(u));
+        const Placement pl = this->Place(Q, w.P.Get(u), w.P.Get(v), su, w.S.Get(v));
         // c.cost stays: the same edge's cost as computed before (equal up to rounding), which
         // keeps the outcome independent of whether an offer to u came before or after this.
         c.p[0] = float(pl.p.x);
         c.p[1] = float(pl.p.y);
         c.p[2] = float(pl.p.z);
         c.t = float(pl.t);
-        this->C_.Set(u, c);
+        w.C.Set(u, c);
       }
     }
     return;
   }
-  const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
-  const std::uint32_t* ids = this->RF_.Ptr(b);
+  const std::uint32_t b = w.RO.Get(u), e = w.RO.Get(u + 1);
+  const std::uint32_t* ids = w.RF.Ptr(b);
   if (!ids)
   {
     s.ids.resize(e - b);
-    this->RF_.GetRange(b, e - b, s.ids.data());
+    w.RF.GetRange(b, e - b, s.ids.data());
     ids = s.ids.data();
   }
   if (e - b > s.next.size())
@@ -2178,7 +2261,7 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
   std::size_t n = 0;
   for (std::uint32_t k = 0; k < e - b; ++k)
   {
-    const Tri t = this->F_.Get(ids[k]);
+    const Tri t = w.F.Get(ids[k]);
     if (!Alive(t))
     {
       continue;
@@ -2192,12 +2275,12 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
   {
     return;
   }
-  if (const Quadric* qp = this->Q_.Ptr(0))
+  if (const Quadric* qp = w.Q.Ptr(0))
   {
     // The neighbours' data is read (and their candidates written) below: fetch it in parallel.
-    const State* sp = this->S_.Ptr(0);
-    const Vec3* pp = this->P_.Ptr(0);
-    const Cand* cp = this->C_.Ptr(0);
+    const State* sp = w.S.Ptr(0);
+    const Vec3* pp = w.P.Ptr(0);
+    const Cand* cp = w.C.Ptr(0);
     for (std::size_t i = 0; i < n; ++i)
     {
       const std::uint32_t a = next[i];
@@ -2211,8 +2294,8 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
       }
     }
   }
-  const Quadric Qu = this->Q_.Get(u);
-  const Vec3 pu = this->P_.Get(u);
+  const Quadric Qu = w.Q.Get(u);
+  const Vec3 pu = w.P.Get(u);
   auto in = [](const std::uint32_t* a, std::size_t m, std::uint32_t x) {
     for (std::size_t i = 0; i < m; ++i)
     {
@@ -2244,7 +2327,8 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
 void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
   std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n, Scratch& s)
 {
-  const State sv = this->S_.Get(v);
+  Views& w = this->W(s);
+  const State sv = w.S.Get(v);
   if (sv & kLocked)
   {
     return;
@@ -2274,9 +2358,9 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
       return; // a non-manifold edge, or it would pinch the surface across the interior
     }
   }
-  Quadric Q = this->Q_.Get(v);
+  Quadric Q = w.Q.Get(v);
   AddTo(Q, Qu);
-  const Placement pl = this->Place(Q, pu, this->P_.Get(v), su, sv);
+  const Placement pl = this->Place(Q, pu, w.P.Get(v), su, sv);
   if (!std::isfinite(pl.cost) ||
     (std::isfinite(this->opt_.maximumError) && pl.cost > this->opt_.maximumError * Trace(Q)))
   {
@@ -2294,21 +2378,22 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
 // them.
 void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
 {
-  this->C_.Set(u, this->none_);
+  Views& w = this->W(s);
+  w.C.Set(u, this->none_);
   Ring& ru = s.ru;
-  this->LoadRing(u, ru, true);
+  this->LoadRing(w, u, ru, true);
   if (ru.faces.empty())
   {
     return;
   }
-  const Quadric Qu = this->Q_.Get(u);
+  const Quadric Qu = w.Q.Get(u);
   const double maxErr = this->opt_.maximumError;
   const bool checkErr = std::isfinite(maxErr);
   s.edges.clear();
   for (std::uint32_t k = 0; k < ru.nbs.size(); ++k)
   {
     const Nb& nb = ru.nbs[k];
-    const State sv = this->S_.Get(nb.v);
+    const State sv = w.S.Get(nb.v);
     if (sv & kLocked)
     {
       continue;
@@ -2321,7 +2406,7 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
     {
       continue;
     }
-    Quadric Q = this->Q_.Get(nb.v);
+    Quadric Q = w.Q.Get(nb.v);
     AddTo(Q, Qu);
     const Placement pl = this->Place(Q, ru.px, nb.p, su, sv);
     if (!std::isfinite(pl.cost) || (checkErr && pl.cost > maxErr * Trace(Q)))
@@ -2348,7 +2433,7 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
       c.t = float(ec.pl.t);
       c.cost2 = std::numeric_limits<float>::quiet_NaN();
       c.partner2 = kNone;
-      this->C_.Set(u, c);
+      w.C.Set(u, c);
       return;
     }
   }
@@ -2490,7 +2575,7 @@ Decimator::Try Decimator::TryCollapse(
     return true;
   };
   const bool chunked = lo != 0 || hi != kNone;
-  this->LoadRing(u, s.ru, true);
+  this->LoadRing(this->W(s), u, s.ru, true);
   if (chunked && !inside(s.ru))
   {
     return Try::Defer;
@@ -2498,7 +2583,7 @@ Decimator::Try Decimator::TryCollapse(
   const Nb* nb = s.ru.Find(v);
   if (nb)
   {
-    this->LoadRing(v, s.rv, true);
+    this->LoadRing(this->W(s), v, s.rv, true);
     if (chunked && !inside(s.rv))
     {
       return Try::Defer;

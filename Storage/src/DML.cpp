@@ -10,6 +10,8 @@
 #include <cerrno>
 #include <cstdlib>
 #include <cstring>
+#include <exception>
+#include <stdexcept>
 #include <string_view>
 #include <sys/mman.h>
 #include <sys/stat.h>
@@ -108,6 +110,15 @@ void DML::Impl::Shutdown() noexcept
   {
     std::free(f.data);
     f.data = nullptr;
+  }
+  if (this->forkParent)
+  {
+    // A child never joined (its thread failed): the files are the parent's. The parent's
+    // budget stays lent, which is safe.
+    for (auto& b : this->blocks)
+    {
+      b.fd = -1;
+    }
   }
   for (auto& b : this->blocks)
   {
@@ -262,8 +273,18 @@ bool DML::Impl::NeedsSpill(std::uint64_t extraBytes) const
   return this->acc.budget != 0 && !this->acc.Fits(extraBytes);
 }
 
+void DML::Impl::CheckUnforked(const char* what) const
+{
+  if (this->forkParent || this->children > 0)
+  {
+    throw std::logic_error(std::string("sipmss::storage: ") + what +
+      (this->forkParent ? " on a forked child DML" : " while a forked child DML is not joined"));
+  }
+}
+
 BlockId DML::Impl::OpenRaw(Kind kind, std::size_t elementSize, std::uint64_t count, double weight)
 {
+  this->CheckUnforked("OpenBlock");
   const std::uint64_t bytes = CheckedBytes(count, elementSize);
   const BlockId id = this->NewSlot(kind, elementSize, weight);
   try
@@ -310,6 +331,10 @@ BlockId DML::Impl::OpenRaw(Kind kind, std::size_t elementSize, std::uint64_t cou
 
 std::string DML::Impl::FilePath(const Block& b) const
 {
+  if (this->forkParent)
+  {
+    return this->forkParent->FilePath(b); // (the parent's directories do not change meanwhile)
+  }
   const auto& d = this->dirs[static_cast<std::size_t>(b.dir)].path;
   std::string p(d.data(), d.size());
   p += '/';
@@ -475,6 +500,7 @@ void DML::Impl::RemoveFile(Block& b)
 
 void DML::Impl::CloseRaw(BlockId id)
 {
+  this->CheckUnforked("CloseBlock");
   Block& b = this->blocks[static_cast<std::size_t>(id)];
   if (b.kind == Kind::List)
   {
@@ -553,6 +579,7 @@ void DML::Impl::ResizeInCore(Block& b, std::uint64_t count)
 
 void DML::Impl::ResizeRaw(BlockId id, std::uint64_t count)
 {
+  this->CheckUnforked("Resize");
   Block* b = &this->blocks[static_cast<std::size_t>(id)];
   if (b->kind == Kind::List)
   {
@@ -814,6 +841,7 @@ DML::~DML() = default;
 Mode DML::Config(const Profile& profile)
 {
   Impl& I = *this->impl_;
+  I.CheckUnforked("Config");
   detail::BaseSync sync(I);
   if (I.cache.pinnedFrames > 0)
   {
@@ -897,6 +925,7 @@ Mode DML::Config(const Profile& profile)
 Mode DML::Reconfigure()
 {
   Impl& I = *this->impl_;
+  I.CheckUnforked("Reconfigure");
   detail::BaseSync sync(I);
   if (I.cache.pinnedFrames > 0)
   {
@@ -1100,6 +1129,7 @@ void DML::WriteRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, c
 void DML::Fill(BlockId id, const void* element)
 {
   Impl& I = *this->impl_;
+  I.CheckUnforked("Fill");
   Block& b = I.Get(id, Kind::Plain);
   const std::size_t es = b.elementSize;
   const auto* e = static_cast<const unsigned char*>(element);
@@ -1168,6 +1198,227 @@ void DML::Fill(BlockId id, const void* element)
     throw;
   }
   I.UnpinPage(id, 0);
+}
+
+namespace
+{
+// A child's view of its parent's backend: reads and writes only (the POSIX backend's are
+// thread-safe: pread/pwrite on a descriptor).
+class BorrowedBackend final : public FileBackend
+{
+public:
+  explicit BorrowedBackend(FileBackend& b)
+    : b_(b)
+  {
+  }
+  int Create(const std::string&) override { throw std::logic_error("sipmss::storage: Create on a child DML"); }
+  void Close(int) override {}
+  void Remove(const std::string&) override { throw std::logic_error("sipmss::storage: Remove on a child DML"); }
+  void ReadAt(int handle, void* dst, std::size_t bytes, std::uint64_t offset) override
+  {
+    this->b_.ReadAt(handle, dst, bytes, offset);
+  }
+  void WriteAt(int handle, const void* src, std::size_t bytes, std::uint64_t offset) override
+  {
+    this->b_.WriteAt(handle, src, bytes, offset);
+  }
+  void Truncate(int, std::uint64_t) override { throw std::logic_error("sipmss::storage: Truncate on a child DML"); }
+
+private:
+  FileBackend& b_;
+};
+} // namespace
+
+std::unique_ptr<DML> DML::Fork(std::uint64_t bytes)
+{
+  Impl& I = *this->impl_;
+  if (I.forkParent)
+  {
+    throw std::logic_error("sipmss::storage: Fork of a forked child DML");
+  }
+  if (I.mode != Mode::OutOfCore)
+  {
+    return nullptr;
+  }
+  detail::BaseSync sync(I);
+  I.EnsureCache();
+  // The child reads the files: write every dirty page back (the pages stay cached, clean).
+  for (std::size_t i = 0; i < I.cache.frames.size(); ++i)
+  {
+    if (I.cache.frames[i].block >= 0 && I.cache.frames[i].dirty)
+    {
+      I.WriteBack(static_cast<std::int32_t>(i));
+    }
+  }
+  std::unique_ptr<DML> child;
+  bool charged = false;
+  try
+  {
+    child = std::make_unique<DML>(std::make_unique<BorrowedBackend>(*I.backend));
+    Impl& K = *child->impl_;
+    K.forkParent = &I; // first: from here on the child never closes or removes a file
+    K.lent = bytes;
+    K.replacement = I.replacement;
+    K.profile.policy = ModePolicy::OutOfCore;
+    K.profile.memoryBudget = bytes;
+    K.profile.pagePolicy = I.profile.pagePolicy;
+    K.profile.pageSize = I.cache.pageSize;
+    K.mode = Mode::OutOfCore;
+    K.stats.usedOutOfCore = true;
+    const std::size_t n = I.blocks.size();
+    K.blocks.reserve(std::max<std::size_t>(n, 1));
+    K.bases.reserve(std::max<std::size_t>(n, 1));
+    K.fast.reserve(std::max<std::size_t>(n, 1) * kFastPages);
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      const Block& src = I.blocks[i];
+      Block b;
+      if (src.kind == Kind::Plain && src.fd >= 0)
+      {
+        b.kind = Kind::Plain;
+        b.elementSize = src.elementSize;
+        b.count = src.count;
+        b.weight = src.weight;
+        b.fd = src.fd;
+        b.dir = src.dir;
+        b.fileSeq = src.fileSeq;
+      }
+      K.blocks.push_back(b);
+    }
+    K.acc.budget = bytes;
+    if (K.acc.held > bytes)
+    {
+      throw BudgetError("sipmss::storage: " + std::to_string(bytes) +
+        " bytes are too few for a forked DML's metadata (" + std::to_string(K.acc.held) + ")");
+    }
+    K.EnsureCache();
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      Block& b = K.blocks[i];
+      if (b.kind == Kind::Plain)
+      {
+        b.perPage = I.blocks[i].perPage; // the same pages (the unit of Fork's contract)
+        if (I.PageBytes(I.blocks[i]) > K.cache.pageSize)
+        {
+          throw std::logic_error("sipmss::storage: forked pages do not fit the child's frames");
+        }
+      }
+    }
+    // The child's page buffers are this DML's (moved, not freed and allocated again).
+    if (K.cache.pageSize == I.cache.pageSize)
+    {
+      while (K.cache.freeEmpty >= 0 && K.acc.Fits(HeapCost(K.cache.pageSize)))
+      {
+        unsigned char* data = I.TakeBuffer();
+        if (!data)
+        {
+          break;
+        }
+        if (!K.GiveBuffer(data))
+        {
+          if (!I.GiveBuffer(data))
+          {
+            std::free(data);
+          }
+          break;
+        }
+      }
+    }
+    K.SyncBases();
+    I.acc.Charge(bytes); // evicts (and frees) more pages of this DML if needed
+    charged = true;
+  }
+  catch (...)
+  {
+    child.reset();
+    if (charged)
+    {
+      I.acc.Release(bytes);
+    }
+    throw;
+  }
+  ++I.children;
+  return child;
+}
+
+void DML::Join(DML& child)
+{
+  Impl& I = *this->impl_;
+  Impl& K = *child.impl_;
+  if (K.forkParent != &I)
+  {
+    throw std::logic_error("sipmss::storage: Join of a DML that is not a child of this one");
+  }
+  detail::BaseSync sync(I);
+  std::exception_ptr error;
+  for (std::size_t i = 0; i < K.cache.frames.size() && !error; ++i)
+  {
+    if (K.cache.frames[i].block >= 0 && K.cache.frames[i].dirty)
+    {
+      try
+      {
+        K.WriteBack(static_cast<std::int32_t>(i));
+      }
+      catch (...)
+      {
+        error = std::current_exception();
+      }
+    }
+  }
+  I.acc.Release(K.lent);
+  K.lent = 0;
+  --I.children;
+  // The page buffers go back to this DML.
+  if (K.cache.pageSize == I.cache.pageSize)
+  {
+    for (auto& f : K.cache.frames)
+    {
+      if (f.data && I.GiveBuffer(f.data))
+      {
+        f.data = nullptr;
+        K.acc.Release(HeapCost(K.cache.pageSize));
+      }
+    }
+  }
+  K.DestroyCache(false);
+  // This DML's clean copies of pages between the first and the last the child wrote may be
+  // stale: they go. Its dirty pages stay (by the contract, the child wrote none of them).
+  for (std::size_t i = 0; i < K.blocks.size() && i < I.blocks.size(); ++i)
+  {
+    const Block& kb = K.blocks[i];
+    if (kb.kind == Kind::Plain && kb.writtenFirst <= kb.writtenLast)
+    {
+      I.DropCleanPages(static_cast<BlockId>(i), kb.writtenFirst, kb.writtenLast);
+    }
+  }
+  I.stats.hits += K.stats.hits + child.fastHits_;
+  I.stats.misses += K.stats.misses;
+  I.stats.bytesRead += K.stats.bytesRead;
+  I.stats.bytesWritten += K.stats.bytesWritten;
+  for (Block& b : K.blocks)
+  {
+    b = Block{};
+  }
+  K.SyncBases();
+  K.forkParent = nullptr;
+  child.fastHits_ = 0;
+  if (error)
+  {
+    std::rethrow_exception(error);
+  }
+}
+
+std::uint64_t DML::PageElements(BlockId id)
+{
+  Impl& I = *this->impl_;
+  const Block& b = I.Get(id, Kind::Plain);
+  if (b.mem || I.mode != Mode::OutOfCore)
+  {
+    return 0;
+  }
+  detail::BaseSync sync(I);
+  I.EnsureCache();
+  return I.blocks[static_cast<std::size_t>(id)].perPage;
 }
 
 Span DML::Pin(BlockId id, std::uint64_t index, Access access)

@@ -184,6 +184,10 @@ struct Block
 
   std::int32_t list = -1; // Kind::List: index into Impl::lists
 
+  // Pages written back since this block was opened (a forked child's: see DML::Join).
+  std::uint64_t writtenFirst = std::numeric_limits<std::uint64_t>::max();
+  std::uint64_t writtenLast = 0;
+
   bool InCore() const { return this->mem != nullptr; }
   bool OnFile() const { return this->fd >= 0; }
   std::uint64_t Bytes() const { return this->count * this->elementSize; }
@@ -278,6 +282,12 @@ struct DML::Impl
   std::uint64_t nextFileSeq = 0;
   std::uint64_t nextDir = 0; // round robin over profile.directories
   detail::Cache cache;
+  // Fork: a child serves its parent's files (it never creates, closes or removes one) and has
+  // `lent` bytes of the parent's budget; a parent counts its children.
+  Impl* forkParent = nullptr;
+  std::uint64_t lent = 0;
+  std::uint32_t children = 0;
+  void CheckUnforked(const char* what) const; // no structural change while forked
 
   explicit Impl(std::unique_ptr<FileBackend> b);
   ~Impl();
@@ -327,7 +337,14 @@ struct DML::Impl
   void WriteBack(std::int32_t fi);
   void Evict(std::int32_t fi, bool writeBack);
   void DropBlockPages(BlockId id, std::uint64_t fromPage); // discard pages >= fromPage
+  // Discards the block's clean pages in [first, last] (Join: the child may have written them).
+  void DropCleanPages(BlockId id, std::uint64_t first, std::uint64_t last);
   void ReleaseFrames(std::uint64_t bytes); // Accountant callback
+  // A page buffer out of the cache (a victim's, written back first; nullptr: none left) and
+  // into it (false: no free slot or no room). Fork and Join move buffers between two caches of
+  // the same page size instead of freeing and allocating: freed heap memory stays resident.
+  unsigned char* TakeBuffer();
+  bool GiveBuffer(unsigned char* data);
   void RecomputeQuotas();
   void RingInsert(detail::Block& b, std::int32_t fi);
   void RingRemove(detail::Block& b, std::int32_t fi);

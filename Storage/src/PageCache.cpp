@@ -619,9 +619,11 @@ std::int32_t DML::Impl::SweepVictim(Block& v)
 void DML::Impl::WriteBack(std::int32_t fi)
 {
   Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
-  const Block& b = this->blocks[static_cast<std::size_t>(f.block)];
+  Block& b = this->blocks[static_cast<std::size_t>(f.block)];
   const std::uint64_t pb = this->PageBytes(b);
   const std::uint64_t first = f.page * pb;
+  b.writtenFirst = std::min(b.writtenFirst, f.page);
+  b.writtenLast = std::max(b.writtenLast, f.page);
   if (first < b.Bytes())
   {
     this->BackendWrite(b, f.data, std::min(pb, b.Bytes() - first), first);
@@ -701,37 +703,90 @@ void DML::Impl::DropBlockPages(BlockId id, std::uint64_t fromPage)
   this->cache.quotasDirty = true;
 }
 
+void DML::Impl::DropCleanPages(BlockId id, std::uint64_t first, std::uint64_t last)
+{
+  if (!this->cache.built)
+  {
+    return;
+  }
+  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  auto& F = this->cache.frames;
+  std::int32_t fi = b.hand;
+  for (std::uint32_t n = b.resident; n > 0; --n)
+  {
+    const std::int32_t next = F[static_cast<std::size_t>(fi)].next;
+    const Frame& f = F[static_cast<std::size_t>(fi)];
+    if (f.page >= first && f.page <= last && !f.dirty)
+    {
+      this->Evict(fi, false);
+    }
+    fi = next;
+  }
+  b.ClearRecent();
+  this->SyncFast(id);
+  this->cache.quotasDirty = true;
+}
+
 // Accountant callback: free page buffers until `bytes` fit (cached pages go first to the
 // blocks most above their share; dirty ones are written back).
 void DML::Impl::ReleaseFrames(std::uint64_t bytes)
 {
+  while (!this->acc.Fits(bytes))
+  {
+    unsigned char* data = this->TakeBuffer();
+    if (!data)
+    {
+      break;
+    }
+    std::free(data);
+  }
+}
+
+unsigned char* DML::Impl::TakeBuffer()
+{
   detail::Cache& C = this->cache;
   if (!C.built)
   {
-    return;
+    return nullptr;
   }
-  while (!this->acc.Fits(bytes))
+  if (C.freeData < 0)
   {
-    if (C.freeData < 0)
+    const std::int32_t victim = this->FindVictim(-1);
+    if (victim < 0)
     {
-      const std::int32_t victim = this->FindVictim(-1);
-      if (victim < 0)
-      {
-        break;
-      }
-      this->Evict(victim, true);
+      return nullptr;
     }
-    const std::int32_t fi = C.freeData;
-    Frame& f = C.frames[static_cast<std::size_t>(fi)];
-    C.freeData = f.next;
-    std::free(f.data);
-    f.data = nullptr;
-    f.next = C.freeEmpty;
-    C.freeEmpty = fi;
-    --C.withData;
-    this->acc.Release(HeapCost(C.pageSize));
-    C.quotasDirty = true;
+    this->Evict(victim, true);
   }
+  const std::int32_t fi = C.freeData;
+  Frame& f = C.frames[static_cast<std::size_t>(fi)];
+  C.freeData = f.next;
+  unsigned char* data = f.data;
+  f.data = nullptr;
+  f.next = C.freeEmpty;
+  C.freeEmpty = fi;
+  --C.withData;
+  this->acc.Release(HeapCost(C.pageSize));
+  C.quotasDirty = true;
+  return data;
+}
+
+bool DML::Impl::GiveBuffer(unsigned char* data)
+{
+  detail::Cache& C = this->cache;
+  if (!C.built || C.freeEmpty < 0 || !this->acc.TryCharge(HeapCost(C.pageSize)))
+  {
+    return false;
+  }
+  const std::int32_t fi = C.freeEmpty;
+  Frame& f = C.frames[static_cast<std::size_t>(fi)];
+  C.freeEmpty = f.next;
+  f.data = data;
+  f.next = C.freeData;
+  C.freeData = fi;
+  ++C.withData;
+  C.quotasDirty = true;
+  return true;
 }
 
 std::int32_t DML::Impl::PinPage(BlockId id, Block& b, std::uint64_t page, bool write)
