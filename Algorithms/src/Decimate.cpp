@@ -69,6 +69,7 @@
 #include <condition_variable>
 #include <exception>
 #include <functional>
+#include <initializer_list>
 #include <mutex>
 #include <string>
 #include <system_error>
@@ -530,7 +531,8 @@ void RethrowFirst(const std::vector<std::exception_ptr>& errors)
 // records) and should return early once `stop` is set (another one threw, e.g. an abort).
 using RangeBody =
   std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
-void ForRanges(int T, std::uint64_t n, const RangeBody& body)
+void ForRanges(int T, std::uint64_t n, const RangeBody& body,
+  const std::function<void()>& beforeFallback = nullptr)
 {
   auto begin = [n, T](int t) { return n * std::uint64_t(t) / std::uint64_t(T); };
   std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
@@ -552,6 +554,10 @@ void ForRanges(int T, std::uint64_t n, const RangeBody& body)
   RethrowFirst(errors);
   if (started < T)
   {
+    if (beforeFallback)
+    {
+      beforeFallback();
+    }
     body(0, begin(started), n, stop);
   }
 }
@@ -645,19 +651,47 @@ private:
   bool lazySums_ = false;
   bool AllInCore() const
   {
-    return this->S_.Ptr(0) && this->C_.Ptr(0) && this->Q_.Ptr(0) && this->P_.Ptr(0) &&
-      this->F_.Ptr(0) && this->RO_.Ptr(0) && this->RF_.Ptr(0);
+    return this->v_.S.Ptr(0) && this->v_.C.Ptr(0) && this->v_.Q.Ptr(0) && this->v_.P.Ptr(0) &&
+      this->v_.F.Ptr(0) && this->v_.RO.Ptr(0) && this->v_.RF.Ptr(0);
   }
   void Sweep(std::uint64_t nv);
+  // Out of core on two or more threads: a DML forked for a helper thread that writes only the
+  // elements [mid, nv) of `blocks` (DML::Fork, half of the budget), with `w` bound to it;
+  // nullptr in core, on one thread, for small meshes, or when the budget cannot be shared.
+  std::unique_ptr<DML> ForkHelper(std::uint64_t nv, std::uint64_t mid,
+    std::initializer_list<storage::BlockId> blocks, Views& w,
+    const std::vector<DML::Range>& more = {});
+  void JoinHelper(std::unique_ptr<DML>& fork); // (no-op for nullptr)
+  // Runs work, then joins the fork (also when work throws; then a failing join is dropped).
+  template <class F>
+  void RunForked(std::unique_ptr<DML>& fork, const F& work)
+  {
+    try
+    {
+      work();
+    }
+    catch (...)
+    {
+      try
+      {
+        this->JoinHelper(fork);
+      }
+      catch (...)
+      {
+      }
+      throw;
+    }
+    this->JoinHelper(fork);
+  }
   // In core: the faces of an active vertex kAhead ahead in the sweep, and the data of the
   // neighbours of one kAhead / 2 ahead (its faces were fetched before).
   void PrefetchSweep(std::uint64_t u, std::uint64_t end) const
   {
     constexpr std::uint64_t kAhead = 8;
-    const State* Sp = this->S_.Ptr(0);
-    const std::uint32_t* ROp = this->RO_.Ptr(0);
-    const std::uint32_t* RFp = this->RF_.Ptr(0);
-    const Tri* Fp = this->F_.Ptr(0);
+    const State* Sp = this->v_.S.Ptr(0);
+    const std::uint32_t* ROp = this->v_.RO.Ptr(0);
+    const std::uint32_t* RFp = this->v_.RF.Ptr(0);
+    const Tri* Fp = this->v_.F.Ptr(0);
     if (!Sp || !ROp || !RFp || !Fp)
     {
       return;
@@ -669,9 +703,9 @@ private:
         Prefetch(Fp + RFp[k]);
       }
     }
-    const Quadric* Qp = this->Q_.Ptr(0);
-    const Vec3* Pp = this->P_.Ptr(0);
-    const Cand* Cp = this->C_.Ptr(0);
+    const Quadric* Qp = this->v_.Q.Ptr(0);
+    const Vec3* Pp = this->v_.P.Ptr(0);
+    const Cand* Cp = this->v_.C.Ptr(0);
     const std::uint64_t w = u + kAhead / 2;
     if (w < end && Qp && Pp && Cp && Active(Sp[w]))
     {
@@ -769,14 +803,6 @@ private:
   Array<std::uint32_t> remap_; // compaction: old vertex -> new
 
   Views v_;
-  View<Vec3>& P_ = v_.P;
-  View<Quadric>& Q_ = v_.Q;
-  View<std::uint8_t>& A_ = v_.A;
-  View<State>& S_ = v_.S;
-  View<Tri>& F_ = v_.F;
-  View<std::uint32_t>&RO_ = v_.RO, &RF_ = v_.RF;
-  View<Cand>& C_ = v_.C;
-  View<std::uint32_t>& O_ = v_.O;
   Views& W(const Scratch& s) { return s.w ? *s.w : this->v_; }
 
   // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
@@ -1214,26 +1240,77 @@ void Decimator::CountDegrees(std::uint64_t nf, const Tri* F, std::uint32_t* RO,
 // face (the reads are sequential, the writes it splits are not): the same lists.
 void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal)
 {
-  const Tri* F = this->F_.Ptr(0);
-  std::uint32_t* RO = const_cast<std::uint32_t*>(this->RO_.Ptr(0));
-  std::uint32_t* RF = const_cast<std::uint32_t*>(this->RF_.Ptr(0));
+  const Tri* F = this->v_.F.Ptr(0);
+  std::uint32_t* RO = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
+  std::uint32_t* RF = const_cast<std::uint32_t*>(this->v_.RF.Ptr(0));
   const std::uint64_t nv = this->nv_;
-  const int T = (nf >= kParallelRingsMin && F && RO && RF) ? this->threads_ : 1;
+  int T = (nf >= kParallelRingsMin && F && RO && RF) ? this->threads_ : 1;
+  // Out of core: the upper half of the vertices (their offsets and lists) on a helper thread
+  // through a forked DML; each thread scans every face.
+  Views forkViews;
+  const std::uint64_t mid = nv / 2;
+  std::unique_ptr<DML> fork;
+  if (T == 1 && mid > 0)
+  {
+    const std::uint64_t rfBegin = this->v_.RO.Get(mid - 1), rfEnd = this->v_.RO.Get(nv);
+    if (rfBegin < rfEnd)
+    {
+      fork = this->ForkHelper(nv, mid, { this->ringOff_.Id() }, forkViews,
+        { { this->ringFace_.Id(), rfBegin, rfEnd - rfBegin } });
+    }
+  }
+  if (fork)
+  {
+    auto fill = [&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+      Views& w = th == 1 ? forkViews : this->v_;
+      for (std::uint64_t i = nf; i-- > 0;)
+      {
+        if ((i & 4095) == 0)
+        {
+          if (stop.load(std::memory_order_relaxed))
+          {
+            return;
+          }
+          if (th == 0 && tickTotal)
+          {
+            this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
+          }
+        }
+        const Tri t = w.F.Get(i);
+        if (!Alive(t))
+        {
+          continue;
+        }
+        for (int k = 0; k < 3; ++k)
+        {
+          const std::uint32_t x = t.v[k];
+          if (x >= lo && x < hi)
+          {
+            const std::uint32_t e = w.RO.Get(x) - 1;
+            w.RO.Set(x, e);
+            w.RF.Set(e, std::uint32_t(i));
+          }
+        }
+      }
+    };
+    this->RunForked(fork, [&]() { ForRanges(2, nv, fill, [&]() { this->JoinHelper(fork); }); });
+    return;
+  }
   if (T <= 1)
   {
     for (std::uint64_t i = nf; i-- > 0;)
     {
       this->Tick(tickBase + (nf - i), tickTotal);
-      const Tri t = this->F_.Get(i);
+      const Tri t = this->v_.F.Get(i);
       if (!Alive(t))
       {
         continue;
       }
       for (int k = 0; k < 3; ++k)
       {
-        const std::uint32_t e = this->RO_.Get(t.v[k]) - 1;
-        this->RO_.Set(t.v[k], e);
-        this->RF_.Set(e, std::uint32_t(i));
+        const std::uint32_t e = this->v_.RO.Get(t.v[k]) - 1;
+        this->v_.RO.Set(t.v[k], e);
+        this->v_.RF.Set(e, std::uint32_t(i));
       }
     }
     return;
@@ -1644,17 +1721,17 @@ void Decimator::BuildQuadrics()
   // empty candidate. Every vertex writes only its own records: in core the vertex range is split
   // among threads (not with initialQuadric, a caller's callback).
   const double bw = this->opt_.boundaryWeight;
-  auto vertex = [this, bw](std::uint32_t u, std::vector<Tri>& tris, std::vector<std::uint32_t>& next,
-                  std::vector<std::uint32_t>& prev) {
+  auto vertex = [this, bw](Views& w, std::uint32_t u, std::vector<Tri>& tris,
+                  std::vector<std::uint32_t>& next, std::vector<std::uint32_t>& prev) {
     State flags = kRecompute;
-    const std::uint32_t b = this->RO_.Get(u), e = this->RO_.Get(u + 1);
+    const std::uint32_t b = w.RO.Get(u), e = w.RO.Get(u + 1);
     tris.clear();
     next.clear();
     prev.clear();
     Quadric Q = { { 0, 0, 0, 0, 0, 0, 0, 0, 0, 0 } };
     for (std::uint32_t k = b; k < e; ++k)
     {
-      const Tri t = this->F_.Get(this->RF_.Get(k));
+      const Tri t = w.F.Get(w.RF.Get(k));
       if (!Alive(t))
       {
         continue;
@@ -1663,8 +1740,8 @@ void Decimator::BuildQuadrics()
       tris.push_back(t);
       next.push_back(t.v[(c + 1) % 3]);
       prev.push_back(t.v[(c + 2) % 3]);
-      const Vec3 a = this->P_.Get(t.v[0]);
-      Vec3 nn = Cross(this->P_.Get(t.v[1]) - a, this->P_.Get(t.v[2]) - a);
+      const Vec3 a = w.P.Get(t.v[0]);
+      Vec3 nn = Cross(w.P.Get(t.v[1]) - a, w.P.Get(t.v[2]) - a);
       const double len = std::sqrt(Dot(nn, nn));
       if (len > 0)
       {
@@ -1689,10 +1766,10 @@ void Decimator::BuildQuadrics()
         return;
       }
       const Tri& t = tris[face];
-      const Vec3 p0 = this->P_.Get(t.v[0]);
-      Vec3 fn = Cross(this->P_.Get(t.v[1]) - p0, this->P_.Get(t.v[2]) - p0);
-      const Vec3 pu = this->P_.Get(u);
-      const Vec3 ev = this->P_.Get(a) - pu;
+      const Vec3 p0 = w.P.Get(t.v[0]);
+      Vec3 fn = Cross(w.P.Get(t.v[1]) - p0, w.P.Get(t.v[2]) - p0);
+      const Vec3 pu = w.P.Get(u);
+      const Vec3 ev = w.P.Get(a) - pu;
       Vec3 m = Cross(ev, fn);
       const double len = std::sqrt(Dot(m, m));
       if (len > 0)
@@ -1767,22 +1844,38 @@ void Decimator::BuildQuadrics()
         AddTo(Q, T);
       }
     }
-    this->Q_.Set(u, Q);
-    this->S_.Set(u, flags);
-    this->C_.Set(u, this->none_);
+    w.Q.Set(u, Q);
+    w.S.Set(u, flags);
+    w.C.Set(u, this->none_);
   };
-  const int T = (this->AllInCore() && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
-  ForRanges(T, nv, [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-    std::vector<Tri> tris;
-    std::vector<std::uint32_t> next, prev;
-    for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
-    {
-      if (t == 0)
-      {
-        this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
-      }
-      vertex(std::uint32_t(u), tris, next, prev);
-    }
+  int T = (this->AllInCore() && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
+  // Out of core: the upper half of the vertices on a helper thread through a forked DML.
+  Views forkViews;
+  std::unique_ptr<DML> fork = (T == 1 && !this->opt_.initialQuadric)
+    ? this->ForkHelper(nv, nv / 2, { this->quad_.Id(), this->state_.Id(), this->cand_.Id() },
+        forkViews)
+    : nullptr;
+  if (fork)
+  {
+    T = 2; // ForRanges' halves: [0, nv / 2) and [nv / 2, nv)
+  }
+  this->RunForked(fork, [&]() {
+    ForRanges(
+      T, nv,
+      [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+        Views& w = (fork && t == 1) ? forkViews : this->v_;
+        std::vector<Tri> tris;
+        std::vector<std::uint32_t> next, prev;
+        for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
+        {
+          if (t == 0)
+          {
+            this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
+          }
+          vertex(w, std::uint32_t(u), tris, next, prev);
+        }
+      },
+      [&]() { this->JoinHelper(fork); });
   });
 }
 
@@ -2028,6 +2121,46 @@ void Decimator::Apply(
   w.C.Set(x, c);
 }
 
+std::unique_ptr<DML> Decimator::ForkHelper(std::uint64_t nv, std::uint64_t mid,
+  std::initializer_list<storage::BlockId> blocks, Views& w, const std::vector<DML::Range>& more)
+{
+  constexpr std::uint64_t kForkMin = 65536; // below, the sweeps are short
+  const std::uint64_t budget = this->dml_.GetProfile().memoryBudget;
+  if (this->threads_ < 2 || nv < kForkMin || budget == 0 || this->AllInCore())
+  {
+    return nullptr;
+  }
+  std::vector<DML::Range> ranges;
+  for (storage::BlockId id : blocks)
+  {
+    ranges.push_back({ id, mid, nv - mid });
+  }
+  ranges.insert(ranges.end(), more.begin(), more.end());
+  std::unique_ptr<DML> fork;
+  try
+  {
+    fork = this->dml_.Fork(budget / 2, ranges);
+  }
+  catch (const storage::BudgetError&)
+  {
+    return nullptr; // too little room to share: one thread
+  }
+  if (fork)
+  {
+    this->BindViews(w, *fork);
+  }
+  return fork;
+}
+
+void Decimator::JoinHelper(std::unique_ptr<DML>& fork)
+{
+  if (fork)
+  {
+    std::unique_ptr<DML> f = std::move(fork);
+    this->dml_.Join(*f);
+  }
+}
+
 // Step 1 of a pass: every active vertex evaluates its edges. In core, the vertex range is split
 // among threads_ threads; a thread writes only its own vertices' candidates and queues offers to
 // the others', which their owners apply between barriers, one chunk of vertices at a time (the
@@ -2037,7 +2170,6 @@ void Decimator::Sweep(std::uint64_t nv)
 {
   constexpr std::uint64_t kChunk = 16384;
   constexpr std::uint64_t kParallelMin = 8192;
-  constexpr std::uint64_t kForkMin = 65536;
   auto sequential = [this, nv]() {
     Scratch& s = this->scratch_[0];
     s.lo = 0;
@@ -2050,33 +2182,15 @@ void Decimator::Sweep(std::uint64_t nv)
     }
   };
   int T = (this->AllInCore() && nv >= kParallelMin) ? this->threads_ : 1;
-  // Out of core on two threads: the second works through a forked DML (its own page cache,
-  // half of the budget's room) on the upper half of the vertices, cut at a page of the
-  // candidates, the only block the sweep writes. Each thread writes only its own range's
-  // candidates (the others' offers are queued, as in core), so no page is written by both.
-  std::unique_ptr<DML> fork;
+  // Out of core on two threads: the second sweeps the upper half of the vertices through a
+  // forked DML. Each thread writes only its own range's candidates (the others' offers are
+  // queued, as in core), the only block the sweep writes.
   Views forkViews;
-  std::uint32_t mid = 0;
-  if (T == 1 && this->threads_ > 1 && nv >= kForkMin && this->dml_.GetProfile().memoryBudget > 0)
+  std::unique_ptr<DML> fork =
+    T == 1 ? this->ForkHelper(nv, nv / 2, { this->cand_.Id() }, forkViews) : nullptr;
+  if (fork)
   {
-    const std::uint64_t per = this->dml_.PageElements(this->cand_.Id());
-    mid = per ? std::uint32_t(nv / 2 / per * per) : 0;
-    if (mid > 0)
-    {
-      try
-      {
-        fork = this->dml_.Fork(this->dml_.GetProfile().memoryBudget / 2);
-      }
-      catch (const storage::BudgetError&)
-      {
-        fork.reset(); // too little room to share: one thread
-      }
-    }
-    if (fork)
-    {
-      this->BindViews(forkViews, *fork);
-      T = 2;
-    }
+    T = 2;
   }
   if (T <= 1)
   {
@@ -2094,17 +2208,11 @@ void Decimator::Sweep(std::uint64_t nv)
   }
   if (fork)
   {
-    this->partStart_[1] = mid;
-    this->scratch_[1].w = &forkViews;
+    this->scratch_[1].w = &forkViews; // (partStart_[1] is nv / 2)
   }
-  // Joins the fork (on every exit): its dirty candidates go back to the files.
   auto join = [this, &fork]() {
-    if (fork)
-    {
-      this->scratch_[1].w = nullptr;
-      std::unique_ptr<DML> f = std::move(fork);
-      this->dml_.Join(*f);
-    }
+    this->scratch_[1].w = nullptr;
+    this->JoinHelper(fork);
   };
   std::uint64_t rounds = 0;
   for (int t = 0; t < T; ++t)
@@ -2450,12 +2558,12 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
   s.abuf2.resize(rec);
   if (t >= 1.0)
   {
-    this->A_.GetRange(std::uint64_t(v) * rec, rec, s.abuf.data());
-    this->A_.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+    this->v_.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf.data());
+    this->v_.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
     return;
   }
-  this->A_.GetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
-  this->A_.GetRange(std::uint64_t(v) * rec, rec, s.abuf2.data());
+  this->v_.A.GetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+  this->v_.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf2.data());
   float* a = reinterpret_cast<float*>(s.abuf.data());
   const float* b = reinterpret_cast<const float*>(s.abuf2.data());
   for (std::size_t i = 0; i < this->nFloats_; ++i)
@@ -2483,7 +2591,7 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
       ca[i] = std::uint8_t(std::min(255.0, std::max(0.0, std::floor(x + 0.5))));
     }
   }
-  this->A_.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+  this->v_.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
 }
 
 // Collapses u and c.partner (rings loaded in s.ru and s.rv) into u at c.p; returns the number of
@@ -2493,13 +2601,13 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
   const std::uint32_t v = c.partner;
   const Ring& ru = s.ru;
   const Ring& rv = s.rv;
-  const State su = this->S_.Get(u), sv = this->S_.Get(v);
+  const State su = this->v_.S.Get(u), sv = this->v_.S.Get(v);
   std::uint64_t removed = 0;
   for (const RingFace& f : ru.faces)
   {
     if (Has(f.t, v))
     {
-      this->F_.Set(f.id, kDeadTri);
+      this->v_.F.Set(f.id, kDeadTri);
       ++removed;
     }
   }
@@ -2509,7 +2617,7 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
     {
       Tri t = f.t;
       t.v[f.corner] = u;
-      this->F_.Set(f.id, t);
+      this->v_.F.Set(f.id, t);
     }
   }
   // Mark every vertex of the faces around u and v: no later collapse of this pass touches them.
@@ -2517,19 +2625,19 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
   {
     for (const Nb& n : r->nbs)
     {
-      this->S_.Set(n.v, State(this->S_.Get(n.v) | kMarked));
+      this->v_.S.Set(n.v, State(this->v_.S.Get(n.v) | kMarked));
     }
   }
-  this->P_.Set(u, { c.p[0], c.p[1], c.p[2] });
+  this->v_.P.Set(u, { c.p[0], c.p[1], c.p[2] });
   if (!this->lazySums_)
   {
-    Quadric Q = this->Q_.Get(u);
-    AddTo(Q, this->Q_.Get(v));
-    this->Q_.Set(u, Q);
+    Quadric Q = this->v_.Q.Get(u);
+    AddTo(Q, this->v_.Q.Get(v));
+    this->v_.Q.Set(u, Q);
   }
   this->InterpolateAttributes(u, v, double(c.t), s);
-  this->S_.Set(v, State(kRemoved | kMarked));
-  this->S_.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
+  this->v_.S.Set(v, State(kRemoved | kMarked));
+  this->v_.S.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
   return removed;
 }
 
@@ -2549,18 +2657,18 @@ inline std::uint32_t CostBin(double cost)
 Decimator::Try Decimator::TryCollapse(
   std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi, std::uint64_t& removed)
 {
-  const State su = this->S_.Get(u);
+  const State su = this->v_.S.Get(u);
   if (su & kBusy)
   {
     return Try::Skip;
   }
-  const Cand c = this->C_.Get(u);
+  const Cand c = this->v_.C.Get(u);
   const std::uint32_t v = c.partner;
   if (v < lo || v >= hi)
   {
     return Try::Defer;
   }
-  if (this->S_.Get(v) & kBusy)
+  if (this->v_.S.Get(v) & kBusy)
   {
     return Try::Skip;
   }
@@ -2591,7 +2699,7 @@ Decimator::Try Decimator::TryCollapse(
   }
   if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }, s, true))
   {
-    this->S_.Set(u, State(su | kNeedsLegal));
+    this->v_.S.Set(u, State(su | kNeedsLegal));
     return Try::Illegal;
   }
   removed += this->Collapse(u, c, s);
@@ -2608,13 +2716,13 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   // before fetched: their state, candidate and ring offsets; for those still free, the
   // partner's, the ring's face ids and both positions; the ring's faces and the partner's face
   // ids; the positions of the ring's vertices and the partner's faces.
-  const std::uint32_t* Op = this->O_.Ptr(0);
-  const State* Sp = this->S_.Ptr(0);
-  const Cand* Cp = this->C_.Ptr(0);
-  const std::uint32_t* ROp = this->RO_.Ptr(0);
-  const std::uint32_t* RFp = this->RF_.Ptr(0);
-  const Vec3* Pp = this->P_.Ptr(0);
-  const Tri* Fp = this->F_.Ptr(0);
+  const std::uint32_t* Op = this->v_.O.Ptr(0);
+  const State* Sp = this->v_.S.Ptr(0);
+  const Cand* Cp = this->v_.C.Ptr(0);
+  const std::uint32_t* ROp = this->v_.RO.Ptr(0);
+  const std::uint32_t* RFp = this->v_.RF.Ptr(0);
+  const Vec3* Pp = this->v_.P.Ptr(0);
+  const Tri* Fp = this->v_.F.Ptr(0);
   const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
   constexpr std::uint64_t kAhead = 16;
   auto freePair = [&](std::uint32_t w, std::uint32_t& x) {
@@ -2682,7 +2790,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         }
       }
     }
-    const std::uint32_t u = this->O_.Get(i);
+    const std::uint32_t u = this->v_.O.Get(i);
     switch (this->TryCollapse(u, s, lo, hi, run.removed))
     {
       case Try::Done:
@@ -2692,7 +2800,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         ++run.illegal;
         break;
       case Try::Defer:
-        this->S_.Set(u, State(this->S_.Get(u) | kDeferred));
+        this->v_.S.Set(u, State(this->v_.S.Get(u) | kDeferred));
         break;
       case Try::Skip:
         break;
@@ -2722,7 +2830,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     while (l < h)
     {
       const std::uint64_t m = l + (h - l) / 2;
-      if (this->O_.Get(m) < vb)
+      if (this->v_.O.Get(m) < vb)
       {
         l = m + 1;
       }
@@ -2735,7 +2843,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   }
   std::vector<std::uint64_t> end(cursor.begin() + 1, cursor.end());
   cursor.pop_back();
-  const int T = (this->AllInCore() && (!this->recSize_ || this->A_.Ptr(0))) ? this->threads_ : 1;
+  const int T = (this->AllInCore() && (!this->recSize_ || this->v_.A.Ptr(0))) ? this->threads_ : 1;
   if (this->scratch_.size() < std::size_t(T))
   {
     this->scratch_.resize(std::size_t(T));
@@ -2821,13 +2929,13 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     {
       for (std::uint64_t i = roundStart[c]; i < cursor[c]; ++i)
       {
-        const std::uint32_t u = this->O_.Get(i);
-        const State su = this->S_.Get(u);
+        const std::uint32_t u = this->v_.O.Get(i);
+        const State su = this->v_.S.Get(u);
         if (!(su & kDeferred))
         {
           continue;
         }
-        this->S_.Set(u, State(su & ~kDeferred)); // (all of them, also past the goal)
+        this->v_.S.Set(u, State(su & ~kDeferred)); // (all of them, also past the goal)
         if (this->liveFaces_ <= goal + b.removed)
         {
           continue;
@@ -2866,7 +2974,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   for (std::uint64_t u = 0; u < nv; ++u)
   {
     this->Tick(u, nv);
-    const Cand c = this->C_.Get(u);
+    const Cand c = this->v_.C.Get(u);
     if (c.partner != kNone)
     {
       ++this->hist_[CostBin(c.cost)];
@@ -2921,7 +3029,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   for (std::uint64_t u = 0; u < nv; ++u)
   {
     this->Tick(u, nv);
-    const Cand c = this->C_.Get(u);
+    const Cand c = this->v_.C.Get(u);
     if (c.partner == kNone)
     {
       continue;
@@ -2929,7 +3037,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
     const std::uint32_t b = CostBin(c.cost);
     if (b <= lastBin)
     {
-      this->O_.Set(start[this->hist_[b]]++, std::uint32_t(u));
+      this->v_.O.Set(start[this->hist_[b]]++, std::uint32_t(u));
     }
   }
   // 3. Collapse in cost order, endpoints of earlier collapses excluded. Legality is checked
@@ -2979,8 +3087,8 @@ void Decimator::Compact()
   // In core on several threads: the degrees and the rings by vertex range (each thread scans
   // all faces and writes only its own vertices), the moves (in place, downwards) one array
   // group per thread. Same result either way.
-  const int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
-                  (!this->recSize_ || this->A_.Ptr(0)))
+  int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
+                  (!this->recSize_ || this->v_.A.Ptr(0)))
     ? this->threads_
     : 1;
   // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with).
@@ -2988,21 +3096,21 @@ void Decimator::Compact()
   if (T > 1)
   {
     this->CountDegrees(
-      nf, this->F_.Ptr(0), const_cast<std::uint32_t*>(this->RO_.Ptr(0)), 0, total);
+      nf, this->v_.F.Ptr(0), const_cast<std::uint32_t*>(this->v_.RO.Ptr(0)), 0, total);
   }
   else
   {
     for (std::uint64_t f = 0; f < nf; ++f)
     {
       this->Tick(f, total);
-      const Tri t = this->F_.Get(f);
+      const Tri t = this->v_.F.Get(f);
       if (!Alive(t))
       {
         continue;
       }
       for (int c = 0; c < 3; ++c)
       {
-        this->RO_.Set(t.v[c], this->RO_.Get(t.v[c]) + 1);
+        this->v_.RO.Set(t.v[c], this->v_.RO.Get(t.v[c]) + 1);
       }
     }
   }
@@ -3015,31 +3123,32 @@ void Decimator::Compact()
   for (std::uint64_t v = 0; v < nv; ++v)
   {
     this->Tick(nf + v, total);
-    const std::uint32_t deg = this->RO_.Get(v);
+    const std::uint32_t deg = this->v_.RO.Get(v);
     if (deg == 0)
     {
       R.Set(v, kNone);
       continue;
     }
     end += deg;
-    this->RO_.Set(k, end);
-    const bool survivor = (this->S_.Get(v) & kCollapsed) != 0;
+    this->v_.RO.Set(k, end);
+    const bool survivor = (this->v_.S.Get(v) & kCollapsed) != 0;
     R.Set(v, std::uint32_t(k) | (survivor ? kTop : 0u));
     if (survivor && this->lazySums_)
     {
       // Its collapse's partner (its candidate's) is still in place: nothing moved yet.
-      Quadric Q = this->Q_.Get(v);
-      AddTo(Q, this->Q_.Get(this->C_.Get(v).partner));
-      this->Q_.Set(v, Q);
+      Quadric Q = this->v_.Q.Get(v);
+      AddTo(Q, this->v_.Q.Get(this->v_.C.Get(v).partner));
+      this->v_.Q.Set(v, Q);
     }
     ++k;
   }
   this->lazySums_ = false;
   const std::uint64_t nv2 = k;
-  this->RO_.Set(nv2, end);
+  this->v_.RO.Set(nv2, end);
   // 3. Vertex data, and the candidates carried to the next pass.
-  auto carry = [this, &R, kTop](std::uint64_t v, State& flags, Cand& c) {
-    const State sv = this->S_.Get(v);
+  auto carry = [this, kTop](Views& wv, const View<std::uint32_t>& R, std::uint64_t v, State& flags,
+                 Cand& c) {
+    const State sv = wv.S.Get(v);
     flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
     c = this->none_;
     if (sv & kCollapsed)
@@ -3056,7 +3165,7 @@ void Decimator::Compact()
       // edges to the collapsed pairs (the survivors offer the new ones): its best and second
       // best stay exact unless they pointed at one of them. A lost best is replaced by the
       // second best when that one is known and still valid.
-      c = this->C_.Get(v);
+      c = wv.C.Get(v);
       auto valid = [&R, kTop](std::uint32_t partner, std::uint32_t& mapped) {
         mapped = partner == kNone ? kNone : R.Get(partner);
         return partner == kNone || (mapped != kNone && !(mapped & kTop));
@@ -3113,12 +3222,12 @@ void Decimator::Compact()
     // candidates and moves them, the positions and the point data (memory-bound: one thread per
     // stream).
     const std::uint32_t* Rp = R.Ptr(0);
-    Quadric* Qp = const_cast<Quadric*>(this->Q_.Ptr(0));
-    Vec3* Pp = const_cast<Vec3*>(this->P_.Ptr(0));
-    State* Sp = const_cast<State*>(this->S_.Ptr(0));
-    Cand* Cp = const_cast<Cand*>(this->C_.Ptr(0));
-    std::uint8_t* Ap = rec ? const_cast<std::uint8_t*>(this->A_.Ptr(0)) : nullptr;
-    Tri* Fp = const_cast<Tri*>(this->F_.Ptr(0));
+    Quadric* Qp = const_cast<Quadric*>(this->v_.Q.Ptr(0));
+    Vec3* Pp = const_cast<Vec3*>(this->v_.P.Ptr(0));
+    State* Sp = const_cast<State*>(this->v_.S.Ptr(0));
+    Cand* Cp = const_cast<Cand*>(this->v_.C.Ptr(0));
+    std::uint8_t* Ap = rec ? const_cast<std::uint8_t*>(this->v_.A.Ptr(0)) : nullptr;
+    Tri* Fp = const_cast<Tri*>(this->v_.F.Ptr(0));
     // Group 0 runs on the calling thread, which ticks the progress (and so checks for an abort;
     // the other group then finishes its loop before the exception is passed on).
     ForRanges(std::min(T, 2), 2, [&](int, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
@@ -3146,7 +3255,7 @@ void Decimator::Compact()
           }
           State flags;
           Cand c;
-          carry(v, flags, c); // (reads v's records: not in place)
+          carry(this->v_, R, v, flags, c); // (reads v's records: not in place)
           Sp[w] = flags;
           Cp[w] = c;
           if (w == v)
@@ -3184,32 +3293,108 @@ void Decimator::Compact()
   }
   else
   {
-    this->abuf_.resize(rec);
-    for (std::uint64_t v = 0; v < nv; ++v)
+    // Out of core, on two threads when the budget can be shared: this thread moves the
+    // quadrics and then the faces, a helper carries and moves the states, candidates, positions
+    // and point data through a forked DML (the same two groups as in core).
+    Views forkViews;
+    std::vector<DML::Range> attrRange;
+    if (rec)
     {
-      this->Tick(nf + nv + v, total);
-      const std::uint32_t rv = R.Get(v);
-      if (rv == kNone)
+      attrRange.push_back({ this->attr_.Id(), 0, nv * rec });
+    }
+    std::unique_ptr<DML> fork = this->ForkHelper(
+      nv, 0, { this->state_.Id(), this->cand_.Id(), this->pos_.Id() }, forkViews, attrRange);
+    const bool forked = fork != nullptr;
+    auto moveRest = [&](Views& wv, const View<std::uint32_t>& RR, std::vector<std::uint8_t>& buf,
+                      bool moveQ, bool tick) {
+      buf.resize(rec);
+      for (std::uint64_t v = 0; v < nv; ++v)
       {
-        continue;
-      }
-      const std::uint64_t w = rv & ~kTop;
-      State flags;
-      Cand c;
-      carry(v, flags, c);
-      this->S_.Set(w, flags);
-      this->C_.Set(w, c);
-      if (w != v)
-      {
-        this->P_.Set(w, this->P_.Get(v));
-        this->Q_.Set(w, this->Q_.Get(v));
-        if (rec)
+        if (tick)
         {
-          this->A_.GetRange(v * rec, rec, this->abuf_.data());
-          this->A_.SetRange(w * rec, rec, this->abuf_.data());
+          this->Tick(nf + nv + v, total);
+        }
+        const std::uint32_t rv = RR.Get(v);
+        if (rv == kNone)
+        {
+          continue;
+        }
+        const std::uint64_t w = rv & ~kTop;
+        State flags;
+        Cand c;
+        carry(wv, RR, v, flags, c);
+        wv.S.Set(w, flags);
+        wv.C.Set(w, c);
+        if (w != v)
+        {
+          wv.P.Set(w, wv.P.Get(v));
+          if (moveQ)
+          {
+            wv.Q.Set(w, wv.Q.Get(v));
+          }
+          if (rec)
+          {
+            wv.A.GetRange(v * rec, rec, buf.data());
+            wv.A.SetRange(w * rec, rec, buf.data());
+          }
         }
       }
+    };
+    if (!forked)
+    {
+      moveRest(this->v_, R, this->abuf_, true, true);
     }
+    else
+    {
+      const View<std::uint32_t> forkR(*fork, this->remap_);
+      this->RunForked(fork, [&]() {
+        ForRanges(
+          2, 2,
+          [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
+            for (std::uint64_t g = gb; g < ge; ++g)
+            {
+              if (g == 0)
+              {
+                // The quadrics, then step 4 (which reads only R and the faces).
+                for (std::uint64_t v = 0; v < nv; ++v)
+                {
+                  this->Tick(nf + nv + v, total);
+                  const std::uint32_t rv = R.Get(v);
+                  const std::uint64_t w = rv & ~kTop;
+                  if (rv != kNone && w != v)
+                  {
+                    this->v_.Q.Set(w, this->v_.Q.Get(v));
+                  }
+                }
+                for (std::uint64_t f = 0; f < nf; ++f)
+                {
+                  this->Tick(nf + 2 * nv + f, total);
+                  Tri tri = this->v_.F.Get(f);
+                  if (Alive(tri))
+                  {
+                    for (int c = 0; c < 3; ++c)
+                    {
+                      tri.v[c] = R.Get(tri.v[c]) & ~kTop;
+                    }
+                    this->v_.F.Set(f2++, tri);
+                  }
+                }
+              }
+              else if (fork && t == 1)
+              {
+                std::vector<std::uint8_t> buf;
+                moveRest(forkViews, forkR, buf, false, false);
+              }
+              else
+              {
+                moveRest(this->v_, R, this->abuf_, false, false); // (the helper did not start)
+              }
+            }
+          },
+          [&]() { this->JoinHelper(fork); });
+      });
+    }
+    T = forked ? 2 : 1; // step 4 is done when forked
   }
   // 4. Faces, ascending: new index f2 <= f (in core: on the quadrics' thread, above).
   if (T <= 1)
@@ -3217,7 +3402,7 @@ void Decimator::Compact()
     for (std::uint64_t f = 0; f < nf; ++f)
     {
       this->Tick(nf + 2 * nv + f, total);
-      Tri t = this->F_.Get(f);
+      Tri t = this->v_.F.Get(f);
       if (!Alive(t))
       {
         continue;
@@ -3226,7 +3411,7 @@ void Decimator::Compact()
       {
         t.v[c] = R.Get(t.v[c]) & ~kTop;
       }
-      this->F_.Set(f2++, t);
+      this->v_.F.Set(f2++, t);
     }
   }
   // 5. Shrink, then the rings (faces in reverse: each list ascending, RO[k] ends at its start).
@@ -3292,7 +3477,7 @@ void Decimator::Emit(io::MeshSink& sink)
   {
     this->progress_.Tick(total ? double(first) / double(total) : 1.0);
     const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->nv_ - first));
-    this->P_.GetRange(first, n, p.data());
+    this->v_.P.GetRange(first, n, p.data());
     for (std::size_t i = 0; i < n; ++i)
     {
       xyz[3 * i] = float(p[i].x + this->origin_.x);
@@ -3305,7 +3490,7 @@ void Decimator::Emit(io::MeshSink& sink)
     vc.xyz = xyz.data();
     if (rec)
     {
-      this->A_.GetRange(first * rec, n * rec, raw.data());
+      this->v_.A.GetRange(first * rec, n * rec, raw.data());
       for (std::size_t i = 0; i < n; ++i)
       {
         const float* f = reinterpret_cast<const float*>(raw.data() + i * rec);
@@ -3345,7 +3530,7 @@ void Decimator::Emit(io::MeshSink& sink)
   {
     this->progress_.Tick(total ? double(this->nv_ + first) / double(total) : 1.0);
     const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->nf_ - first));
-    this->F_.GetRange(first, n, tris.data());
+    this->v_.F.GetRange(first, n, tris.data());
     sink.Triangles(reinterpret_cast<const std::uint32_t*>(tris.data()), n);
   }
   io::ReadStats rs;

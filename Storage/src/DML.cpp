@@ -1229,7 +1229,7 @@ private:
 };
 } // namespace
 
-std::unique_ptr<DML> DML::Fork(std::uint64_t bytes)
+std::unique_ptr<DML> DML::Fork(std::uint64_t bytes, const std::vector<Range>& childWrites)
 {
   Impl& I = *this->impl_;
   if (I.forkParent)
@@ -1239,6 +1239,22 @@ std::unique_ptr<DML> DML::Fork(std::uint64_t bytes)
   if (I.mode != Mode::OutOfCore)
   {
     return nullptr;
+  }
+  for (const Range& r : childWrites)
+  {
+    const Block& b = I.Get(r.id, Kind::Plain);
+    if (r.first > b.count || r.count > b.count - r.first)
+    {
+      throw std::out_of_range("sipmss::storage: Fork range out of bounds of block " +
+        std::to_string(r.id));
+    }
+    for (const Range& o : childWrites)
+    {
+      if (&o != &r && o.id == r.id)
+      {
+        throw std::invalid_argument("sipmss::storage: Fork takes one range per block");
+      }
+    }
   }
   detail::BaseSync sync(I);
   I.EnsureCache();
@@ -1327,6 +1343,15 @@ std::unique_ptr<DML> DML::Fork(std::uint64_t bytes)
     K.SyncBases();
     I.acc.Charge(bytes); // evicts (and frees) more pages of this DML if needed
     charged = true;
+    for (const Range& r : childWrites)
+    {
+      for (Block* b : { &I.blocks[static_cast<std::size_t>(r.id)],
+             &K.blocks[static_cast<std::size_t>(r.id)] })
+      {
+        b->forkFirst = r.first;
+        b->forkEnd = r.first + r.count;
+      }
+    }
   }
   catch (...)
   {
@@ -1381,14 +1406,22 @@ void DML::Join(DML& child)
     }
   }
   K.DestroyCache(false);
-  // This DML's clean copies of pages between the first and the last the child wrote may be
-  // stale: they go. Its dirty pages stay (by the contract, the child wrote none of them).
-  for (std::size_t i = 0; i < K.blocks.size() && i < I.blocks.size(); ++i)
+  // This DML's copies of the child's elements may be stale: clean pages go, dirty ones (its own
+  // elements beside the child's) read the child's part again.
+  for (std::size_t i = 0; i < I.blocks.size(); ++i)
   {
-    const Block& kb = K.blocks[i];
-    if (kb.kind == Kind::Plain && kb.writtenFirst <= kb.writtenLast)
+    Block& b = I.blocks[i];
+    if (b.forkFirst < b.forkEnd)
     {
-      I.DropCleanPages(static_cast<BlockId>(i), kb.writtenFirst, kb.writtenLast);
+      try
+      {
+        I.MergeChildRange(static_cast<BlockId>(i));
+      }
+      catch (...)
+      {
+        error = std::current_exception();
+      }
+      b.forkFirst = b.forkEnd = 0;
     }
   }
   I.stats.hits += K.stats.hits + child.fastHits_;
@@ -1406,19 +1439,6 @@ void DML::Join(DML& child)
   {
     std::rethrow_exception(error);
   }
-}
-
-std::uint64_t DML::PageElements(BlockId id)
-{
-  Impl& I = *this->impl_;
-  const Block& b = I.Get(id, Kind::Plain);
-  if (b.mem || I.mode != Mode::OutOfCore)
-  {
-    return 0;
-  }
-  detail::BaseSync sync(I);
-  I.EnsureCache();
-  return I.blocks[static_cast<std::size_t>(id)].perPage;
 }
 
 Span DML::Pin(BlockId id, std::uint64_t index, Access access)

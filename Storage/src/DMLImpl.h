@@ -184,9 +184,9 @@ struct Block
 
   std::int32_t list = -1; // Kind::List: index into Impl::lists
 
-  // Pages written back since this block was opened (a forked child's: see DML::Join).
-  std::uint64_t writtenFirst = std::numeric_limits<std::uint64_t>::max();
-  std::uint64_t writtenLast = 0;
+  // While forked (DML::Fork): the elements [forkFirst, forkEnd) the child writes. The child
+  // writes back only those, the parent only the others.
+  std::uint64_t forkFirst = 0, forkEnd = 0;
 
   bool InCore() const { return this->mem != nullptr; }
   bool OnFile() const { return this->fd >= 0; }
@@ -337,8 +337,9 @@ struct DML::Impl
   void WriteBack(std::int32_t fi);
   void Evict(std::int32_t fi, bool writeBack);
   void DropBlockPages(BlockId id, std::uint64_t fromPage); // discard pages >= fromPage
-  // Discards the block's clean pages in [first, last] (Join: the child may have written them).
-  void DropCleanPages(BlockId id, std::uint64_t first, std::uint64_t last);
+  // Join: the block's clean pages overlapping the child's range are dropped; in its dirty ones
+  // the child's elements are read again from the file.
+  void MergeChildRange(BlockId id);
   void ReleaseFrames(std::uint64_t bytes); // Accountant callback
   // A page buffer out of the cache (a victim's, written back first; nullptr: none left) and
   // into it (false: no free slot or no room). Fork and Join move buffers between two caches of

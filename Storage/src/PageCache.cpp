@@ -619,14 +619,44 @@ std::int32_t DML::Impl::SweepVictim(Block& v)
 void DML::Impl::WriteBack(std::int32_t fi)
 {
   Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
-  Block& b = this->blocks[static_cast<std::size_t>(f.block)];
+  const Block& b = this->blocks[static_cast<std::size_t>(f.block)];
   const std::uint64_t pb = this->PageBytes(b);
   const std::uint64_t first = f.page * pb;
-  b.writtenFirst = std::min(b.writtenFirst, f.page);
-  b.writtenLast = std::max(b.writtenLast, f.page);
-  if (first < b.Bytes())
+  const std::uint64_t end = std::min(first + pb, b.Bytes());
+  if (first < end)
   {
-    this->BackendWrite(b, f.data, std::min(pb, b.Bytes() - first), first);
+    if (b.forkFirst < b.forkEnd)
+    {
+      // Forked: the child writes back [lo, hi) of the block, the parent the rest.
+      const std::uint64_t lo = std::max(first, b.forkFirst * b.elementSize);
+      const std::uint64_t hi = std::min(end, b.forkEnd * b.elementSize);
+      if (this->forkParent)
+      {
+        if (lo < hi)
+        {
+          this->BackendWrite(b, f.data + (lo - first), hi - lo, lo);
+        }
+      }
+      else if (lo < hi)
+      {
+        if (first < lo)
+        {
+          this->BackendWrite(b, f.data, lo - first, first);
+        }
+        if (hi < end)
+        {
+          this->BackendWrite(b, f.data + (hi - first), end - hi, hi);
+        }
+      }
+      else
+      {
+        this->BackendWrite(b, f.data, end - first, first);
+      }
+    }
+    else if (!this->forkParent)
+    {
+      this->BackendWrite(b, f.data, end - first, first);
+    }
   }
   f.dirty = false;
 }
@@ -703,22 +733,33 @@ void DML::Impl::DropBlockPages(BlockId id, std::uint64_t fromPage)
   this->cache.quotasDirty = true;
 }
 
-void DML::Impl::DropCleanPages(BlockId id, std::uint64_t first, std::uint64_t last)
+void DML::Impl::MergeChildRange(BlockId id)
 {
-  if (!this->cache.built)
+  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  if (!this->cache.built || b.forkFirst >= b.forkEnd)
   {
     return;
   }
-  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  const std::uint64_t pb = this->PageBytes(b);
+  const std::uint64_t lo = b.forkFirst * b.elementSize, hi = b.forkEnd * b.elementSize;
   auto& F = this->cache.frames;
   std::int32_t fi = b.hand;
   for (std::uint32_t n = b.resident; n > 0; --n)
   {
     const std::int32_t next = F[static_cast<std::size_t>(fi)].next;
-    const Frame& f = F[static_cast<std::size_t>(fi)];
-    if (f.page >= first && f.page <= last && !f.dirty)
+    Frame& f = F[static_cast<std::size_t>(fi)];
+    const std::uint64_t first = f.page * pb;
+    const std::uint64_t a = std::max(first, lo), e = std::min({ first + pb, hi, b.Bytes() });
+    if (a < e)
     {
-      this->Evict(fi, false);
+      if (f.dirty)
+      {
+        this->BackendRead(b, f.data + (a - first), e - a, a);
+      }
+      else
+      {
+        this->Evict(fi, false);
+      }
     }
     fi = next;
   }

@@ -196,18 +196,26 @@ public:
   // --- a second page cache for a helper thread (out of core)
   // Fork lends `bytes` of this DML's budget to a new DML, the child, which serves the element
   // blocks open now (same ids, same files) through a page cache of its own, so that another
-  // thread can read and write them while this one goes on. This DML first writes its dirty
-  // pages back (the child reads the files). Until Join, neither DML may open, close or resize a
-  // block, Fill, Config or Reconfigure, and a page that one of them writes must be neither read
-  // nor written by the other (for example: each writes only its own range of whole pages, see
-  // PageElements). Join, on this DML's thread once the child's thread is done with it, writes
-  // the child's dirty pages back, drops this DML's clean copies of the pages the child wrote, adds
-  // the child's counts to Stats and takes the budget back; the child then holds no block.
-  // In core, Fork returns nullptr: BasePointer memory may be used from several threads as is.
-  std::unique_ptr<DML> Fork(std::uint64_t bytes);
+  // thread can use them while this one goes on. This DML first writes its dirty pages back (the
+  // child reads the files). `childWrites` lists, per block, the one range of elements the child
+  // may write. Until Join:
+  //   - the child writes no element outside those ranges, this DML none inside them;
+  //   - neither reads an element the other writes;
+  //   - neither opens, closes or resizes a block, fills one, or reconfigures.
+  // Pages may straddle a range's ends: each side writes back only its own elements of them.
+  // Join (on this DML's thread, once the child's thread is done with it) writes the child's
+  // dirty elements back, drops this DML's clean copies of the child's ranges and refreshes the
+  // child's elements in its dirty pages that straddle them, adds the child's counts to Stats
+  // and takes the budget back; the child then holds no block. In core, Fork returns nullptr:
+  // BasePointer memory may be shared by threads as is.
+  struct Range
+  {
+    BlockId id = -1;
+    std::uint64_t first = 0;
+    std::uint64_t count = 0;
+  };
+  std::unique_ptr<DML> Fork(std::uint64_t bytes, const std::vector<Range>& childWrites);
   void Join(DML& child);
-  // Out of core: the elements per page of block id (Fork's unit of ownership); 0 in core.
-  std::uint64_t PageElements(BlockId id);
 
   // Path of this instance's private directory ("" until the first file is made, and again after
   // a switch in core, which removes the files and the directory).
