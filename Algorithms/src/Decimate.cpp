@@ -94,6 +94,9 @@ constexpr int kGroups = 4;
 constexpr std::uint64_t kStepChunks = 64;
 constexpr std::uint64_t kStepChunkMinSize = 32768;
 constexpr std::uint64_t kStepTail = 4096;
+// The face split of the collapse rounds (FaceSplit) is used when at most 1 face in this many is
+// on the wrong side of it.
+constexpr std::uint64_t kSplitWrongShare = 256;
 // BuildRings' passes 1 and 3 run on all cores from this many faces.
 constexpr std::uint64_t kParallelRingsMin = 65536;
 // Compact runs on several threads from this many vertices.
@@ -649,6 +652,15 @@ private:
   // collapse step, which sweeps the vertices once per cost group, does not page the largest
   // array in and out each time. The same sums either way.
   bool lazySums_ = false;
+  // The middle chunk boundary of a pass's collapse rounds (StepChunks) also splits the faces
+  // (FaceSplit): a chunk below splitMid_ collapses only faces below splitFace_, one above only
+  // faces at or above it; other collapses are deferred. Out of core, the two halves of the
+  // chunks then write disjoint ranges of every block, and run on two threads (DML::Fork). The
+  // split is used when the faces follow the vertices (scanner order: few faces on the wrong
+  // side), in every mode and for any thread count, so the result does not depend on them.
+  std::uint64_t splitMid_ = 0, splitFace_ = 0;
+  bool splitOn_ = false;
+  void FaceSplit(std::uint64_t nv);
   bool AllInCore() const
   {
     return this->v_.S.Ptr(0) && this->v_.C.Ptr(0) && this->v_.Q.Ptr(0) && this->v_.P.Ptr(0) &&
@@ -2549,6 +2561,7 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
 
 void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s)
 {
+  Views& w = this->W(s);
   const std::size_t rec = this->recSize_;
   if (rec == 0 || t <= 0.0)
   {
@@ -2558,12 +2571,12 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
   s.abuf2.resize(rec);
   if (t >= 1.0)
   {
-    this->v_.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf.data());
-    this->v_.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+    w.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf.data());
+    w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
     return;
   }
-  this->v_.A.GetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
-  this->v_.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf2.data());
+  w.A.GetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+  w.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf2.data());
   float* a = reinterpret_cast<float*>(s.abuf.data());
   const float* b = reinterpret_cast<const float*>(s.abuf2.data());
   for (std::size_t i = 0; i < this->nFloats_; ++i)
@@ -2591,23 +2604,24 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
       ca[i] = std::uint8_t(std::min(255.0, std::max(0.0, std::floor(x + 0.5))));
     }
   }
-  this->v_.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+  w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
 }
 
 // Collapses u and c.partner (rings loaded in s.ru and s.rv) into u at c.p; returns the number of
 // faces removed.
 std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
 {
+  Views& w = this->W(s);
   const std::uint32_t v = c.partner;
   const Ring& ru = s.ru;
   const Ring& rv = s.rv;
-  const State su = this->v_.S.Get(u), sv = this->v_.S.Get(v);
+  const State su = w.S.Get(u), sv = w.S.Get(v);
   std::uint64_t removed = 0;
   for (const RingFace& f : ru.faces)
   {
     if (Has(f.t, v))
     {
-      this->v_.F.Set(f.id, kDeadTri);
+      w.F.Set(f.id, kDeadTri);
       ++removed;
     }
   }
@@ -2617,7 +2631,7 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
     {
       Tri t = f.t;
       t.v[f.corner] = u;
-      this->v_.F.Set(f.id, t);
+      w.F.Set(f.id, t);
     }
   }
   // Mark every vertex of the faces around u and v: no later collapse of this pass touches them.
@@ -2625,19 +2639,19 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
   {
     for (const Nb& n : r->nbs)
     {
-      this->v_.S.Set(n.v, State(this->v_.S.Get(n.v) | kMarked));
+      w.S.Set(n.v, State(w.S.Get(n.v) | kMarked));
     }
   }
-  this->v_.P.Set(u, { c.p[0], c.p[1], c.p[2] });
+  w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
   if (!this->lazySums_)
   {
-    Quadric Q = this->v_.Q.Get(u);
-    AddTo(Q, this->v_.Q.Get(v));
-    this->v_.Q.Set(u, Q);
+    Quadric Q = w.Q.Get(u);
+    AddTo(Q, w.Q.Get(v));
+    w.Q.Set(u, Q);
   }
   this->InterpolateAttributes(u, v, double(c.t), s);
-  this->v_.S.Set(v, State(kRemoved | kMarked));
-  this->v_.S.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
+  w.S.Set(v, State(kRemoved | kMarked));
+  w.S.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
   return removed;
 }
 
@@ -2657,18 +2671,19 @@ inline std::uint32_t CostBin(double cost)
 Decimator::Try Decimator::TryCollapse(
   std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi, std::uint64_t& removed)
 {
-  const State su = this->v_.S.Get(u);
+  Views& w = this->W(s);
+  const State su = w.S.Get(u);
   if (su & kBusy)
   {
     return Try::Skip;
   }
-  const Cand c = this->v_.C.Get(u);
+  const Cand c = w.C.Get(u);
   const std::uint32_t v = c.partner;
   if (v < lo || v >= hi)
   {
     return Try::Defer;
   }
-  if (this->v_.S.Get(v) & kBusy)
+  if (w.S.Get(v) & kBusy)
   {
     return Try::Skip;
   }
@@ -2683,23 +2698,36 @@ Decimator::Try Decimator::TryCollapse(
     return true;
   };
   const bool chunked = lo != 0 || hi != kNone;
-  this->LoadRing(this->W(s), u, s.ru, true);
-  if (chunked && !inside(s.ru))
+  // In a chunk with the face split on: only faces on the chunk's side of it.
+  const bool split = chunked && this->splitOn_;
+  const bool upper = lo >= this->splitMid_;
+  auto sided = [this, upper](const Ring& r) {
+    for (const RingFace& f : r.faces)
+    {
+      if ((f.id >= this->splitFace_) != upper)
+      {
+        return false;
+      }
+    }
+    return true;
+  };
+  this->LoadRing(w, u, s.ru, true);
+  if (chunked && (!inside(s.ru) || (split && !sided(s.ru))))
   {
     return Try::Defer;
   }
   const Nb* nb = s.ru.Find(v);
   if (nb)
   {
-    this->LoadRing(this->W(s), v, s.rv, true);
-    if (chunked && !inside(s.rv))
+    this->LoadRing(w, v, s.rv, true);
+    if (chunked && (!inside(s.rv) || (split && !sided(s.rv))))
     {
       return Try::Defer;
     }
   }
   if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }, s, true))
   {
-    this->v_.S.Set(u, State(su | kNeedsLegal));
+    w.S.Set(u, State(su | kNeedsLegal));
     return Try::Illegal;
   }
   removed += this->Collapse(u, c, s);
@@ -2712,17 +2740,18 @@ Decimator::Try Decimator::TryCollapse(
 std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo,
   std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run, bool tick)
 {
+  Views& w = this->W(s);
   // In core: prefetch the data of the candidates ahead, in stages, each reading what the one
   // before fetched: their state, candidate and ring offsets; for those still free, the
   // partner's, the ring's face ids and both positions; the ring's faces and the partner's face
   // ids; the positions of the ring's vertices and the partner's faces.
-  const std::uint32_t* Op = this->v_.O.Ptr(0);
-  const State* Sp = this->v_.S.Ptr(0);
-  const Cand* Cp = this->v_.C.Ptr(0);
-  const std::uint32_t* ROp = this->v_.RO.Ptr(0);
-  const std::uint32_t* RFp = this->v_.RF.Ptr(0);
-  const Vec3* Pp = this->v_.P.Ptr(0);
-  const Tri* Fp = this->v_.F.Ptr(0);
+  const std::uint32_t* Op = w.O.Ptr(0);
+  const State* Sp = w.S.Ptr(0);
+  const Cand* Cp = w.C.Ptr(0);
+  const std::uint32_t* ROp = w.RO.Ptr(0);
+  const std::uint32_t* RFp = w.RF.Ptr(0);
+  const Vec3* Pp = w.P.Ptr(0);
+  const Tri* Fp = w.F.Ptr(0);
   const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
   constexpr std::uint64_t kAhead = 16;
   auto freePair = [&](std::uint32_t w, std::uint32_t& x) {
@@ -2790,7 +2819,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         }
       }
     }
-    const std::uint32_t u = this->v_.O.Get(i);
+    const std::uint32_t u = w.O.Get(i);
     switch (this->TryCollapse(u, s, lo, hi, run.removed))
     {
       case Try::Done:
@@ -2800,13 +2829,61 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         ++run.illegal;
         break;
       case Try::Defer:
-        this->v_.S.Set(u, State(this->v_.S.Get(u) | kDeferred));
+        w.S.Set(u, State(w.S.Get(u) | kDeferred));
         break;
       case Try::Skip:
         break;
     }
   }
   return i;
+}
+
+// One scan of the faces: the split point with the fewest faces on the wrong side (faces whose
+// vertices all lie below the middle chunk boundary but sit at or after it, or all at or above
+// it and before), in one pass: that count is (below faces) + min over f of (above faces before
+// f - below faces before f).
+void Decimator::FaceSplit(std::uint64_t nv)
+{
+  this->splitOn_ = false;
+  const std::uint64_t size = this->StepChunkSize(nv);
+  const std::uint64_t n = (nv + size - 1) / size;
+  if (n < 2)
+  {
+    return;
+  }
+  const std::uint64_t mid = n / 2 * size;
+  std::int64_t diff = 0, best = 0;
+  std::uint64_t below = 0, bestAt = 0;
+  for (std::uint64_t f = 0; f < this->nf_; ++f)
+  {
+    const Tri t = this->v_.F.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    if (t.v[0] < mid && t.v[1] < mid && t.v[2] < mid)
+    {
+      ++below;
+      --diff;
+    }
+    else if (t.v[0] >= mid && t.v[1] >= mid && t.v[2] >= mid)
+    {
+      ++diff;
+    }
+    else
+    {
+      continue;
+    }
+    if (diff < best)
+    {
+      best = diff;
+      bestAt = f + 1;
+    }
+  }
+  const std::uint64_t wrong = std::uint64_t(std::int64_t(below) + best);
+  this->splitMid_ = mid;
+  this->splitFace_ = bestAt;
+  this->splitOn_ = wrong <= this->liveFaces_ / kSplitWrongShare;
 }
 
 // Step 3 for the candidates at positions [groupBegin, groupEnd) of the order, which are in
@@ -2844,9 +2921,14 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   std::vector<std::uint64_t> end(cursor.begin() + 1, cursor.end());
   cursor.pop_back();
   const int T = (this->AllInCore() && (!this->recSize_ || this->v_.A.Ptr(0))) ? this->threads_ : 1;
-  if (this->scratch_.size() < std::size_t(T))
+  // Out of core: the two halves of the chunks on two threads (the second through a forked
+  // DML) while the faces split with the vertices at the middle chunk boundary (FaceSplit).
+  const std::size_t half = n / 2;
+  const bool forkable =
+    T == 1 && this->splitOn_ && half > 0 && std::uint64_t(half) * size == this->splitMid_;
+  if (this->scratch_.size() < std::size_t(std::max(T, 2)))
   {
-    this->scratch_.resize(std::size_t(T));
+    this->scratch_.resize(std::size_t(std::max(T, 2)));
   }
   std::vector<std::uint64_t> roundStart(n);
   std::vector<StepRun> runs(n);
@@ -2907,8 +2989,59 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
         stop = true;
       }
     };
+    Views forkViews;
+    std::unique_ptr<DML> fork;
+    if (forkable)
+    {
+      const std::uint64_t mid = this->splitMid_;
+      std::vector<DML::Range> more;
+      more.push_back({ this->faces_.Id(), this->splitFace_,
+        this->faces_.Size() - std::min(this->splitFace_, this->faces_.Size()) });
+      if (this->recSize_)
+      {
+        more.push_back({ this->attr_.Id(), mid * this->recSize_,
+          this->attr_.Size() - mid * this->recSize_ });
+      }
+      fork =
+        this->ForkHelper(nv, mid, { this->state_.Id(), this->pos_.Id() }, forkViews, more);
+    }
+    if (fork)
+    {
+      // Each thread runs its half of the chunks in order (the same collapses as one after the
+      // other: a chunk's collapses touch only its own vertices and faces).
+      this->scratch_[1].w = &forkViews;
+      this->RunForked(fork, [&]() {
+        ForRanges(
+          2, 2,
+          [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>& halt) {
+            for (std::uint64_t g = gb; g < ge; ++g)
+            {
+              Scratch& s = this->scratch_[std::size_t(t)];
+              for (std::size_t c = g ? half : 0; c < (g ? n : half); ++c)
+              {
+                if (halt.load(std::memory_order_relaxed))
+                {
+                  return;
+                }
+                if (t == 0)
+                {
+                  this->Tick(c, n);
+                }
+                const std::uint32_t lo = std::uint32_t(c * size);
+                const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+                cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], false);
+              }
+            }
+          },
+          [&]() {
+            this->scratch_[1].w = nullptr;
+            this->JoinHelper(fork);
+          });
+      });
+      this->scratch_[1].w = nullptr;
+    }
     // Chunks are taken from a shared counter: if a thread cannot start, the others take its share.
-    if (T > 1)
+    else if (T > 1)
     {
       RunOnThreads(T, work, nullptr);
     }
@@ -3051,10 +3184,12 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   StepRun run;
   if (groups && nv >= 2 * this->StepChunkSize(nv))
   {
+    this->FaceSplit(nv);
     for (std::size_t g = 0; g < keys && this->liveFaces_ > goal; ++g)
     {
       this->StepChunks(g ? start[g - 1] : 0, start[g], nv, goal, run);
     }
+    this->splitOn_ = false;
   }
   else
   {
