@@ -637,8 +637,7 @@ private:
   void Weld();
   void BuildRings();
   void FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal);
-  void CountDegrees(std::uint64_t nf, const Tri* F, std::uint32_t* RO, std::uint64_t tickBase,
-    std::uint64_t tickTotal);
+  void CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal);
   void BuildQuadrics();
   bool Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan);
   void Compact();
@@ -1212,38 +1211,62 @@ void Decimator::Weld()
 // RO[v] += the number of live faces of [0, nf) on v, in core on all cores: each thread owns a
 // range of vertices and scans every face (sequential reads; a thread writes only its own
 // vertices' counters, so no atomic adds, and never another's, not even adding zero).
-void Decimator::CountDegrees(std::uint64_t nf, const Tri* F, std::uint32_t* RO,
-  std::uint64_t tickBase, std::uint64_t tickTotal)
+// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before). By vertex range
+// on `threads` threads in core (each thread scans every face and counts only its own vertices,
+// no atomics), on two threads out of core (the upper half through a forked DML).
+void Decimator::CountDegrees(
+  std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal)
 {
-  ForRanges(this->threads_, this->nv_,
-    [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-      for (std::uint64_t f = 0; f < nf; ++f)
+  this->BindViews();
+  const std::uint64_t nv = this->nv_;
+  const Tri* Fp = this->v_.F.Ptr(0);
+  std::uint32_t* ROp = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
+  Views forkViews;
+  std::unique_ptr<DML> fork;
+  int T = (Fp && ROp) ? threads : 1;
+  if (T == 1)
+  {
+    fork = this->ForkHelper(nv, nv / 2, { this->ringOff_.Id() }, forkViews);
+    T = fork ? 2 : 1;
+  }
+  auto count = [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    Views& w = (fork && t == 1) ? forkViews : this->v_;
+    for (std::uint64_t f = 0; f < nf; ++f)
+    {
+      if ((f & 4095) == 0)
       {
-        if ((f & 4095) == 0)
+        if (stop.load(std::memory_order_relaxed))
         {
-          if (stop.load(std::memory_order_relaxed))
-          {
-            return;
-          }
-          if (t == 0 && tickTotal)
-          {
-            // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
-            this->progress_.Tick(double(tickBase + f) / double(tickTotal));
-          }
+          return;
         }
-        const Tri t3 = F[f];
-        if (Alive(t3))
+        if (t == 0 && tickTotal)
         {
-          for (int c = 0; c < 3; ++c)
+          // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
+          this->progress_.Tick(double(tickBase + f) / double(tickTotal));
+        }
+      }
+      const Tri t3 = Fp ? Fp[f] : w.F.Get(f);
+      if (Alive(t3))
+      {
+        for (int c = 0; c < 3; ++c)
+        {
+          const std::uint32_t x = t3.v[c];
+          if (x >= lo && x < hi)
           {
-            if (t3.v[c] >= lo && t3.v[c] < hi)
+            if (ROp)
             {
-              ++RO[t3.v[c]];
+              ++ROp[x];
+            }
+            else
+            {
+              w.RO.Set(x, w.RO.Get(x) + 1);
             }
           }
         }
       }
-    });
+    }
+  };
+  this->RunForked(fork, [&]() { ForRanges(T, nv, count, [&]() { this->JoinHelper(fork); }); });
 }
 
 // Fills the incident face lists of faces [0, nf) (dead ones skipped) from the ring offsets, which
@@ -1376,19 +1399,26 @@ void Decimator::BuildRings()
   // pass 2 by vertex range (CountDegrees, FillRings); same result.
   const int T = (nf >= kParallelRingsMin && F.Ptr(0) && P.Ptr(0) && RO.Ptr(0)) ? this->threads_ : 1;
   // Pass 1 over the faces: validate, drop zero-area faces, count the degrees. The first bad
-  // face is reported, whatever the threads.
+  // face is reported, whatever the threads. Out of core on two threads: the upper half of the
+  // faces through a forked DML, then the degrees (CountDegrees).
   std::uint64_t live = 0;
   {
-    std::vector<std::uint64_t> lives(std::size_t(T), 0), drops(std::size_t(T), 0);
-    std::vector<std::uint64_t> bad(std::size_t(T), ~std::uint64_t(0));
-    ForRanges(T, nf, [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+    Views forkViews;
+    std::unique_ptr<DML> fork =
+      T == 1 ? this->ForkHelper(nf, nf / 2, { this->faces_.Id() }, forkViews) : nullptr;
+    const int T1 = fork ? 2 : T;
+    std::vector<std::uint64_t> lives(std::size_t(T1), 0), drops(std::size_t(T1), 0);
+    std::vector<std::uint64_t> bad(std::size_t(T1), ~std::uint64_t(0));
+    auto pass1 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+      const View<Tri>& Fv = (fork && th == 1) ? forkViews.F : F;
+      const View<Vec3>& Pv = (fork && th == 1) ? forkViews.P : P;
       for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
       {
         if (th == 0 && ((f - fb) & 1023) == 0)
         {
-          this->progress_.Tick(double((f - fb) * T) / double(4 * nf));
+          this->progress_.Tick(double((f - fb) * T1) / double(4 * nf));
         }
-        Tri t = F.Get(f);
+        Tri t = Fv.Get(f);
         if (!Alive(t))
         {
           continue;
@@ -1398,15 +1428,15 @@ void Decimator::BuildRings()
           bad[std::size_t(th)] = std::min(bad[std::size_t(th)], f);
           break;
         }
-        Vec3 a = P.Get(t.v[0]), b = P.Get(t.v[1]), c = P.Get(t.v[2]);
+        Vec3 a = Pv.Get(t.v[0]), b = Pv.Get(t.v[1]), c = Pv.Get(t.v[2]);
         Vec3 n = Cross(b - a, c - a);
         if (Dot(n, n) == 0.0)
         {
-          F.Set(f, kDeadTri);
+          const_cast<View<Tri>&>(Fv).Set(f, kDeadTri);
           ++drops[std::size_t(th)];
           continue;
         }
-        if (T <= 1)
+        if (T1 <= 1)
         {
           for (int k = 0; k < 3; ++k)
           {
@@ -1415,7 +1445,8 @@ void Decimator::BuildRings()
         }
         ++lives[std::size_t(th)];
       }
-    });
+    };
+    this->RunForked(fork, [&]() { ForRanges(T1, nf, pass1, [&]() { this->JoinHelper(fork); }); });
     const std::uint64_t first = *std::min_element(bad.begin(), bad.end());
     if (first != ~std::uint64_t(0))
     {
@@ -1424,14 +1455,17 @@ void Decimator::BuildRings()
       throw io::MeshIOError("decimate: triangle " + std::to_string(first) + " has vertex index " +
         std::to_string(v) + " >= vertex count " + std::to_string(nv));
     }
-    for (int th = 0; th < T; ++th)
+    for (int th = 0; th < T1; ++th)
     {
       live += lives[std::size_t(th)];
       this->dropped_ += drops[std::size_t(th)];
     }
-    if (T > 1)
+    if (T1 > 1)
     {
-      this->CountDegrees(nf, F.Ptr(0), const_cast<std::uint32_t*>(RO.Ptr(0)), nf, 4 * nf);
+      this->CountDegrees(nf, T, nf, 4 * nf);
+      F.Refresh();
+      P.Refresh();
+      RO.Refresh();
     }
   }
   // Inclusive prefix sums: RO[v] = end of v's list.
@@ -1473,36 +1507,49 @@ void Decimator::BuildRings()
   };
   // t's vertex set sorted into s, and the faces of its lowest vertex into list (where any face
   // on the same set is).
-  auto setAndRing = [&RO, &RF](const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
+  auto setAndRingOf = [](const View<std::uint32_t>& ro, const View<std::uint32_t>& rf,
+                        const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
     s[0] = t.v[0];
     s[1] = t.v[1];
     s[2] = t.v[2];
     SmallSort(s, 3);
-    const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
+    const std::uint32_t b = ro.Get(s[0]), e = ro.Get(s[0] + 1);
     list.resize(e - b);
-    RF.GetRange(b, e - b, list.data());
+    rf.GetRange(b, e - b, list.data());
   };
-  // The faces with another live face on the same vertex set (rare): found on all cores in core,
+  auto setAndRing = [&](const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
+    setAndRingOf(RO, RF, t, s, list);
+  };
+  // The faces with another live face on the same vertex set (rare): found on all cores in core
+  // (on two out of core, the upper half of the faces through a forked DML that writes nothing),
   // then settled one at a time in face order.
-  std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T));
-  ForRanges(T, nf, [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+  Views forkViews;
+  std::unique_ptr<DML> fork =
+    T == 1 ? this->ForkHelper(nf, nf / 2, {}, forkViews) : nullptr;
+  const int T3 = fork ? 2 : T;
+  std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T3));
+  auto pass3 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+    const bool helper = fork && th == 1;
+    const View<Tri>& Fv = helper ? forkViews.F : F;
+    const View<std::uint32_t>& ROv = helper ? forkViews.RO : RO;
+    const View<std::uint32_t>& RFv = helper ? forkViews.RF : RF;
     std::vector<std::uint32_t> list;
     for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
     {
       if (th == 0 && ((f - fb) & 1023) == 0)
       {
-        this->progress_.Tick(double(3 * nf + (f - fb) * T) / double(4 * nf));
+        this->progress_.Tick(double(3 * nf + (f - fb) * T3) / double(4 * nf));
       }
-      const Tri t = F.Get(f);
+      const Tri t = Fv.Get(f);
       if (!Alive(t))
       {
         continue;
       }
       std::uint32_t s[3];
-      setAndRing(t, s, list);
+      setAndRingOf(ROv, RFv, t, s, list);
       for (std::uint32_t g : list)
       {
-        const Tri u = g != f ? F.Get(g) : kDeadTri;
+        const Tri u = g != f ? Fv.Get(g) : kDeadTri;
         if (Alive(u) && sameSet(u, s))
         {
           found[std::size_t(th)].push_back(f);
@@ -1510,7 +1557,8 @@ void Decimator::BuildRings()
         }
       }
     }
-  });
+  };
+  this->RunForked(fork, [&]() { ForRanges(T3, nf, pass3, [&]() { this->JoinHelper(fork); }); });
   std::vector<std::uint64_t> dups; // ascending (the ranges are in order)
   for (const std::vector<std::uint64_t>& list : found)
   {
@@ -3228,27 +3276,7 @@ void Decimator::Compact()
     : 1;
   // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with).
   FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
-  if (T > 1)
-  {
-    this->CountDegrees(
-      nf, this->v_.F.Ptr(0), const_cast<std::uint32_t*>(this->v_.RO.Ptr(0)), 0, total);
-  }
-  else
-  {
-    for (std::uint64_t f = 0; f < nf; ++f)
-    {
-      this->Tick(f, total);
-      const Tri t = this->v_.F.Get(f);
-      if (!Alive(t))
-      {
-        continue;
-      }
-      for (int c = 0; c < 3; ++c)
-      {
-        this->v_.RO.Set(t.v[c], this->v_.RO.Get(t.v[c]) + 1);
-      }
-    }
-  }
+  this->CountDegrees(nf, T, 0, total);
   // 2. New vertex numbers; RO[k] = end of k's ring (k <= v: RO[k] was read already). R holds the
   // new number, with the top bit for the survivors of this pass (their old state is overwritten
   // below before their neighbours look at it).
