@@ -1428,6 +1428,7 @@ void DML::Join(DML& child)
   I.stats.misses += K.stats.misses;
   I.stats.bytesRead += K.stats.bytesRead;
   I.stats.bytesWritten += K.stats.bytesWritten;
+  ++I.stats.forks;
   for (Block& b : K.blocks)
   {
     b = Block{};

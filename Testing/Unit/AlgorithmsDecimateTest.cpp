@@ -696,6 +696,63 @@ Mesh SortedAlongZ(const Mesh& m)
   return r;
 }
 
+// The faces sorted by their lowest vertex (with SortedAlongZ: the scanner order of volumetric
+// reconstructions, where the collapse rounds' face split applies).
+Mesh FacesByLowestVertex(Mesh m)
+{
+  const std::size_t nt = m.Triangles();
+  std::vector<std::array<std::uint32_t, 3>> t(nt);
+  for (std::size_t i = 0; i < nt; ++i)
+  {
+    t[i] = { m.tris[3 * i], m.tris[3 * i + 1], m.tris[3 * i + 2] };
+  }
+  std::stable_sort(t.begin(), t.end(), [](const auto& a, const auto& b) {
+    return std::min({ a[0], a[1], a[2] }) < std::min({ b[0], b[1], b[2] });
+  });
+  for (std::size_t i = 0; i < nt; ++i)
+  {
+    std::copy(t[i].begin(), t[i].end(), &m.tris[3 * i]);
+  }
+  return m;
+}
+
+TEST(AlgorithmsDecimate, OutOfCoreHelperThreadsDoNotChangeTheResult)
+{
+  // 163,842 vertices with point data in scanner order, at 2 MiB: out of core, the phases run on
+  // two threads, the second through forked DMLs (rings, quadrics, candidate sweeps, collapse
+  // rounds split at the middle chunk boundary, compaction). The output must be the one in core
+  // and the one of a single thread at the same budget.
+  Mesh s = FacesByLowestVertex(SortedAlongZ(ColoredSphere(7)));
+  ASSERT_GE(s.Vertices(), 65536u);
+  alg::DecimateOptions o;
+  o.targetTriangles = 4000;
+  o.threads = 1;
+  Outcome a = Simplify(MemorySource(s), o);
+  ExpectValid(a.out);
+  EXPECT_EQ(a.out.Triangles(), 4000u);
+  EXPECT_EQ(a.stats.storage.forks, 0u);
+  namespace fs = std::filesystem;
+  const fs::path dir =
+    fs::temp_directory_path() / ("sipmss_decimate_helpers_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  o.storage.directories = { dir.string() };
+  o.storage.memoryBudget = 2 << 20;
+  Outcome one = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(one.stats.storage.usedOutOfCore);
+  EXPECT_EQ(one.stats.storage.forks, 0u);
+  ExpectSameOutput(a, one, "out of core, 1 thread");
+  o.threads = 2;
+  Outcome two = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(two.stats.storage.usedOutOfCore);
+  // At least: rings (5), quadrics, and per pass the sweep, the rounds, compaction (3).
+  EXPECT_GE(two.stats.storage.forks, 12u);
+
+  EXPECT_LE(two.stats.storage.peakBytes, o.storage.memoryBudget);
+  ExpectSameOutput(a, two, "out of core, 2 threads");
+  EXPECT_TRUE(fs::is_empty(dir)); // no file left behind
+  fs::remove_all(dir);
+}
+
 TEST(AlgorithmsDecimate, StepChunksDoNotDependOnThreadsOrMode)
 {
   // 10,242 vertices along z in chunks of 512: the collapse step of the first passes runs chunk

@@ -939,3 +939,144 @@ TEST(StorageDML, InstancesInThreadsDoNotShareFiles)
 }
 
 } // namespace
+
+// Fork: a child DML on another thread writes its range of a block while the parent writes the
+// rest; pages straddle the boundary (it is not page aligned). In block a both sides write the
+// boundary page back while forked (each only its own elements); in block c both end there, so
+// at Join the parent's dirty copy takes the child's elements. The parent then sees both sides
+// and has its budget back.
+TEST(StorageDML, ForkedChildWritesItsRangeAndJoinMergesTheBoundaryPage)
+{
+  TempDir dir;
+  DML dml;
+  const std::uint64_t budget = 256 << 10;
+  ASSERT_EQ(dml.Config(MakeProfile(dir.Path(), budget, ModePolicy::OutOfCore)), Mode::OutOfCore);
+  constexpr std::uint64_t n = 100000, mid = 12345;
+  Array<std::uint32_t> a(dml, n), c(dml, n);
+  Array<double> b(dml, n / 2);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    a.Set(i, std::uint32_t(i));
+    c.Set(i, std::uint32_t(i));
+  }
+  for (std::uint64_t i = 0; i < n / 2; ++i)
+  {
+    b.Set(i, 0.5 * double(i));
+  }
+  const std::uint64_t missesBefore = dml.GetStats().misses;
+  std::unique_ptr<DML> child =
+    dml.Fork(budget / 2, { { a.Id(), mid, n - mid }, { c.Id(), mid, n - mid } });
+  ASSERT_NE(child, nullptr);
+  // Structural changes wait for Join, on both sides.
+  EXPECT_THROW(dml.Resize(a.Id(), n + 1), std::logic_error);
+  EXPECT_THROW((Array<int>(dml, 10)), std::logic_error);
+  EXPECT_THROW(dml.Reconfigure(), std::logic_error);
+  EXPECT_THROW(child->Resize(a.Id(), n + 1), std::logic_error);
+  EXPECT_THROW(child->Config(Profile{}), std::logic_error);
+  EXPECT_THROW(child->Fork(1 << 16, {}), std::logic_error);
+  bool childRead = true, childReadB = true;
+  auto update = [&](const Array<std::uint32_t>& blk, std::uint64_t i) {
+    std::uint32_t x = 0;
+    child->Read(blk.Id(), sizeof x, i, &x);
+    childRead = childRead && x == i;
+    x = std::uint32_t(i + 1000000);
+    child->Write(blk.Id(), sizeof x, i, &x);
+  };
+  // a: the parent caches the boundary page (reading its own element), the child updates its
+  // range (its copy of that page is written back as it moves on), then the parent updates its
+  // range; its copy, written back while it reads b, must not bring back the child's old
+  // elements.
+  EXPECT_EQ(a.Get(mid - 1), mid - 1);
+  std::thread first([&]() {
+    for (std::uint64_t i = mid; i < n; ++i)
+    {
+      update(a, i);
+    }
+  });
+  first.join();
+  bool parentReadB = true;
+  for (std::uint64_t i = mid; i-- > 0;)
+  {
+    a.Set(i, std::uint32_t(i + 2000000));
+  }
+  for (std::uint64_t i = 0; i < n / 2; ++i)
+  {
+    parentReadB = parentReadB && b.Get(i) == 0.5 * double(i);
+  }
+  // c: both at the same time, ending on the boundary page.
+  std::thread helper([&]() {
+    for (std::uint64_t i = n; i-- > mid;)
+    {
+      update(c, i);
+    }
+    for (std::uint64_t i = 0; i < n / 2; i += 7)
+    {
+      double y = 0;
+      child->Read(b.Id(), sizeof y, i, &y);
+      childReadB = childReadB && y == 0.5 * double(i);
+    }
+  });
+  for (std::uint64_t i = 0; i < mid; ++i)
+  {
+    c.Set(i, std::uint32_t(i + 2000000));
+  }
+  helper.join();
+  EXPECT_TRUE(childRead);
+  EXPECT_TRUE(childReadB);
+  EXPECT_TRUE(parentReadB);
+  const std::uint64_t childMisses = child->GetStats().misses;
+  EXPECT_GT(childMisses, 0u);
+  dml.Join(*child);
+  for (const Array<std::uint32_t>* blk : { &a, &c })
+  {
+    for (std::uint64_t i = 0; i < n; ++i)
+    {
+      ASSERT_EQ(blk->Get(i), i < mid ? i + 2000000 : i + 1000000) << "element " << i;
+    }
+  }
+  const Stats st = dml.GetStats();
+  EXPECT_EQ(st.forks, 1u);
+  EXPECT_GE(st.misses, missesBefore + childMisses);
+  EXPECT_LE(st.peakBytes, budget);
+  EXPECT_LE(st.bytesHeld, budget);
+  // The budget is back and the structure may change again.
+  a.Resize(n + 1);
+  EXPECT_EQ(a.Get(n), 0u);
+  std::unique_ptr<DML> again = dml.Fork(budget / 2, {});
+  ASSERT_NE(again, nullptr);
+  dml.Join(*again);
+}
+
+TEST(StorageDML, ForkInCoreReturnsNullAndTooLittleRoomIsABudgetError)
+{
+  DML inCore;
+  inCore.Config(Profile{});
+  Array<int> x(inCore, 100);
+  EXPECT_EQ(inCore.Fork(1 << 20, { { x.Id(), 0, 100 } }), nullptr);
+
+  TempDir dir;
+  DML dml;
+  dml.Config(MakeProfile(dir.Path(), 128 << 10, ModePolicy::OutOfCore));
+  Array<std::uint64_t> a(dml, 50000);
+  for (std::uint64_t i = 0; i < 50000; ++i)
+  {
+    a.Set(i, i * i);
+  }
+  EXPECT_THROW(dml.Fork(64, {}), BudgetError);                  // not even the child's metadata
+  EXPECT_THROW(dml.Fork(1 << 20, {}), BudgetError);             // more than the budget
+  EXPECT_THROW(dml.Fork(1 << 16, { { a.Id(), 10, 50000 } }), std::out_of_range);
+  EXPECT_THROW(dml.Fork(1 << 16, { { a.Id(), 0, 1 }, { a.Id(), 5, 1 } }), std::invalid_argument);
+  // Nothing was lost and nothing stays lent.
+  for (std::uint64_t i = 0; i < 50000; ++i)
+  {
+    ASSERT_EQ(a.Get(i), i * i);
+  }
+  a.Resize(10);
+  std::unique_ptr<DML> child = dml.Fork(64 << 10, { { a.Id(), 5, 5 } });
+  ASSERT_NE(child, nullptr);
+  const std::uint64_t v = 7;
+  child->Write(a.Id(), sizeof v, 9, &v);
+  dml.Join(*child);
+  EXPECT_EQ(a.Get(9), 7u);
+  EXPECT_EQ(a.Get(4), 16u);
+}

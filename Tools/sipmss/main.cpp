@@ -356,7 +356,7 @@ int RunSimplify(const SimplifyArgs& a)
     j["storage"] = { { "mode", storage::ToString(s.mode) }, { "used_in_core", s.usedInCore },
       { "used_out_of_core", s.usedOutOfCore }, { "peak_bytes", s.peakBytes }, { "hits", s.hits },
       { "misses", s.misses }, { "bytes_read", s.bytesRead }, { "bytes_written", s.bytesWritten },
-      { "reconfigurations", s.reconfigurations } };
+      { "reconfigurations", s.reconfigurations }, { "forks", s.forks } };
     std::ofstream f(a.statsJson);
     f << j.dump(2) << "\n";
     if (!f)

@@ -78,6 +78,7 @@ struct Stats
   std::uint64_t bytesRead = 0;    // from files
   std::uint64_t bytesWritten = 0; // to files
   std::uint64_t reconfigurations = 0; // mode switches after Config
+  std::uint64_t forks = 0;            // forked children joined (their counts are included)
 };
 
 // Typed error for every storage failure: the path involved and the OS error (errno) if any.
