@@ -90,8 +90,9 @@ public:
 
   ///@{
   /**
-   * Threads of the in-core parts of the run. 0 (default): all cores. The output does not depend
-   * on it. Lower it when several filters or MPI ranks share a machine (pvbatch under mpirun).
+   * Threads of the run. 0 (default): all cores. Out of core, Algorithm I's phases use at most
+   * two, the second with half of the memory budget's pages. The output does not depend on it.
+   * Lower it when several filters or MPI ranks share a machine (pvbatch under mpirun).
    */
   vtkSetClampMacro(NumberOfThreads, int, 0, 256);
   vtkGetMacro(NumberOfThreads, int);
