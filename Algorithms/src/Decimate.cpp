@@ -673,6 +673,25 @@ private:
     std::initializer_list<storage::BlockId> blocks, Views& w,
     const std::vector<DML::Range>& more = {});
   void JoinHelper(std::unique_ptr<DML>& fork); // (no-op for nullptr)
+  // Joins a fork on every exit of a scope (there a failing Join is dropped: the scope is
+  // already left by an exception); the normal path joins with JoinHelper and sees its errors.
+  struct ForkGuard
+  {
+    Decimator& d;
+    std::unique_ptr<DML>& fork;
+    ForkGuard(const ForkGuard&) = delete;
+    ForkGuard& operator=(const ForkGuard&) = delete;
+    ~ForkGuard()
+    {
+      try
+      {
+        this->d.JoinHelper(this->fork);
+      }
+      catch (...)
+      {
+      }
+    }
+  };
   // Runs work, then joins the fork (also when work throws; then a failing join is dropped).
   template <class F>
   void RunForked(std::unique_ptr<DML>& fork, const F& work)
@@ -1223,6 +1242,7 @@ void Decimator::CountDegrees(
   std::uint32_t* ROp = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
   Views forkViews;
   std::unique_ptr<DML> fork;
+  ForkGuard joinOnExit{ *this, fork };
   int T = (Fp && ROp) ? threads : 1;
   if (T == 1)
   {
@@ -1285,6 +1305,7 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
   Views forkViews;
   const std::uint64_t mid = nv / 2;
   std::unique_ptr<DML> fork;
+  ForkGuard joinOnExit{ *this, fork };
   if (T == 1 && mid > 0)
   {
     const std::uint64_t rfBegin = this->v_.RO.Get(mid - 1), rfEnd = this->v_.RO.Get(nv);
@@ -1406,6 +1427,7 @@ void Decimator::BuildRings()
     Views forkViews;
     std::unique_ptr<DML> fork =
       T == 1 ? this->ForkHelper(nf, nf / 2, { this->faces_.Id() }, forkViews) : nullptr;
+    ForkGuard joinOnExit{ *this, fork };
     const int T1 = fork ? 2 : T;
     std::vector<std::uint64_t> lives(std::size_t(T1), 0), drops(std::size_t(T1), 0);
     std::vector<std::uint64_t> bad(std::size_t(T1), ~std::uint64_t(0));
@@ -1526,6 +1548,7 @@ void Decimator::BuildRings()
   Views forkViews;
   std::unique_ptr<DML> fork =
     T == 1 ? this->ForkHelper(nf, nf / 2, {}, forkViews) : nullptr;
+  ForkGuard joinOnExit{ *this, fork };
   const int T3 = fork ? 2 : T;
   std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T3));
   auto pass3 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
@@ -1915,6 +1938,7 @@ void Decimator::BuildQuadrics()
     ? this->ForkHelper(nv, nv / 2, { this->quad_.Id(), this->state_.Id(), this->cand_.Id() },
         forkViews)
     : nullptr;
+  ForkGuard joinOnExit{ *this, fork };
   if (fork)
   {
     T = 2; // ForRanges' halves: [0, nv / 2) and [nv / 2, nv)
@@ -2214,6 +2238,10 @@ std::unique_ptr<DML> Decimator::ForkHelper(std::uint64_t nv, std::uint64_t mid,
 
 void Decimator::JoinHelper(std::unique_ptr<DML>& fork)
 {
+  if (this->scratch_.size() > 1)
+  {
+    this->scratch_[1].w = nullptr; // (the helper's views die with the fork)
+  }
   if (fork)
   {
     std::unique_ptr<DML> f = std::move(fork);
@@ -2248,6 +2276,7 @@ void Decimator::Sweep(std::uint64_t nv)
   Views forkViews;
   std::unique_ptr<DML> fork =
     T == 1 ? this->ForkHelper(nv, nv / 2, { this->cand_.Id() }, forkViews) : nullptr;
+  ForkGuard joinOnExit{ *this, fork };
   if (fork)
   {
     T = 2;
@@ -2316,15 +2345,23 @@ void Decimator::Sweep(std::uint64_t nv)
       barrier.Wait();
       if (!stop)
       {
-        for (int o = 0; o < T; ++o)
+        try
         {
-          if (o != t)
+          for (int o = 0; o < T; ++o)
           {
-            for (const Deferred& d : this->scratch_[std::size_t(o)].out[std::size_t(t)])
+            if (o != t)
             {
-              this->Apply(this->W(s), d.x, d.partner, d.pl, d.fromPartner);
+              for (const Deferred& d : this->scratch_[std::size_t(o)].out[std::size_t(t)])
+              {
+                this->Apply(this->W(s), d.x, d.partner, d.pl, d.fromPartner); // (may page)
+              }
             }
           }
+        }
+        catch (...)
+        {
+          errors[std::size_t(t)] = std::current_exception();
+          stop = true;
         }
       }
       barrier.Wait(); // everyone is done with the queues (and agrees on stop)
@@ -3039,6 +3076,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     };
     Views forkViews;
     std::unique_ptr<DML> fork;
+    ForkGuard joinOnExit{ *this, fork };
     if (forkable)
     {
       const std::uint64_t mid = this->splitMid_;
@@ -3467,6 +3505,7 @@ void Decimator::Compact()
     }
     std::unique_ptr<DML> fork = this->ForkHelper(
       nv, 0, { this->state_.Id(), this->cand_.Id(), this->pos_.Id() }, forkViews, attrRange);
+    ForkGuard joinOnExit{ *this, fork };
     const bool forked = fork != nullptr;
     auto moveRest = [&](Views& wv, const View<std::uint32_t>& RR, std::vector<std::uint8_t>& buf,
                       bool moveQ, bool tick) {

@@ -1236,6 +1236,10 @@ std::unique_ptr<DML> DML::Fork(std::uint64_t bytes, const std::vector<Range>& ch
   {
     throw std::logic_error("sipmss::storage: Fork of a forked child DML");
   }
+  if (I.children > 0)
+  {
+    throw std::logic_error("sipmss::storage: Fork while a forked child DML is not joined");
+  }
   if (I.mode != Mode::OutOfCore)
   {
     return nullptr;

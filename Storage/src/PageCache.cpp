@@ -752,9 +752,9 @@ void DML::Impl::MergeChildRange(BlockId id)
     const std::uint64_t a = std::max(first, lo), e = std::min({ first + pb, hi, b.Bytes() });
     if (a < e)
     {
-      if (f.dirty)
+      if (f.dirty || f.pins > 0)
       {
-        this->BackendRead(b, f.data + (a - first), e - a, a);
+        this->BackendRead(b, f.data + (a - first), e - a, a); // (a pinned span stays valid)
       }
       else
       {

@@ -974,6 +974,7 @@ TEST(StorageDML, ForkedChildWritesItsRangeAndJoinMergesTheBoundaryPage)
   EXPECT_THROW(child->Resize(a.Id(), n + 1), std::logic_error);
   EXPECT_THROW(child->Config(Profile{}), std::logic_error);
   EXPECT_THROW(child->Fork(1 << 16, {}), std::logic_error);
+  EXPECT_THROW(dml.Fork(1 << 16, {}), std::logic_error); // one child at a time
   bool childRead = true, childReadB = true;
   auto update = [&](const Array<std::uint32_t>& blk, std::uint64_t i) {
     std::uint32_t x = 0;

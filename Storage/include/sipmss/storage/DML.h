@@ -199,9 +199,10 @@ public:
   // blocks open now (same ids, same files) through a page cache of its own, so that another
   // thread can use them while this one goes on. This DML first writes its dirty pages back (the
   // child reads the files). `childWrites` lists, per block, the one range of elements the child
-  // may write. Until Join:
+  // may write (one child at a time). Until Join:
   //   - the child writes no element outside those ranges, this DML none inside them;
-  //   - neither reads an element the other writes;
+  //   - an element the other side writes may be read, but its value is undefined (the use
+  //     must not depend on it) until Join;
   //   - neither opens, closes or resizes a block, fills one, or reconfigures.
   // Pages may straddle a range's ends: each side writes back only its own elements of them.
   // Join (on this DML's thread, once the child's thread is done with it) writes the child's
