@@ -113,11 +113,23 @@ void DML::Impl::Shutdown() noexcept
   }
   if (this->forkParent)
   {
-    // A child never joined (its thread failed): the files are the parent's. The parent's
-    // budget stays lent, which is safe.
+    // A child: the files are the parent's. Destroyed without Join (an error path): its unwritten
+    // pages are lost, and the parent takes its budget back and may change its blocks again.
     for (auto& b : this->blocks)
     {
       b.fd = -1;
+    }
+    if (this->attached)
+    {
+      Impl& P = *this->forkParent;
+      P.acc.Release(this->lent);
+      this->lent = 0;
+      --P.children;
+      for (auto& b : P.blocks)
+      {
+        b.forkFirst = b.forkEnd = 0;
+      }
+      this->attached = false;
     }
   }
   for (auto& b : this->blocks)
@@ -1367,6 +1379,7 @@ std::unique_ptr<DML> DML::Fork(std::uint64_t bytes, const std::vector<Range>& ch
     throw;
   }
   ++I.children;
+  child->impl_->attached = true;
   return child;
 }
 
@@ -1397,6 +1410,7 @@ void DML::Join(DML& child)
   I.acc.Release(K.lent);
   K.lent = 0;
   --I.children;
+  K.attached = false;
   // The page buffers go back to this DML.
   if (K.cache.pageSize == I.cache.pageSize)
   {

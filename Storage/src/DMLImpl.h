@@ -285,6 +285,7 @@ struct DML::Impl
   // Fork: a child serves its parent's files (it never creates, closes or removes one) and has
   // `lent` bytes of the parent's budget; a parent counts its children.
   Impl* forkParent = nullptr;
+  bool attached = false; // a child between Fork and Join (or its destruction)
   std::uint64_t lent = 0;
   std::uint32_t children = 0;
   void CheckUnforked(const char* what) const; // no structural change while forked

@@ -1072,6 +1072,14 @@ TEST(StorageDML, ForkInCoreReturnsNullAndTooLittleRoomIsABudgetError)
   {
     ASSERT_EQ(a.Get(i), i * i);
   }
+  // A child destroyed without Join (an error path) gives the budget back and unblocks the
+  // parent; what it had not written back is lost.
+  {
+    std::unique_ptr<DML> lost = dml.Fork(64 << 10, { { a.Id(), 0, 10 } });
+    ASSERT_NE(lost, nullptr);
+    EXPECT_THROW(a.Resize(10), std::logic_error);
+  }
+  EXPECT_EQ(dml.GetStats().forks, 0u);
   a.Resize(10);
   std::unique_ptr<DML> child = dml.Fork(64 << 10, { { a.Id(), 5, 5 } });
   ASSERT_NE(child, nullptr);
