@@ -305,7 +305,7 @@ private:
 };
 
 // The views of one DML over the mesh's blocks: the Decimator's own, or those of a forked DML
-// (the out-of-core sweep's helper thread).
+// (an out-of-core helper thread's).
 struct Views
 {
   View<Vec3> P;
