@@ -692,27 +692,6 @@ private:
       }
     }
   };
-  // Runs work, then joins the fork (also when work throws; then a failing join is dropped).
-  template <class F>
-  void RunForked(std::unique_ptr<DML>& fork, const F& work)
-  {
-    try
-    {
-      work();
-    }
-    catch (...)
-    {
-      try
-      {
-        this->JoinHelper(fork);
-      }
-      catch (...)
-      {
-      }
-      throw;
-    }
-    this->JoinHelper(fork);
-  }
   // In core: the faces of an active vertex kAhead ahead in the sweep, and the data of the
   // neighbours of one kAhead / 2 ahead (its faces were fetched before).
   void PrefetchSweep(std::uint64_t u, std::uint64_t end) const
@@ -1286,7 +1265,8 @@ void Decimator::CountDegrees(
       }
     }
   };
-  this->RunForked(fork, [&]() { ForRanges(T, nv, count, [&]() { this->JoinHelper(fork); }); });
+  ForRanges(T, nv, count, [&]() { this->JoinHelper(fork); });
+  this->JoinHelper(fork);
 }
 
 // Fills the incident face lists of faces [0, nf) (dead ones skipped) from the ring offsets, which
@@ -1298,10 +1278,11 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
   const Tri* F = this->v_.F.Ptr(0);
   std::uint32_t* RO = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
   std::uint32_t* RF = const_cast<std::uint32_t*>(this->v_.RF.Ptr(0));
+  const bool inCore = F && RO && RF;
   const std::uint64_t nv = this->nv_;
-  int T = (nf >= kParallelRingsMin && F && RO && RF) ? this->threads_ : 1;
+  int T = (nf >= kParallelRingsMin && inCore) ? this->threads_ : 1;
   // Out of core: the upper half of the vertices (their offsets and lists) on a helper thread
-  // through a forked DML; each thread scans every face.
+  // through a forked DML.
   Views forkViews;
   const std::uint64_t mid = nv / 2;
   std::unique_ptr<DML> fork;
@@ -1313,65 +1294,11 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
     {
       fork = this->ForkHelper(nv, mid, { this->ringOff_.Id() }, forkViews,
         { { this->ringFace_.Id(), rfBegin, rfEnd - rfBegin } });
+      T = fork ? 2 : 1;
     }
   }
-  if (fork)
-  {
-    auto fill = [&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-      Views& w = th == 1 ? forkViews : this->v_;
-      for (std::uint64_t i = nf; i-- > 0;)
-      {
-        if ((i & 4095) == 0)
-        {
-          if (stop.load(std::memory_order_relaxed))
-          {
-            return;
-          }
-          if (th == 0 && tickTotal)
-          {
-            this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
-          }
-        }
-        const Tri t = w.F.Get(i);
-        if (!Alive(t))
-        {
-          continue;
-        }
-        for (int k = 0; k < 3; ++k)
-        {
-          const std::uint32_t x = t.v[k];
-          if (x >= lo && x < hi)
-          {
-            const std::uint32_t e = w.RO.Get(x) - 1;
-            w.RO.Set(x, e);
-            w.RF.Set(e, std::uint32_t(i));
-          }
-        }
-      }
-    };
-    this->RunForked(fork, [&]() { ForRanges(2, nv, fill, [&]() { this->JoinHelper(fork); }); });
-    return;
-  }
-  if (T <= 1)
-  {
-    for (std::uint64_t i = nf; i-- > 0;)
-    {
-      this->Tick(tickBase + (nf - i), tickTotal);
-      const Tri t = this->v_.F.Get(i);
-      if (!Alive(t))
-      {
-        continue;
-      }
-      for (int k = 0; k < 3; ++k)
-      {
-        const std::uint32_t e = this->v_.RO.Get(t.v[k]) - 1;
-        this->v_.RO.Set(t.v[k], e);
-        this->v_.RF.Set(e, std::uint32_t(i));
-      }
-    }
-    return;
-  }
-  ForRanges(T, nv, [&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+  auto fill = [&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    Views& w = (fork && th == 1) ? forkViews : this->v_;
     for (std::uint64_t i = nf; i-- > 0;)
     {
       if ((i & 4095) == 0)
@@ -1382,10 +1309,11 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
         }
         if (th == 0 && tickTotal)
         {
+          // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
           this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
         }
       }
-      const Tri t = F[i];
+      const Tri t = inCore ? F[i] : w.F.Get(i);
       if (!Alive(t))
       {
         continue;
@@ -1395,11 +1323,22 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
         const std::uint32_t x = t.v[k];
         if (x >= lo && x < hi)
         {
-          RF[--RO[x]] = std::uint32_t(i);
+          if (inCore)
+          {
+            RF[--RO[x]] = std::uint32_t(i);
+          }
+          else
+          {
+            const std::uint32_t e = w.RO.Get(x) - 1;
+            w.RO.Set(x, e);
+            w.RF.Set(e, std::uint32_t(i));
+          }
         }
       }
     }
-  });
+  };
+  ForRanges(T, nv, fill, [&]() { this->JoinHelper(fork); });
+  this->JoinHelper(fork);
 }
 
 void Decimator::BuildRings()
@@ -1432,7 +1371,7 @@ void Decimator::BuildRings()
     std::vector<std::uint64_t> lives(std::size_t(T1), 0), drops(std::size_t(T1), 0);
     std::vector<std::uint64_t> bad(std::size_t(T1), ~std::uint64_t(0));
     auto pass1 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
-      const View<Tri>& Fv = (fork && th == 1) ? forkViews.F : F;
+      View<Tri>& Fv = (fork && th == 1) ? forkViews.F : F;
       const View<Vec3>& Pv = (fork && th == 1) ? forkViews.P : P;
       for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
       {
@@ -1454,7 +1393,7 @@ void Decimator::BuildRings()
         Vec3 n = Cross(b - a, c - a);
         if (Dot(n, n) == 0.0)
         {
-          const_cast<View<Tri>&>(Fv).Set(f, kDeadTri);
+          Fv.Set(f, kDeadTri);
           ++drops[std::size_t(th)];
           continue;
         }
@@ -1468,7 +1407,8 @@ void Decimator::BuildRings()
         ++lives[std::size_t(th)];
       }
     };
-    this->RunForked(fork, [&]() { ForRanges(T1, nf, pass1, [&]() { this->JoinHelper(fork); }); });
+    ForRanges(T1, nf, pass1, [&]() { this->JoinHelper(fork); });
+    this->JoinHelper(fork);
     const std::uint64_t first = *std::min_element(bad.begin(), bad.end());
     if (first != ~std::uint64_t(0))
     {
@@ -1581,7 +1521,8 @@ void Decimator::BuildRings()
       }
     }
   };
-  this->RunForked(fork, [&]() { ForRanges(T3, nf, pass3, [&]() { this->JoinHelper(fork); }); });
+  ForRanges(T3, nf, pass3, [&]() { this->JoinHelper(fork); });
+  this->JoinHelper(fork);
   std::vector<std::uint64_t> dups; // ascending (the ranges are in order)
   for (const std::vector<std::uint64_t>& list : found)
   {
@@ -1943,24 +1884,23 @@ void Decimator::BuildQuadrics()
   {
     T = 2; // ForRanges' halves: [0, nv / 2) and [nv / 2, nv)
   }
-  this->RunForked(fork, [&]() {
-    ForRanges(
-      T, nv,
-      [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-        Views& w = (fork && t == 1) ? forkViews : this->v_;
-        std::vector<Tri> tris;
-        std::vector<std::uint32_t> next, prev;
-        for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
+  ForRanges(
+    T, nv,
+    [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+      Views& w = (fork && t == 1) ? forkViews : this->v_;
+      std::vector<Tri> tris;
+      std::vector<std::uint32_t> next, prev;
+      for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
+      {
+        if (t == 0)
         {
-          if (t == 0)
-          {
-            this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
-          }
-          vertex(w, std::uint32_t(u), tris, next, prev);
+          this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
         }
-      },
-      [&]() { this->JoinHelper(fork); });
-  });
+        vertex(w, std::uint32_t(u), tris, next, prev);
+      }
+    },
+    [&]() { this->JoinHelper(fork); });
+  this->JoinHelper(fork);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -2299,10 +2239,6 @@ void Decimator::Sweep(std::uint64_t nv)
   {
     this->scratch_[1].w = &forkViews; // (partStart_[1] is nv / 2)
   }
-  auto join = [this, &fork]() {
-    this->scratch_[1].w = nullptr;
-    this->JoinHelper(fork);
-  };
   std::uint64_t rounds = 0;
   for (int t = 0; t < T; ++t)
   {
@@ -2377,29 +2313,14 @@ void Decimator::Sweep(std::uint64_t nv)
   };
   // A thread that cannot be started: the others stop after their first chunk, and this thread
   // sweeps alone (evaluating a vertex twice gives the same candidates: offers are idempotent).
-  int started = 0;
-  try
-  {
-    started = RunOnThreads(T, work, [&](int n) {
-      stop = true;
-      for (int k = n; k < T; ++k)
-      {
-        barrier.Drop();
-      }
-    });
-  }
-  catch (...)
-  {
-    try
+  const int started = RunOnThreads(T, work, [&](int n) {
+    stop = true;
+    for (int k = n; k < T; ++k)
     {
-      join();
+      barrier.Drop();
     }
-    catch (...)
-    {
-    }
-    throw;
-  }
-  join();
+  });
+  this->JoinHelper(fork); // (on an exception, joinOnExit does)
   RethrowFirst(errors);
   if (started < T)
   {
@@ -3096,35 +3017,30 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       // Each thread runs its half of the chunks in order (the same collapses as one after the
       // other: a chunk's collapses touch only its own vertices and faces).
       this->scratch_[1].w = &forkViews;
-      this->RunForked(fork, [&]() {
-        ForRanges(
-          2, 2,
-          [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>& halt) {
-            for (std::uint64_t g = gb; g < ge; ++g)
+      ForRanges(
+        2, 2,
+        [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>& halt) {
+          for (std::uint64_t g = gb; g < ge; ++g)
+          {
+            Scratch& s = this->scratch_[std::size_t(t)];
+            for (std::size_t c = g ? half : 0; c < (g ? n : half); ++c)
             {
-              Scratch& s = this->scratch_[std::size_t(t)];
-              for (std::size_t c = g ? half : 0; c < (g ? n : half); ++c)
+              if (halt.load(std::memory_order_relaxed))
               {
-                if (halt.load(std::memory_order_relaxed))
-                {
-                  return;
-                }
-                if (t == 0)
-                {
-                  this->Tick(c, n);
-                }
-                const std::uint32_t lo = std::uint32_t(c * size);
-                const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-                cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], false);
+                return;
               }
+              if (t == 0)
+              {
+                this->Tick(c, n);
+              }
+              const std::uint32_t lo = std::uint32_t(c * size);
+              const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+              cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], false);
             }
-          },
-          [&]() {
-            this->scratch_[1].w = nullptr;
-            this->JoinHelper(fork);
-          });
-      });
-      this->scratch_[1].w = nullptr;
+          }
+        },
+        [&]() { this->JoinHelper(fork); });
+      this->JoinHelper(fork);
     }
     // Chunks are taken from a shared counter: if a thread cannot start, the others take its share.
     else if (T > 1)
@@ -3416,6 +3332,25 @@ void Decimator::Compact()
   };
   const std::size_t rec = this->recSize_;
   std::uint64_t f2 = 0;
+  // 4. Faces, ascending: new index f2 <= f (in core on several threads: on the quadrics'
+  // thread, below; out of core on the calling thread, after the quadrics).
+  auto moveFaces = [&]() {
+    for (std::uint64_t f = 0; f < nf; ++f)
+    {
+      this->Tick(nf + 2 * nv + f, total);
+      Tri t = this->v_.F.Get(f);
+      if (!Alive(t))
+      {
+        continue;
+      }
+      for (int c = 0; c < 3; ++c)
+      {
+        t.v[c] = R.Get(t.v[c]) & ~kTop;
+      }
+      this->v_.F.Set(f2++, t);
+    }
+  };
+  bool facesMoved = T > 1;
   if (T > 1)
   {
     // In place and downwards (carry reads only the vertex's own records and R): the arrays are
@@ -3506,7 +3441,6 @@ void Decimator::Compact()
     std::unique_ptr<DML> fork = this->ForkHelper(
       nv, 0, { this->state_.Id(), this->cand_.Id(), this->pos_.Id() }, forkViews, attrRange);
     ForkGuard joinOnExit{ *this, fork };
-    const bool forked = fork != nullptr;
     auto moveRest = [&](Views& wv, const View<std::uint32_t>& RR, std::vector<std::uint8_t>& buf,
                       bool moveQ, bool tick) {
       buf.resize(rec);
@@ -3542,79 +3476,52 @@ void Decimator::Compact()
         }
       }
     };
-    if (!forked)
+    if (!fork)
     {
       moveRest(this->v_, R, this->abuf_, true, true);
     }
     else
     {
       const View<std::uint32_t> forkR(*fork, this->remap_);
-      this->RunForked(fork, [&]() {
-        ForRanges(
-          2, 2,
-          [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
-            for (std::uint64_t g = gb; g < ge; ++g)
+      ForRanges(
+        2, 2,
+        [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
+          for (std::uint64_t g = gb; g < ge; ++g)
+          {
+            if (g == 0)
             {
-              if (g == 0)
+              // The quadrics, then the faces (which read only R and the faces).
+              for (std::uint64_t v = 0; v < nv; ++v)
               {
-                // The quadrics, then step 4 (which reads only R and the faces).
-                for (std::uint64_t v = 0; v < nv; ++v)
+                this->Tick(nf + nv + v, total);
+                const std::uint32_t rv = R.Get(v);
+                const std::uint64_t w = rv & ~kTop;
+                if (rv != kNone && w != v)
                 {
-                  this->Tick(nf + nv + v, total);
-                  const std::uint32_t rv = R.Get(v);
-                  const std::uint64_t w = rv & ~kTop;
-                  if (rv != kNone && w != v)
-                  {
-                    this->v_.Q.Set(w, this->v_.Q.Get(v));
-                  }
-                }
-                for (std::uint64_t f = 0; f < nf; ++f)
-                {
-                  this->Tick(nf + 2 * nv + f, total);
-                  Tri tri = this->v_.F.Get(f);
-                  if (Alive(tri))
-                  {
-                    for (int c = 0; c < 3; ++c)
-                    {
-                      tri.v[c] = R.Get(tri.v[c]) & ~kTop;
-                    }
-                    this->v_.F.Set(f2++, tri);
-                  }
+                  this->v_.Q.Set(w, this->v_.Q.Get(v));
                 }
               }
-              else if (fork && t == 1)
-              {
-                std::vector<std::uint8_t> buf;
-                moveRest(forkViews, forkR, buf, false, false);
-              }
-              else
-              {
-                moveRest(this->v_, R, this->abuf_, false, false); // (the helper did not start)
-              }
+              moveFaces();
             }
-          },
-          [&]() { this->JoinHelper(fork); });
-      });
+            else if (fork && t == 1)
+            {
+              std::vector<std::uint8_t> buf;
+              moveRest(forkViews, forkR, buf, false, false);
+            }
+            else
+            {
+              moveRest(this->v_, R, this->abuf_, false, false); // (the helper did not start)
+            }
+          }
+        },
+        [&]() { this->JoinHelper(fork); });
+      this->JoinHelper(fork);
+      facesMoved = true;
     }
-    T = forked ? 2 : 1; // step 4 is done when forked
   }
-  // 4. Faces, ascending: new index f2 <= f (in core: on the quadrics' thread, above).
-  if (T <= 1)
+  if (!facesMoved)
   {
-    for (std::uint64_t f = 0; f < nf; ++f)
-    {
-      this->Tick(nf + 2 * nv + f, total);
-      Tri t = this->v_.F.Get(f);
-      if (!Alive(t))
-      {
-        continue;
-      }
-      for (int c = 0; c < 3; ++c)
-      {
-        t.v[c] = R.Get(t.v[c]) & ~kTop;
-      }
-      this->v_.F.Set(f2++, t);
-    }
+    moveFaces();
   }
   // 5. Shrink, then the rings (faces in reverse: each list ascending, RO[k] ends at its start).
   const std::uint64_t nvb = std::max<std::uint64_t>(nv2, 1);
