@@ -1938,16 +1938,17 @@ Placement Decimator::Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, Sta
   bool solved = false;
   if (tr > 0)
   {
-    Eigen::Matrix3d A;
-    A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
-    Eigen::Matrix3d inv;
-    double det = 0;
-    bool invertible = false;
-    A.computeInverseAndDetWithCheck(inv, det, invertible, 0.0);
+    // A is symmetric: its adjugate has six distinct cofactors, and the first row's three give
+    // the determinant; the other three are only needed when the solve goes ahead.
+    const double a = q[0], b = q[1], c = q[2], dd = q[4], e5 = q[5], f = q[7];
+    const double c00 = dd * f - e5 * e5, c01 = c * e5 - b * f, c02 = b * e5 - c * dd;
+    const double det = a * c00 + b * c01 + c * c02;
     // Well conditioned: det (the product of the eigenvalues) against the cube of their sum.
-    if (invertible && det > 1e-12 * tr * tr * tr)
+    if (det > 1e-12 * tr * tr * tr)
     {
-      const Eigen::Vector3d d = -(inv * Eigen::Vector3d(g.x, g.y, g.z));
+      Eigen::Matrix3d adj;
+      adj << c00, c01, c02, c01, a * f - c * c, b * c - a * e5, c02, b * c - a * e5, a * dd - b * b;
+      const Eigen::Vector3d d = (adj * Eigen::Vector3d(g.x, g.y, g.z)) * (-1.0 / det);
       // The optimum of a nearly singular quadric can slide far along the weak direction: keep it
       // within one edge length of the midpoint, else use the segment.
       if (d.squaredNorm() <= len2)
@@ -2758,6 +2759,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   const std::uint32_t* RFp = w.RF.Ptr(0);
   const Vec3* Pp = w.P.Ptr(0);
   const Tri* Fp = w.F.Ptr(0);
+  const Quadric* Qp = this->lazySums_ ? nullptr : w.Q.Ptr(0);
   const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
   constexpr std::uint64_t kAhead = 16;
   auto freePair = [&](std::uint32_t w, std::uint32_t& x) {
@@ -2821,6 +2823,15 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
           for (std::uint32_t k = ROp[x], e = ROp[x + 1]; k < e; ++k)
           {
             Prefetch(Fp + RFp[k]);
+          }
+          if (Qp)
+          {
+            // The collapse adds the partner's quadric to w's (80 bytes: two cache lines each).
+            for (const std::uint32_t y : { w, x })
+            {
+              Prefetch(Qp + y);
+              Prefetch(reinterpret_cast<const char*>(Qp + y) + 64);
+            }
           }
         }
       }
