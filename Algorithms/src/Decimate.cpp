@@ -1940,14 +1940,16 @@ Placement Decimator::Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, Sta
   {
     // A is symmetric: its adjugate has six distinct cofactors, and the first row's three give
     // the determinant; the other three are only needed when the solve goes ahead.
-    const double a = q[0], b = q[1], c = q[2], dd = q[4], e5 = q[5], f = q[7];
-    const double c00 = dd * f - e5 * e5, c01 = c * e5 - b * f, c02 = b * e5 - c * dd;
-    const double det = a * c00 + b * c01 + c * c02;
+    const double a00 = q[0], a01 = q[1], a02 = q[2], a11 = q[4], a12 = q[5], a22 = q[7];
+    const double c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22,
+                 c02 = a01 * a12 - a02 * a11;
+    const double det = a00 * c00 + a01 * c01 + a02 * c02;
     // Well conditioned: det (the product of the eigenvalues) against the cube of their sum.
     if (det > 1e-12 * tr * tr * tr)
     {
+      const double c12 = a01 * a02 - a00 * a12;
       Eigen::Matrix3d adj;
-      adj << c00, c01, c02, c01, a * f - c * c, b * c - a * e5, c02, b * c - a * e5, a * dd - b * b;
+      adj << c00, c01, c02, c01, a00 * a22 - a02 * a02, c12, c02, c12, a00 * a11 - a01 * a01;
       const Eigen::Vector3d d = (adj * Eigen::Vector3d(g.x, g.y, g.z)) * (-1.0 / det);
       // The optimum of a nearly singular quadric can slide far along the weak direction: keep it
       // within one edge length of the midpoint, else use the segment.
@@ -1999,11 +2001,14 @@ bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
     return false; // (nearly) zero area
   }
   const double l0 = Dot(n0, n0);
-  if (l0 > 0 && Dot(n0, n1) < this->cosThreshold_ * std::sqrt(l0 * l1))
+  if (!(l0 > 0))
   {
-    return false; // flips or turns too much
+    return true;
   }
-  return true;
+  // Flips or turns too much: n0.n1 < cos |n0| |n1|, compared squared (no square root).
+  const double dot = Dot(n0, n1), k = this->cosThreshold_;
+  const double bound2 = k * k * l0 * l1;
+  return k >= 0 ? (dot >= 0 && dot * dot >= bound2) : (dot >= 0 || dot * dot <= bound2);
 }
 
 // Is collapsing u (ring in ru_, with positions) and nb.v to p legal? Loads rv_ (positions).
@@ -2424,14 +2429,12 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
   const Quadric Qu = w.Q.Get(u);
   const Vec3 pu = w.P.Get(u);
   auto in = [](const std::uint32_t* a, std::size_t m, std::uint32_t x) {
+    bool found = false; // no early exit: a fixed trip count instead of a mispredicted branch
     for (std::size_t i = 0; i < m; ++i)
     {
-      if (a[i] == x)
-      {
-        return true;
-      }
+      found |= a[i] == x;
     }
-    return false;
+    return found;
   };
   for (std::size_t i = 0; i < n; ++i)
   {
