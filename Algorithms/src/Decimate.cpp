@@ -149,6 +149,10 @@ inline Vec3 Cross(const Vec3& a, const Vec3& b)
   return { a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x };
 }
 
+// The corner after and before corner c of a triangle: (c + 1) % 3 and (c + 2) % 3.
+constexpr int kNextCorner[3] = { 1, 2, 0 };
+constexpr int kPrevCorner[3] = { 2, 0, 1 };
+
 struct Tri
 {
   std::uint32_t v[3];
@@ -1662,17 +1666,23 @@ void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
   r.nbs.clear();
   r.keys.clear();
   const std::uint32_t b = w.RO.Get(x), e = w.RO.Get(x + 1);
-  r.ids.resize(e - b);
-  w.RF.GetRange(b, e - b, r.ids.data());
+  const std::uint32_t* ids = w.RF.Ptr(b); // in core: the list itself
+  if (!ids)
+  {
+    r.ids.resize(e - b);
+    w.RF.GetRange(b, e - b, r.ids.data());
+    ids = r.ids.data();
+  }
   if (const Tri* fp = w.F.Ptr(0))
   {
-    for (std::uint32_t id : r.ids)
+    for (std::uint32_t k = 0; k < e - b; ++k)
     {
-      Prefetch(fp + id);
+      Prefetch(fp + ids[k]);
     }
   }
-  for (std::uint32_t id : r.ids)
+  for (std::uint32_t k = 0; k < e - b; ++k)
   {
+    const std::uint32_t id = ids[k];
     const Tri t = w.F.Get(id);
     if (!Alive(t))
     {
@@ -1682,8 +1692,8 @@ void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
     const std::uint64_t slot = r.faces.size();
     r.faces.push_back({ id, t, corner, { 0, 0 } });
     // key: neighbour | slot | which (0: next corner, 1: previous corner)
-    r.keys.push_back((std::uint64_t(t.v[(corner + 1) % 3]) << 32) | (slot << 1));
-    r.keys.push_back((std::uint64_t(t.v[(corner + 2) % 3]) << 32) | (slot << 1) | 1);
+    r.keys.push_back((std::uint64_t(t.v[kNextCorner[corner]]) << 32) | (slot << 1));
+    r.keys.push_back((std::uint64_t(t.v[kPrevCorner[corner]]) << 32) | (slot << 1) | 1);
   }
   SmallSort(r.keys.data(), r.keys.size());
   for (std::uint64_t key : r.keys)
@@ -1692,7 +1702,7 @@ void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
     const std::uint32_t slot = std::uint32_t(key & 0xffffffffu) >> 1;
     const int which = int(key & 1);
     RingFace& rf = r.faces[slot];
-    const std::uint32_t opp = rf.t.v[which == 0 ? (rf.corner + 2) % 3 : (rf.corner + 1) % 3];
+    const std::uint32_t opp = rf.t.v[which == 0 ? kPrevCorner[rf.corner] : kNextCorner[rf.corner]];
     if (r.nbs.empty() || r.nbs.back().v != v)
     {
       r.nbs.push_back({ v, 1, { opp, kNone }, slot, { 0, 0, 0 } });
