@@ -13,6 +13,7 @@
 #include <cstring>
 #include <filesystem>
 #include <map>
+#include <limits>
 #include <numeric>
 #include <set>
 #include <string>
@@ -1197,14 +1198,24 @@ TEST(AlgorithmsDecimate, AbortThrowsAndLeavesNoFiles)
   namespace fs = std::filesystem;
   fs::path dir = fs::temp_directory_path() / ("sipmss_decimate_abort_" + std::to_string(::getpid()));
   fs::create_directories(dir);
-  std::set<std::string> phases;
-  for (int n : { 0, 1, 2, 3, 5, 8, 20, 60, 200 })
+  alg::DecimateOptions o;
+  o.targetTriangles = 100;
+  o.storage.policy = st::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 64 * 1024;
+  o.storage.directories = { dir.string() };
+  // How often a whole run asks whether to abort; then abort at the first few checks and at
+  // points spread over the run up to its last check.
+  int checks = 0;
   {
-    alg::DecimateOptions o;
-    o.targetTriangles = 100;
-    o.storage.policy = st::ModePolicy::OutOfCore;
-    o.storage.memoryBudget = 64 * 1024;
-    o.storage.directories = { dir.string() };
+    AbortingProgress counting(std::numeric_limits<int>::max());
+    CollectSink sink;
+    alg::Decimate(MemorySource(s), sink, o, counting);
+    checks = counting.calls;
+  }
+  ASSERT_GT(checks, 20);
+  std::set<std::string> phases;
+  for (int n : { 0, 1, 2, 3, 5, 8, checks / 4, checks / 2, 3 * checks / 4, checks - 1 })
+  {
     AbortingProgress progress(n);
     CollectSink sink;
     EXPECT_THROW(alg::Decimate(MemorySource(s), sink, o, progress), alg::AbortedError) << n;
