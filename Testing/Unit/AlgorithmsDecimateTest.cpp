@@ -1203,6 +1203,7 @@ TEST(AlgorithmsDecimate, AbortThrowsAndLeavesNoFiles)
   o.storage.policy = st::ModePolicy::OutOfCore;
   o.storage.memoryBudget = 64 * 1024;
   o.storage.directories = { dir.string() };
+  o.threads = 1; // (only the calling thread ticks: one thread keeps the count of checks fixed)
   // How often a whole run asks whether to abort; then abort at the first few checks and at
   // points spread over the run up to its last check.
   int checks = 0;
