@@ -3245,9 +3245,9 @@ void Decimator::Compact()
   this->remap_.Resize(std::max<std::uint64_t>(nv, 1));
   this->BindViews();
   View<std::uint32_t> R(this->dml_, this->remap_);
-  // In core on several threads: the degrees and the rings by vertex range (each thread scans
-  // all faces and writes only its own vertices), the moves (in place, downwards) one array
-  // group per thread. Same result either way.
+  // In core on several threads: the degrees by face halves (step 1), the rings by vertex range
+  // (each thread scans all faces and writes only its own vertices), the moves (in place,
+  // downwards) one array group per thread. Same result either way.
   int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
                   (!this->recSize_ || this->v_.A.Ptr(0)))
     ? this->threads_
