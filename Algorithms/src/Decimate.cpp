@@ -641,7 +641,8 @@ private:
   void Weld();
   void BuildRings();
   void FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal);
-  void CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal);
+  void CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal,
+    std::uint32_t* spare = nullptr);
   void BuildQuadrics();
   bool Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan);
   void Compact();
@@ -1210,19 +1211,62 @@ void Decimator::Weld()
 // ---------------------------------------------------------------------------------------------
 // rings
 
-// RO[v] += the number of live faces of [0, nf) on v, in core on all cores: each thread owns a
-// range of vertices and scans every face (sequential reads; a thread writes only its own
-// vertices' counters, so no atomic adds, and never another's, not even adding zero).
-// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before). By vertex range
-// on `threads` threads in core (each thread scans every face and counts only its own vertices,
-// no atomics), on two threads out of core (the upper half through a forked DML).
-void Decimator::CountDegrees(
-  std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal)
+// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before). In core on two or
+// more threads with a `spare` array of nv counters: two threads count half of the faces each,
+// the second into `spare`, which is then added. Else by vertex range on `threads` threads in core
+// (each thread scans every face and counts only its own vertices, no atomics; a thread never
+// writes another's counter, not even adding zero), on two threads out of core (the upper half
+// through a forked DML).
+void Decimator::CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase,
+  std::uint64_t tickTotal, std::uint32_t* spare)
 {
   this->BindViews();
   const std::uint64_t nv = this->nv_;
   const Tri* Fp = this->v_.F.Ptr(0);
   std::uint32_t* ROp = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
+  auto tick = [&](int t, std::uint64_t f, const std::atomic<bool>& stop) {
+    if ((f & 4095) != 0)
+    {
+      return true;
+    }
+    if (stop.load(std::memory_order_relaxed))
+    {
+      return false;
+    }
+    if (t == 0 && tickTotal)
+    {
+      // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
+      this->progress_.Tick(double(tickBase + f) / double(tickTotal));
+    }
+    return true;
+  };
+  if (threads > 1 && Fp && ROp && spare)
+  {
+    ForRanges(2, nf, [&](int t, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+      std::uint32_t* count = t == 0 ? ROp : spare;
+      if (t == 1)
+      {
+        std::fill(spare, spare + nv, 0u);
+      }
+      for (std::uint64_t f = fb; f < fe && tick(t, f, stop); ++f)
+      {
+        const Tri t3 = Fp[f];
+        if (Alive(t3))
+        {
+          ++count[t3.v[0]];
+          ++count[t3.v[1]];
+          ++count[t3.v[2]];
+        }
+      }
+    });
+    ForRanges(2, nv, [&](int, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>&) {
+      for (std::uint64_t v = lo; v < hi; ++v)
+      {
+        ROp[v] += spare[v];
+      }
+    });
+    return;
+  }
   Views forkViews;
   std::unique_ptr<DML> fork;
   ForkGuard joinOnExit{ *this, fork };
@@ -1234,20 +1278,8 @@ void Decimator::CountDegrees(
   }
   auto count = [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
     Views& w = (fork && t == 1) ? forkViews : this->v_;
-    for (std::uint64_t f = 0; f < nf; ++f)
+    for (std::uint64_t f = 0; f < nf && tick(t, f, stop); ++f)
     {
-      if ((f & 4095) == 0)
-      {
-        if (stop.load(std::memory_order_relaxed))
-        {
-          return;
-        }
-        if (t == 0 && tickTotal)
-        {
-          // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
-          this->progress_.Tick(double(tickBase + f) / double(tickTotal));
-        }
-      }
       const Tri t3 = Fp ? Fp[f] : w.F.Get(f);
       if (Alive(t3))
       {
@@ -1772,8 +1804,8 @@ void Decimator::BuildQuadrics()
       }
       const int c = t.v[0] == u ? 0 : (t.v[1] == u ? 1 : 2);
       tris.push_back(t);
-      next.push_back(t.v[(c + 1) % 3]);
-      prev.push_back(t.v[(c + 2) % 3]);
+      next.push_back(t.v[kNextCorner[c]]);
+      prev.push_back(t.v[kPrevCorner[c]]);
       const Vec3 a = w.P.Get(t.v[0]);
       Vec3 nn = Cross(w.P.Get(t.v[1]) - a, w.P.Get(t.v[2]) - a);
       const double len = std::sqrt(Dot(nn, nn));
@@ -3245,57 +3277,17 @@ void Decimator::Compact()
   this->remap_.Resize(std::max<std::uint64_t>(nv, 1));
   this->BindViews();
   View<std::uint32_t> R(this->dml_, this->remap_);
-  // In core on several threads: the degrees by face halves (step 1), the rings by vertex range
-  // (each thread scans all faces and writes only its own vertices), the moves (in place,
-  // downwards) one array group per thread. Same result either way.
-  int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
+  // In core on several threads: the degrees (CountDegrees), the rings by vertex range (each
+  // thread scans all faces and writes only its own vertices), the moves (in place, downwards)
+  // one array group per thread. Same result either way.
+  const int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
                   (!this->recSize_ || this->v_.A.Ptr(0)))
     ? this->threads_
     : 1;
-  // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with).
+  // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with);
+  // the candidate order is free until the next pass: CountDegrees' second counter array.
   FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
-  // In core on several threads: two threads count half of the faces each, the second into the
-  // candidate order (unused until the next pass), and step 2 adds the two counts. (CountDegrees
-  // splits by vertex range instead: every thread reads every face, so two are no faster.)
-  const Tri* Fp0 = this->v_.F.Ptr(0);
-  std::uint32_t* ROp0 = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
-  std::uint32_t* extra = const_cast<std::uint32_t*>(this->v_.O.Ptr(0));
-  if (T > 1 && Fp0 && ROp0 && extra && this->order_.Size() >= nv)
-  {
-    ForRanges(2, nf, [&](int t, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
-      std::uint32_t* count = t == 0 ? ROp0 : extra;
-      if (t == 1)
-      {
-        std::fill(extra, extra + nv, 0u);
-      }
-      for (std::uint64_t f = fb; f < fe; ++f)
-      {
-        if ((f & 4095) == 0)
-        {
-          if (stop.load(std::memory_order_relaxed))
-          {
-            return;
-          }
-          if (t == 0)
-          {
-            this->progress_.Tick(double(f) / double(total)); // (and checks for an abort)
-          }
-        }
-        const Tri t3 = Fp0[f];
-        if (Alive(t3))
-        {
-          ++count[t3.v[0]];
-          ++count[t3.v[1]];
-          ++count[t3.v[2]];
-        }
-      }
-    });
-  }
-  else
-  {
-    extra = nullptr;
-    this->CountDegrees(nf, T, 0, total);
-  }
+  this->CountDegrees(nf, T, 0, total, const_cast<std::uint32_t*>(this->v_.O.Ptr(0)));
   // 2. New vertex numbers; RO[k] = end of k's ring (k <= v: RO[k] was read already). R holds the
   // new number, with the top bit for the survivors of this pass (their old state is overwritten
   // below before their neighbours look at it).
@@ -3305,7 +3297,7 @@ void Decimator::Compact()
   for (std::uint64_t v = 0; v < nv; ++v)
   {
     this->Tick(nf + v, total);
-    const std::uint32_t deg = this->v_.RO.Get(v) + (extra ? extra[v] : 0u);
+    const std::uint32_t deg = this->v_.RO.Get(v);
     if (deg == 0)
     {
       R.Set(v, kNone);
@@ -3428,7 +3420,6 @@ void Decimator::Compact()
     State* Sp = const_cast<State*>(this->v_.S.Ptr(0));
     Cand* Cp = const_cast<Cand*>(this->v_.C.Ptr(0));
     std::uint8_t* Ap = rec ? const_cast<std::uint8_t*>(this->v_.A.Ptr(0)) : nullptr;
-    Tri* Fp = const_cast<Tri*>(this->v_.F.Ptr(0));
     // Group 0 runs on the calling thread, which ticks the progress (and so checks for an abort;
     // the other group then finishes its loop before the exception is passed on).
     ForRanges(std::min(T, 2), 2, [&](int, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
@@ -3471,23 +3462,7 @@ void Decimator::Compact()
         }
         if (g == 0)
         {
-          // Step 4 too (it reads only R and the faces).
-          for (std::uint64_t f = 0; f < nf; ++f)
-          {
-            if ((f & 4095) == 0)
-            {
-              this->progress_.Tick(double(nf + 2 * nv + f) / double(total));
-            }
-            Tri t = Fp[f];
-            if (Alive(t))
-            {
-              for (int c = 0; c < 3; ++c)
-              {
-                t.v[c] = Rp[t.v[c]] & ~kTop;
-              }
-              Fp[f2++] = t;
-            }
-          }
+          moveFaces(); // step 4 too (it reads only R and the faces)
         }
       }
     });

@@ -1244,14 +1244,7 @@ private:
 std::unique_ptr<DML> DML::Fork(std::uint64_t bytes, const std::vector<Range>& childWrites)
 {
   Impl& I = *this->impl_;
-  if (I.forkParent)
-  {
-    throw std::logic_error("sipmss::storage: Fork of a forked child DML");
-  }
-  if (I.children > 0)
-  {
-    throw std::logic_error("sipmss::storage: Fork while a forked child DML is not joined");
-  }
+  I.CheckUnforked("Fork"); // (one child at a time, and no grandchildren)
   if (I.mode != Mode::OutOfCore)
   {
     return nullptr;

@@ -625,37 +625,31 @@ void DML::Impl::WriteBack(std::int32_t fi)
   const std::uint64_t end = std::min(first + pb, b.Bytes());
   if (first < end)
   {
-    if (b.forkFirst < b.forkEnd)
+    // [lo, hi): the page's bytes a forked child writes (empty unless the block is forked); the
+    // child writes back only those, a parent only the others.
+    std::uint64_t lo = std::max(first, b.forkFirst * b.elementSize);
+    std::uint64_t hi = std::min(end, b.forkEnd * b.elementSize);
+    if (lo >= hi)
     {
-      // Forked: the child writes back [lo, hi) of the block, the parent the rest.
-      const std::uint64_t lo = std::max(first, b.forkFirst * b.elementSize);
-      const std::uint64_t hi = std::min(end, b.forkEnd * b.elementSize);
-      if (this->forkParent)
+      lo = hi = end;
+    }
+    if (this->forkParent)
+    {
+      if (lo < hi)
       {
-        if (lo < hi)
-        {
-          this->BackendWrite(b, f.data + (lo - first), hi - lo, lo);
-        }
-      }
-      else if (lo < hi)
-      {
-        if (first < lo)
-        {
-          this->BackendWrite(b, f.data, lo - first, first);
-        }
-        if (hi < end)
-        {
-          this->BackendWrite(b, f.data + (hi - first), end - hi, hi);
-        }
-      }
-      else
-      {
-        this->BackendWrite(b, f.data, end - first, first);
+        this->BackendWrite(b, f.data + (lo - first), hi - lo, lo);
       }
     }
-    else if (!this->forkParent)
+    else
     {
-      this->BackendWrite(b, f.data, end - first, first);
+      if (first < lo)
+      {
+        this->BackendWrite(b, f.data, lo - first, first);
+      }
+      if (hi < end)
+      {
+        this->BackendWrite(b, f.data + (hi - first), end - hi, hi);
+      }
     }
   }
   f.dirty = false;

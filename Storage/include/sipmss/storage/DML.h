@@ -209,8 +209,8 @@ public:
   // dirty elements back, drops this DML's clean copies of the child's ranges and refreshes the
   // child's elements in its dirty pages that straddle them, adds the child's counts to Stats
   // and takes the budget back; the child then holds no block. A child destroyed without Join
-  // (on this DML's thread: an error path) loses its unwritten pages and gives the budget back. In core, Fork returns nullptr:
-  // BasePointer memory may be shared by threads as is.
+  // (on this DML's thread: an error path) loses its unwritten pages and gives the budget back.
+  // In core, Fork returns nullptr: BasePointer memory may be shared by threads as is.
   struct Range
   {
     BlockId id = -1;
