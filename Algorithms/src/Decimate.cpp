@@ -55,7 +55,6 @@
 // Every loop over many elements ticks the progress (abort within a few milliseconds).
 #include "sipmss/algorithms/Decimate.h"
 
-#include <Eigen/Dense>
 
 #include <algorithm>
 #include <cmath>
@@ -235,6 +234,120 @@ struct Placement
   double cost;
   Vec3 p;
   double t;
+};
+
+// The placement arithmetic (Decimator::Place), written once for one edge (V = double) and for
+// two at a time (V = Lanes2, GCC/Clang vector extensions: one SSE2 register per value on the
+// x86-64 baseline; four lanes spill registers there and were slower). No branches: every lane
+// computes all the candidates (endpoints, optimum, best point of the segment) and selects. Each
+// lane performs exactly the scalar's IEEE operations in the same order, so an edge gets the same
+// bits either way (the adjugate product keeps the order of Eigen's Matrix3d * Vector3d, which
+// this replaced: rows 0-1 left to right, row 2 with its last two terms first). The candidate
+// sweep evaluates its edges in pairs (EdgeBatch); other callers one at a time.
+template <class V>
+struct PlaceOut
+{
+  V cost, px, py, pz, t;
+};
+template <class V>
+struct LaneOps;
+template <>
+struct LaneOps<double>
+{
+  using M = bool;
+  static double Splat(double x) { return x; }
+  static M And(M a, M b) { return a && b; }
+  static M Not(M a) { return !a; }
+  static double Sel(M m, double a, double b) { return m ? a : b; }
+};
+#if defined(__GNUC__)
+#define SIPMSS_LANES 1
+typedef double Lanes2 __attribute__((vector_size(16)));
+typedef long long Mask2 __attribute__((vector_size(16)));
+template <>
+struct LaneOps<Lanes2>
+{
+  using M = Mask2;
+  static Lanes2 Splat(double x) { return Lanes2{} + x; }
+  static M And(M a, M b) { return a & b; }
+  static M Not(M a) { return ~a; }
+  static Lanes2 Sel(M m, Lanes2 a, Lanes2 b) { return m ? a : b; }
+};
+#endif
+// Q: the summed quadric (10 coefficients); u, v: the endpoints. Expanded around the midpoint m:
+// E(m + s e) = E(m) + 2 s e.g + s^2 e.Ae with g = A m + b; at the optimum d = -A^-1 g (A
+// symmetric: six distinct cofactors; the first row's three give the determinant),
+// E(m + d) = E(m) + d.g. The optimum counts when well conditioned (det against the cube of the
+// trace) and within one edge length of m (a nearly singular quadric's optimum slides far along
+// its weak direction), else the best point of the segment; an endpoint when it is as good (to
+// rounding), u before v.
+template <class V>
+inline PlaceOut<V> PlaceLanes(const V* q, const V* u, const V* v)
+{
+  using L = LaneOps<V>;
+  using M = typename L::M;
+  const V zero = L::Splat(0.0), one = L::Splat(1.0);
+  const V ex = v[0] - u[0], ey = v[1] - u[1], ez = v[2] - u[2];
+  const V mx = 0.5 * (u[0] + v[0]), my = 0.5 * (u[1] + v[1]), mz = 0.5 * (u[2] + v[2]);
+  const V len2 = ex * ex + ey * ey + ez * ez;
+  const V tr = q[0] + q[4] + q[7];
+  const V tol = 1e-10 * tr * len2; // below the rounding of the costs
+  const V gx = q[0] * mx + q[1] * my + q[2] * mz + q[3];
+  const V gy = q[1] * mx + q[4] * my + q[5] * mz + q[6];
+  const V gz = q[2] * mx + q[5] * my + q[7] * mz + q[8];
+  const V aex = q[0] * ex + q[1] * ey + q[2] * ez, aey = q[1] * ex + q[4] * ey + q[5] * ez,
+          aez = q[2] * ex + q[5] * ey + q[7] * ez;
+  const V em = (mx * gx + my * gy + mz * gz) + (q[3] * mx + q[6] * my + q[8] * mz) + q[9];
+  const V eg = ex * gx + ey * gy + ez * gz, eae = ex * aex + ey * aey + ez * aez;
+  const V cu = em - eg + 0.25 * eae, cv = em + eg + 0.25 * eae;
+  const M atU = cu <= cv;
+  PlaceOut<V> o = { L::Sel(atU, cu, cv), L::Sel(atU, u[0], v[0]), L::Sel(atU, u[1], v[1]),
+    L::Sel(atU, u[2], v[2]), L::Sel(atU, zero, one) };
+  const V a00 = q[0], a01 = q[1], a02 = q[2], a11 = q[4], a12 = q[5], a22 = q[7];
+  const V c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22, c02 = a01 * a12 - a02 * a11;
+  const V det = a00 * c00 + a01 * c01 + a02 * c02;
+  const V c11 = a00 * a22 - a02 * a02, c12 = a01 * a02 - a00 * a12, c22 = a00 * a11 - a01 * a01;
+  const V scale = -1.0 / det;
+  const V dx = (c00 * gx + c01 * gy + c02 * gz) * scale;
+  const V dy = (c01 * gx + c11 * gy + c12 * gz) * scale;
+  const V dz = (c02 * gx + (c12 * gy + c22 * gz)) * scale;
+  const M solved = L::And(L::And(tr > 0, det > 1e-12 * tr * tr * tr), dx * dx + dy * dy + dz * dz <= len2);
+  const V cd = em + dx * gx + dy * gy + dz * gz;
+  const M takeD = L::And(solved, cd < o.cost - tol);
+  V td = L::Sel(len2 > 0, 0.5 + (dx * ex + dy * ey + dz * ez) / len2, zero);
+  td = L::Sel(zero < td, td, zero); // min(1, max(0, t)), as std::min and std::max do it
+  td = L::Sel(td < one, td, one);
+  o.cost = L::Sel(takeD, cd, o.cost);
+  o.px = L::Sel(takeD, mx + dx, o.px);
+  o.py = L::Sel(takeD, my + dy, o.py);
+  o.pz = L::Sel(takeD, mz + dz, o.pz);
+  o.t = L::Sel(takeD, td, o.t);
+  // The best point of the segment: s in (-1/2, 1/2) around the midpoint.
+  const V sopt = -eg / eae;
+  const V cs = em + sopt * eg;
+  const M takeS = L::And(L::And(L::Not(solved), eae > 0),
+    L::And(L::And(sopt > -0.5, sopt < 0.5), cs < o.cost - tol));
+  o.cost = L::Sel(takeS, cs, o.cost);
+  o.px = L::Sel(takeS, mx + sopt * ex, o.px);
+  o.py = L::Sel(takeS, my + sopt * ey, o.py);
+  o.pz = L::Sel(takeS, mz + sopt * ez, o.pz);
+  o.t = L::Sel(takeS, sopt + 0.5, o.t);
+  // Negative by rounding: 0; NaN: never.
+  o.cost = L::Sel(o.cost >= 0, o.cost, L::Sel(o.cost < 0, zero, L::Splat(std::numeric_limits<double>::infinity())));
+  return o;
+}
+
+// Edges of the candidate sweep waiting for their placement, as lanes: the summed quadric and
+// both endpoints' positions, and where the result goes.
+struct EdgeBatch
+{
+  static constexpr int kLanes = 2;
+  int n = 0;
+  alignas(32) double q[10][kLanes];
+  alignas(32) double pu[3][kLanes];
+  alignas(32) double pv[3][kLanes];
+  std::uint32_t u[kLanes], v[kLanes];
+  bool offerV[kLanes];
 };
 
 // Fast element access: the block's memory when in core, the DML's read/write otherwise.
@@ -447,6 +560,7 @@ struct Scratch
   std::vector<std::uint8_t> abuf, abuf2; // point data of a collapse
   std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
   std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
+  EdgeBatch batch;                        // the sweep's edges waiting for their placement
   Views* w = nullptr; // the views this thread uses; nullptr: the Decimator's
 };
 
@@ -739,6 +853,9 @@ private:
   void Evaluate(std::uint32_t u, Scratch& s);
   void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
     std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
+    Scratch& s);
+  void FlushEdges(Scratch& s);
+  void OfferEdge(std::uint32_t u, std::uint32_t v, const Placement& pl, double trace, bool offerV,
     Scratch& s);
   void EvaluateFull(std::uint32_t u, State su, Scratch& s);
   void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner,
@@ -1948,11 +2065,8 @@ void Decimator::BuildQuadrics()
 // ---------------------------------------------------------------------------------------------
 // collapse
 
-// The placement of a collapse with summed quadric Q: the optimum when well conditioned, else the
-// best point of the segment; an endpoint when it is as good (to rounding), u before v.
-// Everything is expanded around the midpoint m (better conditioned than the absolute form):
-// E(m + s e) = E(m) + 2 s e.g + s^2 e.Ae with g = A m + b, and at the optimum d = -A^-1 g,
-// E(m + d) = E(m) + d.g.
+// The placement of a collapse with summed quadric Q (PlaceLanes for one edge); a fixed endpoint
+// stays where it is.
 Placement Decimator::Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const
 {
   if (su & kFixed)
@@ -1963,69 +2077,9 @@ Placement Decimator::Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, Sta
   {
     return { std::max(0.0, Eval(Q, pv)), pv, 1.0 };
   }
-  const double* q = Q.q;
-  const Vec3 e = pv - pu;
-  const Vec3 m = 0.5 * (pu + pv);
-  const double len2 = Dot(e, e);
-  const double tr = q[0] + q[4] + q[7];
-  const double tol = 1e-10 * tr * len2; // below the rounding of the costs
-  const Vec3 g = { q[0] * m.x + q[1] * m.y + q[2] * m.z + q[3],
-    q[1] * m.x + q[4] * m.y + q[5] * m.z + q[6], q[2] * m.x + q[5] * m.y + q[7] * m.z + q[8] };
-  const Vec3 Ae = { q[0] * e.x + q[1] * e.y + q[2] * e.z, q[1] * e.x + q[4] * e.y + q[5] * e.z,
-    q[2] * e.x + q[5] * e.y + q[7] * e.z };
-  const double Em = Dot(m, g) + (q[3] * m.x + q[6] * m.y + q[8] * m.z) + q[9];
-  const double eg = Dot(e, g), eAe = Dot(e, Ae);
-  const double cu = Em - eg + 0.25 * eAe, cv = Em + eg + 0.25 * eAe;
-  Placement best = cu <= cv ? Placement{ cu, pu, 0.0 } : Placement{ cv, pv, 1.0 };
-  bool solved = false;
-  if (tr > 0)
-  {
-    // A is symmetric: its adjugate has six distinct cofactors, and the first row's three give
-    // the determinant; the other three are only needed when the solve goes ahead.
-    const double a00 = q[0], a01 = q[1], a02 = q[2], a11 = q[4], a12 = q[5], a22 = q[7];
-    const double c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22,
-                 c02 = a01 * a12 - a02 * a11;
-    const double det = a00 * c00 + a01 * c01 + a02 * c02;
-    // Well conditioned: det (the product of the eigenvalues) against the cube of their sum.
-    if (det > 1e-12 * tr * tr * tr)
-    {
-      const double c12 = a01 * a02 - a00 * a12;
-      Eigen::Matrix3d adj;
-      adj << c00, c01, c02, c01, a00 * a22 - a02 * a02, c12, c02, c12, a00 * a11 - a01 * a01;
-      const Eigen::Vector3d d = (adj * Eigen::Vector3d(g.x, g.y, g.z)) * (-1.0 / det);
-      // The optimum of a nearly singular quadric can slide far along the weak direction: keep it
-      // within one edge length of the midpoint, else use the segment.
-      if (d.squaredNorm() <= len2)
-      {
-        solved = true;
-        const double c = Em + d.x() * g.x + d.y() * g.y + d.z() * g.z;
-        if (c < best.cost - tol)
-        {
-          const Vec3 p = { m.x + d.x(), m.y + d.y(), m.z + d.z() };
-          const double t = len2 > 0 ? 0.5 + Dot(Vec3{ d.x(), d.y(), d.z() }, e) / len2 : 0.0;
-          best = { c, p, std::min(1.0, std::max(0.0, t)) };
-        }
-      }
-    }
-  }
-  if (!solved && eAe > 0)
-  {
-    // Best point of the segment: s in (-1/2, 1/2) around the midpoint.
-    const double sopt = -eg / eAe;
-    if (sopt > -0.5 && sopt < 0.5)
-    {
-      const double c = Em + sopt * eg;
-      if (c < best.cost - tol)
-      {
-        best = { c, m + sopt * e, sopt + 0.5 };
-      }
-    }
-  }
-  if (!(best.cost >= 0))
-  {
-    best.cost = best.cost < 0 ? 0.0 : std::numeric_limits<double>::infinity();
-  }
-  return best;
+  const double u[3] = { pu.x, pu.y, pu.z }, v[3] = { pv.x, pv.y, pv.z };
+  const PlaceOut<double> o = PlaceLanes<double>(Q.q, u, v);
+  return { o.cost, { o.px, o.py, o.pz }, o.t };
 }
 
 bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
@@ -2250,12 +2304,14 @@ void Decimator::Sweep(std::uint64_t nv)
     Scratch& s = this->scratch_[0];
     s.lo = 0;
     s.hi = kNone;
+    s.batch.n = 0;
     for (std::uint64_t u = 0; u < nv; ++u)
     {
       this->Tick(u, nv);
       this->PrefetchSweep(u, nv);
       this->Evaluate(std::uint32_t(u), s);
     }
+    this->FlushEdges(s);
   };
   int T = (this->AllInCore() && nv >= kParallelMin) ? this->threads_ : 1;
   // Out of core on two threads: the second sweeps the upper half of the vertices through a
@@ -2293,6 +2349,7 @@ void Decimator::Sweep(std::uint64_t nv)
     Scratch& s = this->scratch_[std::size_t(t)];
     s.lo = this->partStart_[std::size_t(t)];
     s.hi = this->partStart_[std::size_t(t) + 1];
+    s.batch.n = 0;
     s.out.resize(std::size_t(T));
     for (auto& q : s.out)
     {
@@ -2320,6 +2377,7 @@ void Decimator::Sweep(std::uint64_t nv)
           this->PrefetchSweep(u, e);
           this->Evaluate(std::uint32_t(u), s);
         }
+        this->FlushEdges(s); // (its offers to other threads go out at this barrier)
       }
       catch (...)
       {
@@ -2530,11 +2588,109 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
       return; // a non-manifold edge, or it would pinch the surface across the interior
     }
   }
-  Quadric Q = w.Q.Get(v);
-  AddTo(Q, Qu);
-  const Placement pl = this->Place(Q, pu, w.P.Get(v), su, sv);
+  const Quadric Qv = w.Q.Get(v);
+  const Vec3 pv = w.P.Get(v);
+  if ((su | sv) & kFixed)
+  {
+    Quadric Q = Qv;
+    AddTo(Q, Qu);
+    this->OfferEdge(u, v, this->Place(Q, pu, pv, su, sv), Trace(Q), offerV, s);
+    return;
+  }
+  // Queued: placed in pairs (the offers do not depend on their order).
+  EdgeBatch& b = s.batch;
+  const int l = b.n;
+  for (int k = 0; k < 10; ++k)
+  {
+    b.q[k][l] = Qv.q[k] + Qu.q[k]; // (AddTo's sum)
+  }
+  b.pu[0][l] = pu.x;
+  b.pu[1][l] = pu.y;
+  b.pu[2][l] = pu.z;
+  b.pv[0][l] = pv.x;
+  b.pv[1][l] = pv.y;
+  b.pv[2][l] = pv.z;
+  b.u[l] = u;
+  b.v[l] = v;
+  b.offerV[l] = offerV;
+  if (++b.n == EdgeBatch::kLanes)
+  {
+    this->FlushEdges(s);
+  }
+}
+
+// Places the queued edges of the sweep and offers them.
+void Decimator::FlushEdges(Scratch& s)
+{
+  EdgeBatch& b = s.batch;
+  const int n = b.n;
+  if (n == 0)
+  {
+    return;
+  }
+  b.n = 0;
+  // Unused lanes repeat the first edge (their results are ignored).
+  for (int l = n; l < EdgeBatch::kLanes; ++l)
+  {
+    for (int k = 0; k < 10; ++k)
+    {
+      b.q[k][l] = b.q[k][0];
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      b.pu[k][l] = b.pu[k][0];
+      b.pv[k][l] = b.pv[k][0];
+    }
+  }
+  double cost[EdgeBatch::kLanes], px[EdgeBatch::kLanes], py[EdgeBatch::kLanes],
+    pz[EdgeBatch::kLanes], t[EdgeBatch::kLanes];
+#ifdef SIPMSS_LANES
+  static_assert(EdgeBatch::kLanes == 2, "Lanes2 has two lanes");
+  Lanes2 q[10], u[3], v[3];
+  std::memcpy(q, b.q, sizeof(q));
+  std::memcpy(u, b.pu, sizeof(u));
+  std::memcpy(v, b.pv, sizeof(v));
+  const PlaceOut<Lanes2> o = PlaceLanes<Lanes2>(q, u, v);
+  std::memcpy(cost, &o.cost, sizeof(cost));
+  std::memcpy(px, &o.px, sizeof(px));
+  std::memcpy(py, &o.py, sizeof(py));
+  std::memcpy(pz, &o.pz, sizeof(pz));
+  std::memcpy(t, &o.t, sizeof(t));
+#else
+  for (int l = 0; l < n; ++l)
+  {
+    double q[10], u[3], v[3];
+    for (int k = 0; k < 10; ++k)
+    {
+      q[k] = b.q[k][l];
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      u[k] = b.pu[k][l];
+      v[k] = b.pv[k][l];
+    }
+    const PlaceOut<double> o = PlaceLanes<double>(q, u, v);
+    cost[l] = o.cost;
+    px[l] = o.px;
+    py[l] = o.py;
+    pz[l] = o.pz;
+    t[l] = o.t;
+  }
+#endif
+  for (int l = 0; l < n; ++l)
+  {
+    this->OfferEdge(b.u[l], b.v[l], { cost[l], { px[l], py[l], pz[l] }, t[l] },
+      b.q[0][l] + b.q[4][l] + b.q[7][l], b.offerV[l], s);
+  }
+}
+
+// Offers edge u-v with placement pl (summed quadric's trace `trace`) to u, and to v if offerV,
+// unless it has no finite cost or exceeds maximumError.
+void Decimator::OfferEdge(
+  std::uint32_t u, std::uint32_t v, const Placement& pl, double trace, bool offerV, Scratch& s)
+{
   if (!std::isfinite(pl.cost) ||
-    (std::isfinite(this->opt_.maximumError) && pl.cost > this->opt_.maximumError * Trace(Q)))
+    (std::isfinite(this->opt_.maximumError) && pl.cost > this->opt_.maximumError * trace))
   {
     return;
   }
