@@ -765,6 +765,7 @@ private:
   void BindViews();
   void BindViews(Views& w, DML& dml) const;
   void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
+  void LoadFaces(Views& w, std::uint32_t x, Ring& r);
   // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
   // (nothing reads a survivor's quadric before: it is busy for the rest of the pass), so the
   // collapse step, which sweeps the vertices once per cost group, does not page the largest
@@ -863,6 +864,9 @@ private:
   void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
   bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded = false);
   bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
+  bool FaceOk(Vec3 c[3], int corner, const Vec3& p) const;
+  bool LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m, const std::uint32_t opp[2],
+    const Vec3& p, Scratch& s);
   Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const;
   std::uint64_t Collapse(std::uint32_t u, const Cand& c, Scratch& s);
   void InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s);
@@ -1808,7 +1812,8 @@ void Decimator::BindViews(Views& w, DML& dml) const
   w.O = this->order_.IsOpen() ? View<std::uint32_t>(dml, this->order_) : View<std::uint32_t>();
 }
 
-void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
+// x's live faces only (r.faces; no neighbour table, no positions).
+void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
 {
   r.x = x;
   r.faces.clear();
@@ -1838,11 +1843,19 @@ void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
       continue;
     }
     const int corner = t.v[0] == x ? 0 : (t.v[1] == x ? 1 : 2);
-    const std::uint64_t slot = r.faces.size();
     r.faces.push_back({ id, t, corner, { 0, 0 } });
+  }
+}
+
+void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
+{
+  this->LoadFaces(w, x, r);
+  for (std::size_t slot = 0; slot < r.faces.size(); ++slot)
+  {
     // key: neighbour | slot | which (0: next corner, 1: previous corner)
-    r.keys.push_back((std::uint64_t(t.v[kNextCorner[corner]]) << 32) | (slot << 1));
-    r.keys.push_back((std::uint64_t(t.v[kPrevCorner[corner]]) << 32) | (slot << 1) | 1);
+    const RingFace& f = r.faces[slot];
+    r.keys.push_back((std::uint64_t(f.t.v[kNextCorner[f.corner]]) << 32) | (slot << 1));
+    r.keys.push_back((std::uint64_t(f.t.v[kPrevCorner[f.corner]]) << 32) | (slot << 1) | 1);
   }
   SmallSort(r.keys.data(), r.keys.size());
   for (std::uint64_t key : r.keys)
@@ -2086,8 +2099,14 @@ bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
 {
   Vec3 c[3];
   r.Corners(slot, c);
+  return this->FaceOk(c, r.faces[slot].corner, p);
+}
+
+// Face with corners c (overwritten) when corner `corner` moves to p.
+bool Decimator::FaceOk(Vec3 c[3], int corner, const Vec3& p) const
+{
   const Vec3 n0 = Cross(c[1] - c[0], c[2] - c[0]);
-  c[r.faces[slot].corner] = p;
+  c[corner] = p;
   const Vec3 e0 = c[1] - c[0], e1 = c[2] - c[0], e2 = c[2] - c[1];
   const Vec3 n1 = Cross(e0, e1);
   const double l1 = Dot(n1, n1);
@@ -2188,6 +2207,83 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, 
     if (!Has(rv.faces[s].t, u) && !this->FaceOk(rv, s, p))
     {
       return false;
+    }
+  }
+  return true;
+}
+
+// Legal for u and v with their faces loaded (s.ru, s.rv: LoadFaces), when the edge has m <= 2
+// faces, whose third vertices are opp[0..m-1]: the same rules, without neighbour tables. The
+// common neighbours are exactly the opposite vertices when those differ and no other vertex of
+// v's faces without u is a corner of u's faces; positions are read per face.
+bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
+  const std::uint32_t opp[2], const Vec3& p, Scratch& s)
+{
+  const Ring& ru = s.ru;
+  const Ring& rv = s.rv;
+  if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
+  {
+    return false;
+  }
+  if (m == 2 && opp[0] == opp[1])
+  {
+    return false;
+  }
+  const std::uint32_t o1 = m == 2 ? opp[1] : opp[0];
+  bool clash = false; // (no early exits: fixed trip counts instead of mispredicted branches)
+  for (const RingFace& f : rv.faces)
+  {
+    if (Has(f.t, u))
+    {
+      continue;
+    }
+    for (const std::uint32_t a : { f.t.v[kNextCorner[f.corner]], f.t.v[kPrevCorner[f.corner]] })
+    {
+      bool inU = false;
+      for (const RingFace& g : ru.faces)
+      {
+        inU |= (g.t.v[0] == a) | (g.t.v[1] == a) | (g.t.v[2] == a);
+      }
+      clash |= inU & (a != opp[0]) & (a != o1);
+    }
+  }
+  if (clash)
+  {
+    return false;
+  }
+  if (m == 2)
+  {
+    // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
+    auto hasFace = [&opp](const Ring& r) {
+      for (const RingFace& f : r.faces)
+      {
+        if (Has(f.t, opp[0]) && Has(f.t, opp[1]))
+        {
+          return true;
+        }
+      }
+      return false;
+    };
+    if (hasFace(ru) && hasFace(rv))
+    {
+      return false;
+    }
+  }
+  Views& w = this->W(s);
+  for (const Ring* r : { &ru, &rv })
+  {
+    const std::uint32_t other = r == &ru ? v : u;
+    for (const RingFace& f : r->faces)
+    {
+      if (Has(f.t, other))
+      {
+        continue;
+      }
+      Vec3 c[3] = { w.P.Get(f.t.v[0]), w.P.Get(f.t.v[1]), w.P.Get(f.t.v[2]) };
+      if (!this->FaceOk(c, f.corner, p))
+      {
+        return false;
+      }
     }
   }
   return true;
@@ -2842,12 +2938,19 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
       w.F.Set(f.id, t);
     }
   }
-  // Mark every vertex of the faces around u and v: no later collapse of this pass touches them.
+  // Mark every vertex of the faces around u and v: no later collapse of this pass touches them
+  // (u and v get their states below).
   for (const Ring* r : { &ru, &rv })
   {
-    for (const Nb& n : r->nbs)
+    for (const RingFace& f : r->faces)
     {
-      w.S.Set(n.v, State(w.S.Get(n.v) | kMarked));
+      for (const std::uint32_t x : f.t.v)
+      {
+        if (x != u && x != v)
+        {
+          w.S.Set(x, State(w.S.Get(x) | kMarked));
+        }
+      }
     }
   }
   w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
@@ -2895,45 +2998,63 @@ Decimator::Try Decimator::TryCollapse(
   {
     return Try::Skip;
   }
-  auto inside = [lo, hi](const Ring& r) {
-    for (const Nb& n : r.nbs)
-    {
-      if (n.v < lo || n.v >= hi)
-      {
-        return false;
-      }
-    }
-    return true;
-  };
   const bool chunked = lo != 0 || hi != kNone;
-  // In a chunk with the face split on: only faces on the chunk's side of it.
+  // In a chunk: every vertex of the faces in it (u is), and with the face split on, only faces
+  // on the chunk's side of the split.
   const bool split = chunked && this->splitOn_;
   const bool upper = lo >= this->splitMid_;
-  auto sided = [this, upper](const Ring& r) {
+  auto outside = [&](const Ring& r) {
+    bool out = false;
     for (const RingFace& f : r.faces)
     {
-      if ((f.id >= this->splitFace_) != upper)
+      for (const std::uint32_t x : f.t.v)
       {
-        return false;
+        out |= x < lo || x >= hi;
       }
+      out |= split && ((f.id >= this->splitFace_) != upper);
     }
-    return true;
+    return out;
   };
-  this->LoadRing(w, u, s.ru, true);
-  if (chunked && (!inside(s.ru) || (split && !sided(s.ru))))
+  // The faces only: the edge's faces and their third vertices come from u's.
+  this->LoadFaces(w, u, s.ru);
+  if (chunked && outside(s.ru))
   {
     return Try::Defer;
   }
-  const Nb* nb = s.ru.Find(v);
-  if (nb)
+  std::uint32_t m = 0, opp[2] = { kNone, kNone };
+  for (const RingFace& f : s.ru.faces)
   {
-    this->LoadRing(w, v, s.rv, true);
-    if (chunked && (!inside(s.rv) || (split && !sided(s.rv))))
+    if (Has(f.t, v))
+    {
+      if (m < 2)
+      {
+        opp[m] = f.t.v[0] ^ f.t.v[1] ^ f.t.v[2] ^ u ^ v;
+      }
+      ++m;
+    }
+  }
+  if (m > 0)
+  {
+    this->LoadFaces(w, v, s.rv);
+    if (chunked && outside(s.rv))
     {
       return Try::Defer;
     }
   }
-  if (!nb || !this->Legal(u, *nb, { c.p[0], c.p[1], c.p[2] }, s, true))
+  const Vec3 p = { c.p[0], c.p[1], c.p[2] };
+  bool legal = false;
+  if (m > 2)
+  {
+    // A non-manifold edge: the neighbour tables.
+    this->LoadRing(w, u, s.ru, true);
+    this->LoadRing(w, v, s.rv, true);
+    legal = this->Legal(u, *s.ru.Find(v), p, s, true);
+  }
+  else if (m > 0)
+  {
+    legal = this->LegalFaces(u, v, m, opp, p, s);
+  }
+  if (!legal)
   {
     w.S.Set(u, State(su | kNeedsLegal));
     return Try::Illegal;
