@@ -3073,7 +3073,9 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   // In core: prefetch the data of the candidates ahead, in stages, each reading what the one
   // before fetched: their state, candidate and ring offsets; for those still free, the
   // partner's, the ring's face ids and both positions; the ring's faces and the partner's face
-  // ids; the positions of the ring's vertices and the partner's faces.
+  // ids; the positions of the ring's vertices and the partner's faces; the positions of the
+  // partner's ring vertices and the states of both rings' vertices (the legality check reads
+  // the positions, the collapse marks the states).
   const std::uint32_t* Op = w.O.Ptr(0);
   const State* Sp = w.S.Ptr(0);
   const Cand* Cp = w.C.Ptr(0);
@@ -3153,6 +3155,28 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
             {
               Prefetch(Qp + y);
               Prefetch(reinterpret_cast<const char*>(Qp + y) + 64);
+            }
+          }
+        }
+      }
+      if (i + kAhead / 8 < last)
+      {
+        const std::uint32_t w = Op[i + kAhead / 8];
+        if (freePair(w, x))
+        {
+          for (std::uint32_t k = ROp[x], e = ROp[x + 1]; k < e; ++k)
+          {
+            for (const std::uint32_t y : Fp[RFp[k]].v)
+            {
+              Prefetch(Pp + y);
+              Prefetch(Sp + y);
+            }
+          }
+          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
+          {
+            for (const std::uint32_t y : Fp[RFp[k]].v)
+            {
+              Prefetch(Sp + y);
             }
           }
         }
