@@ -1665,16 +1665,28 @@ void Decimator::BuildRings()
       {
         continue;
       }
-      std::uint32_t s[3];
-      setAndRingOf(ROv, RFv, t, s, list);
-      for (std::uint32_t g : list)
+      // Another face on t's set is in the list of t's lowest vertex and has the other two (live
+      // faces have three distinct vertices). No early exit: most faces have no such twin.
+      const std::uint32_t x = std::min(t.v[0], std::min(t.v[1], t.v[2]));
+      const std::uint32_t a = x == t.v[0] ? t.v[1] : t.v[0];
+      const std::uint32_t c = x == t.v[2] ? t.v[1] : t.v[2];
+      const std::uint32_t b = ROv.Get(x), e = ROv.Get(x + 1);
+      const std::uint32_t* ids = RFv.Ptr(b); // in core: the list itself
+      if (!ids)
       {
-        const Tri u = g != f ? Fv.Get(g) : kDeadTri;
-        if (Alive(u) && sameSet(u, s))
-        {
-          found[std::size_t(th)].push_back(f);
-          break;
-        }
+        list.resize(e - b);
+        RFv.GetRange(b, e - b, list.data());
+        ids = list.data();
+      }
+      bool twin = false;
+      for (std::uint32_t k = 0; k < e - b; ++k)
+      {
+        const Tri u = Fv.Get(ids[k]);
+        twin |= (ids[k] != f) & Alive(u) & Has(u, a) & Has(u, c);
+      }
+      if (twin)
+      {
+        found[std::size_t(th)].push_back(f);
       }
     }
   };
@@ -2062,11 +2074,31 @@ void Decimator::BuildQuadrics()
       Views& w = (fork && t == 1) ? forkViews : this->v_;
       std::vector<Tri> tris;
       std::vector<std::uint32_t> next, prev;
+      // In core: the faces of the vertices 8 ahead, the corner positions of those 4 ahead.
+      const std::uint32_t* ROp = w.RO.Ptr(0);
+      const std::uint32_t* RFp = w.RF.Ptr(0);
+      const Tri* Fp = w.F.Ptr(0);
+      const Vec3* Pp = w.P.Ptr(0);
+      const bool prefetch = ROp && RFp && Fp && Pp;
       for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
       {
         if (t == 0)
         {
           this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
+        }
+        if (prefetch && u + 8 < hi)
+        {
+          for (std::uint32_t k = ROp[u + 8], e = ROp[u + 9]; k < e; ++k)
+          {
+            Prefetch(Fp + RFp[k]);
+          }
+          for (std::uint32_t k = ROp[u + 4], e = ROp[u + 5]; k < e; ++k)
+          {
+            for (const std::uint32_t y : Fp[RFp[k]].v)
+            {
+              Prefetch(Pp + y);
+            }
+          }
         }
         vertex(w, std::uint32_t(u), tris, next, prev);
       }
