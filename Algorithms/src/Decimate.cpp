@@ -3441,7 +3441,9 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       work(0);
     }
     RethrowFirst(errors);
-    // B: the deferred ones, in order.
+    // B: the deferred ones, in order, one at a time. Each chunk's are moved to the front of
+    // the part of the order it ran this round (done with), their flags cleared (all of them,
+    // also past the goal), and go through Step (which prefetches ahead).
     StepRun b;
     for (std::size_t c = 0; c < n; ++c)
     {
@@ -3451,30 +3453,20 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     }
     for (std::size_t c = 0; c < n; ++c)
     {
+      std::uint64_t k = roundStart[c];
       for (std::uint64_t i = roundStart[c]; i < cursor[c]; ++i)
       {
         const std::uint32_t u = this->v_.O.Get(i);
         const State su = this->v_.S.Get(u);
-        if (!(su & kDeferred))
+        if (su & kDeferred)
         {
-          continue;
+          this->v_.S.Set(u, State(su & ~kDeferred));
+          this->v_.O.Set(k++, u);
         }
-        this->v_.S.Set(u, State(su & ~kDeferred)); // (all of them, also past the goal)
-        if (this->liveFaces_ <= goal + b.removed)
-        {
-          continue;
-        }
-        switch (this->TryCollapse(u, this->scratch_[0], 0, kNone, b.removed))
-        {
-          case Try::Done:
-            ++b.done;
-            break;
-          case Try::Illegal:
-            ++b.illegal;
-            break;
-          default:
-            break;
-        }
+      }
+      if (this->liveFaces_ > goal + b.removed)
+      {
+        this->Step(roundStart[c], k, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], b, false);
       }
     }
     this->liveFaces_ -= std::min(b.removed, this->liveFaces_);
