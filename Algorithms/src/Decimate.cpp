@@ -435,11 +435,17 @@ struct Views
   View<std::uint32_t> O;
 };
 
+// Fetches the cache lines of element *p: its first and its last byte (a quadric spans two lines,
+// a position or a face straddles two at some indices).
 template <class T>
 inline void Prefetch(const T* p)
 {
 #if defined(__GNUC__)
   __builtin_prefetch(static_cast<const void*>(p));
+  if constexpr (sizeof(T) > 8)
+  {
+    __builtin_prefetch(reinterpret_cast<const char*>(p) + sizeof(T) - 1);
+  }
 #else
   (void)p;
 #endif
@@ -812,8 +818,7 @@ private:
       }
     }
   };
-  // In core: the faces of an active vertex kAhead ahead in the sweep, and the data of the
-  // neighbours of one kAhead / 2 ahead (its faces were fetched before).
+  // In core: the faces of an active vertex kAhead ahead in the sweep.
   void PrefetchSweep(std::uint64_t u, std::uint64_t end) const
   {
     constexpr std::uint64_t kAhead = 8;
@@ -832,24 +837,8 @@ private:
         Prefetch(Fp + RFp[k]);
       }
     }
-    const Quadric* Qp = this->v_.Q.Ptr(0);
-    const Vec3* Pp = this->v_.P.Ptr(0);
-    const Cand* Cp = this->v_.C.Ptr(0);
-    const std::uint64_t w = u + kAhead / 2;
-    if (w < end && Qp && Pp && Cp && Active(Sp[w]))
-    {
-      for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
-      {
-        const Tri& t = Fp[RFp[k]];
-        for (int c = 0; c < 3; ++c)
-        {
-          Prefetch(Qp + t.v[c]);
-          Prefetch(Sp + t.v[c]);
-          Prefetch(Pp + t.v[c]);
-          Prefetch(Cp + t.v[c]);
-        }
-      }
-    }
+    // (The neighbours' records are fetched by Evaluate once it has the ring: fetching them here
+    // too, for every corner of the ring's faces, cost more than it saved.)
   }
   void Evaluate(std::uint32_t u, Scratch& s);
   void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
@@ -2645,7 +2634,6 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     {
       const std::uint32_t a = next[i];
       Prefetch(qp + a);
-      Prefetch(reinterpret_cast<const char*>(qp + a) + 64);
       if (sp && pp && cp)
       {
         Prefetch(sp + a);
@@ -3186,7 +3174,6 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
             for (const std::uint32_t y : { w, x })
             {
               Prefetch(Qp + y);
-              Prefetch(reinterpret_cast<const char*>(Qp + y) + 64);
             }
           }
         }
