@@ -2958,18 +2958,23 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
       w.F.Set(f.id, t);
     }
   }
-  // Mark every vertex of the faces around u and v: no later collapse of this pass touches them
-  // (u and v get their states below).
+  // Mark every vertex of the faces around u and v (the other two corners of each): no later
+  // collapse of this pass touches them. (u and v are among them; they get their states below.)
+  State* Sp = const_cast<State*>(w.S.Ptr(0));
   for (const Ring* r : { &ru, &rv })
   {
     for (const RingFace& f : r->faces)
     {
-      for (const std::uint32_t x : f.t.v)
+      const std::uint32_t a = f.t.v[kNextCorner[f.corner]], b = f.t.v[kPrevCorner[f.corner]];
+      if (Sp)
       {
-        if (x != u && x != v)
-        {
-          w.S.Set(x, State(w.S.Get(x) | kMarked));
-        }
+        Sp[a] |= kMarked;
+        Sp[b] |= kMarked;
+      }
+      else
+      {
+        w.S.Set(a, State(w.S.Get(a) | kMarked));
+        w.S.Set(b, State(w.S.Get(b) | kMarked));
       }
     }
   }
