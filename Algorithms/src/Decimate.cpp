@@ -1843,7 +1843,7 @@ void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
     {
       continue;
     }
-    const int corner = t.v[0] == x ? 0 : (t.v[1] == x ? 1 : 2);
+    const int corner = int(t.v[1] == x) + 2 * int(t.v[2] == x); // (no branches)
     r.faces.push_back({ id, t, corner, { 0, 0 } });
   }
 }
@@ -2615,9 +2615,11 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     {
       continue;
     }
-    const int c = t.v[0] == u ? 0 : (t.v[1] == u ? 1 : 2);
-    next[n] = t.v[c == 2 ? 0 : c + 1];
-    prev[n] = t.v[c == 0 ? 2 : c - 1];
+    // (no branches: which corner is u's is random)
+    const std::uint32_t m0 = 0u - std::uint32_t(t.v[0] == u), m1 = 0u - std::uint32_t(t.v[1] == u),
+                        m2 = 0u - std::uint32_t(t.v[2] == u);
+    next[n] = (t.v[1] & m0) | (t.v[2] & m1) | (t.v[0] & m2);
+    prev[n] = (t.v[2] & m0) | (t.v[0] & m1) | (t.v[1] & m2);
     ++n;
   }
   if (n == 0)
