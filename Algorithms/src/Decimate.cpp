@@ -1933,7 +1933,7 @@ void Decimator::BuildQuadrics()
       {
         continue;
       }
-      const int c = t.v[0] == u ? 0 : (t.v[1] == u ? 1 : 2);
+      const int c = int(t.v[1] == u) + 2 * int(t.v[2] == u); // (no branches)
       tris.push_back(t);
       next.push_back(t.v[kNextCorner[c]]);
       prev.push_back(t.v[kPrevCorner[c]]);
