@@ -3113,6 +3113,14 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   const Quadric* Qp = this->lazySums_ ? nullptr : w.Q.Ptr(0);
   const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
   constexpr std::uint64_t kAhead = 16;
+  auto prefetchList = [&](std::uint32_t y) { // its face ids: the first and the last line
+    const std::uint32_t b = ROp[y], e = ROp[y + 1];
+    Prefetch(RFp + b);
+    if (e > b)
+    {
+      Prefetch(RFp + e - 1);
+    }
+  };
   auto freePair = [&](std::uint32_t w, std::uint32_t& x) {
     x = Cp[w].partner;
     return !(Sp[w] & kBusy) && x >= lo && x < hi && !(Sp[x] & kBusy);
@@ -3142,7 +3150,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         {
           Prefetch(Sp + x);
           Prefetch(ROp + x);
-          Prefetch(RFp + ROp[w]);
+          prefetchList(w);
           Prefetch(Pp + w);
           Prefetch(Pp + x);
         }
@@ -3156,7 +3164,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
           {
             Prefetch(Fp + RFp[k]);
           }
-          Prefetch(RFp + ROp[x]);
+          prefetchList(x);
         }
       }
       if (i + kAhead / 4 < last)
