@@ -54,7 +54,7 @@
 //   write     the final level is streamed to the output sink.
 // Every loop over many elements ticks the progress (abort within a few milliseconds).
 #include "sipmss/algorithms/Decimate.h"
-
+#include "sipmss/algorithms/Placement.h"
 
 #include <algorithm>
 #include <cmath>
@@ -79,6 +79,11 @@ namespace sipmss::algorithms
 {
 namespace
 {
+using placement::PlaceLanes;
+using placement::PlaceOut;
+#ifdef SIPMSS_LANES
+using placement::Lanes2;
+#endif
 using storage::Array;
 using storage::BlockId;
 using storage::DML;
@@ -93,6 +98,9 @@ constexpr int kGroups = 4;
 constexpr std::uint64_t kStepChunks = 64;
 constexpr std::uint64_t kStepChunkMinSize = 32768;
 constexpr std::uint64_t kStepTail = 4096;
+// LegalFaces compares every vertex of one ring with every face of the other: above this product
+// of the two rings' face counts (vertices of very high valence), Legal's sorted tables instead.
+constexpr std::size_t kLegalFacesMax = 1024;
 // The face split of the collapse rounds (FaceSplit) is used when at most 1 face in this many is
 // on the wrong side of it.
 constexpr std::uint64_t kSplitWrongShare = 256;
@@ -165,6 +173,12 @@ inline bool Has(const Tri& t, std::uint32_t x)
   return t.v[0] == x || t.v[1] == x || t.v[2] == x;
 }
 constexpr Tri kDeadTri = { { kNone, kNone, kNone } };
+// The corner of t that is x (which appears once in a live face); no branches: which corner it is
+// is random, and a mispredicted branch here cost 6% of a run.
+inline int CornerOf(const Tri& t, std::uint32_t x)
+{
+  return int(t.v[1] == x) + 2 * int(t.v[2] == x);
+}
 
 // Symmetric 4x4 quadric, upper triangle row by row:
 // a00 a01 a02 b0 | a11 a12 b1 | a22 b2 | c  ->  E(p) = p^T A p + 2 b.p + c
@@ -235,107 +249,6 @@ struct Placement
   Vec3 p;
   double t;
 };
-
-// The placement arithmetic (Decimator::Place), written once for one edge (V = double) and for
-// two at a time (V = Lanes2, GCC/Clang vector extensions: one SSE2 register per value on the
-// x86-64 baseline; four lanes spill registers there and were slower). No branches: every lane
-// computes all the candidates (endpoints, optimum, best point of the segment) and selects. Each
-// lane performs exactly the scalar's IEEE operations in the same order, so an edge gets the same
-// bits either way (the adjugate product keeps the order of Eigen's Matrix3d * Vector3d, which
-// this replaced: rows 0-1 left to right, row 2 with its last two terms first). The candidate
-// sweep evaluates its edges in pairs (EdgeBatch); other callers one at a time.
-template <class V>
-struct PlaceOut
-{
-  V cost, px, py, pz, t;
-};
-template <class V>
-struct LaneOps;
-template <>
-struct LaneOps<double>
-{
-  using M = bool;
-  static double Splat(double x) { return x; }
-  static M And(M a, M b) { return a && b; }
-  static M Not(M a) { return !a; }
-  static double Sel(M m, double a, double b) { return m ? a : b; }
-};
-#if defined(__GNUC__)
-#define SIPMSS_LANES 1
-typedef double Lanes2 __attribute__((vector_size(16)));
-typedef long long Mask2 __attribute__((vector_size(16)));
-template <>
-struct LaneOps<Lanes2>
-{
-  using M = Mask2;
-  static Lanes2 Splat(double x) { return Lanes2{} + x; }
-  static M And(M a, M b) { return a & b; }
-  static M Not(M a) { return ~a; }
-  static Lanes2 Sel(M m, Lanes2 a, Lanes2 b) { return m ? a : b; }
-};
-#endif
-// Q: the summed quadric (10 coefficients); u, v: the endpoints. Expanded around the midpoint m:
-// E(m + s e) = E(m) + 2 s e.g + s^2 e.Ae with g = A m + b; at the optimum d = -A^-1 g (A
-// symmetric: six distinct cofactors; the first row's three give the determinant),
-// E(m + d) = E(m) + d.g. The optimum counts when well conditioned (det against the cube of the
-// trace) and within one edge length of m (a nearly singular quadric's optimum slides far along
-// its weak direction), else the best point of the segment; an endpoint when it is as good (to
-// rounding), u before v.
-template <class V>
-inline PlaceOut<V> PlaceLanes(const V* q, const V* u, const V* v)
-{
-  using L = LaneOps<V>;
-  using M = typename L::M;
-  const V zero = L::Splat(0.0), one = L::Splat(1.0);
-  const V ex = v[0] - u[0], ey = v[1] - u[1], ez = v[2] - u[2];
-  const V mx = 0.5 * (u[0] + v[0]), my = 0.5 * (u[1] + v[1]), mz = 0.5 * (u[2] + v[2]);
-  const V len2 = ex * ex + ey * ey + ez * ez;
-  const V tr = q[0] + q[4] + q[7];
-  const V tol = 1e-10 * tr * len2; // below the rounding of the costs
-  const V gx = q[0] * mx + q[1] * my + q[2] * mz + q[3];
-  const V gy = q[1] * mx + q[4] * my + q[5] * mz + q[6];
-  const V gz = q[2] * mx + q[5] * my + q[7] * mz + q[8];
-  const V aex = q[0] * ex + q[1] * ey + q[2] * ez, aey = q[1] * ex + q[4] * ey + q[5] * ez,
-          aez = q[2] * ex + q[5] * ey + q[7] * ez;
-  const V em = (mx * gx + my * gy + mz * gz) + (q[3] * mx + q[6] * my + q[8] * mz) + q[9];
-  const V eg = ex * gx + ey * gy + ez * gz, eae = ex * aex + ey * aey + ez * aez;
-  const V cu = em - eg + 0.25 * eae, cv = em + eg + 0.25 * eae;
-  const M atU = cu <= cv;
-  PlaceOut<V> o = { L::Sel(atU, cu, cv), L::Sel(atU, u[0], v[0]), L::Sel(atU, u[1], v[1]),
-    L::Sel(atU, u[2], v[2]), L::Sel(atU, zero, one) };
-  const V a00 = q[0], a01 = q[1], a02 = q[2], a11 = q[4], a12 = q[5], a22 = q[7];
-  const V c00 = a11 * a22 - a12 * a12, c01 = a02 * a12 - a01 * a22, c02 = a01 * a12 - a02 * a11;
-  const V det = a00 * c00 + a01 * c01 + a02 * c02;
-  const V c11 = a00 * a22 - a02 * a02, c12 = a01 * a02 - a00 * a12, c22 = a00 * a11 - a01 * a01;
-  const V scale = -1.0 / det;
-  const V dx = (c00 * gx + c01 * gy + c02 * gz) * scale;
-  const V dy = (c01 * gx + c11 * gy + c12 * gz) * scale;
-  const V dz = (c02 * gx + (c12 * gy + c22 * gz)) * scale;
-  const M solved = L::And(L::And(tr > 0, det > 1e-12 * tr * tr * tr), dx * dx + dy * dy + dz * dz <= len2);
-  const V cd = em + dx * gx + dy * gy + dz * gz;
-  const M takeD = L::And(solved, cd < o.cost - tol);
-  V td = L::Sel(len2 > 0, 0.5 + (dx * ex + dy * ey + dz * ez) / len2, zero);
-  td = L::Sel(zero < td, td, zero); // min(1, max(0, t)), as std::min and std::max do it
-  td = L::Sel(td < one, td, one);
-  o.cost = L::Sel(takeD, cd, o.cost);
-  o.px = L::Sel(takeD, mx + dx, o.px);
-  o.py = L::Sel(takeD, my + dy, o.py);
-  o.pz = L::Sel(takeD, mz + dz, o.pz);
-  o.t = L::Sel(takeD, td, o.t);
-  // The best point of the segment: s in (-1/2, 1/2) around the midpoint.
-  const V sopt = -eg / eae;
-  const V cs = em + sopt * eg;
-  const M takeS = L::And(L::And(L::Not(solved), eae > 0),
-    L::And(L::And(sopt > -0.5, sopt < 0.5), cs < o.cost - tol));
-  o.cost = L::Sel(takeS, cs, o.cost);
-  o.px = L::Sel(takeS, mx + sopt * ex, o.px);
-  o.py = L::Sel(takeS, my + sopt * ey, o.py);
-  o.pz = L::Sel(takeS, mz + sopt * ez, o.pz);
-  o.t = L::Sel(takeS, sopt + 0.5, o.t);
-  // Negative by rounding: 0; NaN: never.
-  o.cost = L::Sel(o.cost >= 0, o.cost, L::Sel(o.cost < 0, zero, L::Splat(std::numeric_limits<double>::infinity())));
-  return o;
-}
 
 // Edges of the candidate sweep waiting for their placement, as lanes: the summed quadric and
 // both endpoints' positions, and where the result goes.
@@ -470,7 +383,6 @@ struct Nb
   std::uint32_t v;
   std::uint32_t count;  // faces of the ring containing the edge
   std::uint32_t opp[2]; // the third vertices of the first two of them
-  std::uint32_t slot;   // the first of them (index into faces)
   Vec3 p;               // position of v (when loaded with positions)
 };
 struct Ring
@@ -500,6 +412,11 @@ struct Ring
     {
       return n->opp[0] == b || (n->count == 2 && n->opp[1] == b);
     }
+    return this->HasFaceWith(a, b);
+  }
+  // The same from the faces alone (no neighbour table).
+  bool HasFaceWith(std::uint32_t a, std::uint32_t b) const
+  {
     for (const RingFace& f : this->faces)
     {
       if (Has(f.t, a) && Has(f.t, b))
@@ -772,6 +689,7 @@ private:
   void BindViews(Views& w, DML& dml) const;
   void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
   void LoadFaces(Views& w, std::uint32_t x, Ring& r);
+  void BuildNeighbours(Views& w, Ring& r, bool positions);
   // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
   // (nothing reads a survivor's quadric before: it is busy for the rest of the pass), so the
   // collapse step, which sweeps the vertices once per cost group, does not page the largest
@@ -1615,18 +1533,14 @@ void Decimator::BuildRings()
   };
   // t's vertex set sorted into s, and the faces of its lowest vertex into list (where any face
   // on the same set is).
-  auto setAndRingOf = [](const View<std::uint32_t>& ro, const View<std::uint32_t>& rf,
-                        const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
+  auto setAndRing = [&](const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
     s[0] = t.v[0];
     s[1] = t.v[1];
     s[2] = t.v[2];
     SmallSort(s, 3);
-    const std::uint32_t b = ro.Get(s[0]), e = ro.Get(s[0] + 1);
+    const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
     list.resize(e - b);
-    rf.GetRange(b, e - b, list.data());
-  };
-  auto setAndRing = [&](const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
-    setAndRingOf(RO, RF, t, s, list);
+    RF.GetRange(b, e - b, list.data());
   };
   // The faces with another live face on the same vertex set (rare): found on all cores in core
   // (on two out of core, the upper half of the faces through a forked DML that writes nothing),
@@ -1660,18 +1574,18 @@ void Decimator::BuildRings()
       const std::uint32_t a = x == t.v[0] ? t.v[1] : t.v[0];
       const std::uint32_t c = x == t.v[2] ? t.v[1] : t.v[2];
       const std::uint32_t b = ROv.Get(x), e = ROv.Get(x + 1);
-      const std::uint32_t* ids = RFv.Ptr(b); // in core: the list itself
-      if (!ids)
+      const std::uint32_t* faceIds = RFv.Ptr(b); // in core: the list itself
+      if (!faceIds)
       {
         list.resize(e - b);
         RFv.GetRange(b, e - b, list.data());
-        ids = list.data();
+        faceIds = list.data();
       }
       bool twin = false;
       for (std::uint32_t k = 0; k < e - b; ++k)
       {
-        const Tri u = Fv.Get(ids[k]);
-        twin |= (ids[k] != f) & Alive(u) & Has(u, a) & Has(u, c);
+        const Tri g = Fv.Get(faceIds[k]);
+        twin |= (faceIds[k] != f) & Alive(g) & Has(g, a) & Has(g, c);
       }
       if (twin)
       {
@@ -1743,8 +1657,7 @@ void Decimator::BuildRings()
             continue;
           }
           ++others;
-          const int ia = u.v[0] == a ? 0 : (u.v[1] == a ? 1 : 2);
-          dir = u.v[(ia + 1) % 3] == c ? 1 : -1; // +1: the neighbour runs a -> c like t
+          dir = u.v[kNextCorner[CornerOf(u, a)]] == c ? 1 : -1; // +1: it runs a -> c like t
         }
         if (others == 1)
         {
@@ -1843,7 +1756,7 @@ void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
     {
       continue;
     }
-    const int corner = int(t.v[1] == x) + 2 * int(t.v[2] == x); // (no branches)
+    const int corner = CornerOf(t, x);
     r.faces.push_back({ id, t, corner, { 0, 0 } });
   }
 }
@@ -1851,6 +1764,14 @@ void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
 void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
 {
   this->LoadFaces(w, x, r);
+  this->BuildNeighbours(w, r, positions);
+}
+
+// The sorted neighbour table of a ring whose faces are loaded (and their positions).
+void Decimator::BuildNeighbours(Views& w, Ring& r, bool positions)
+{
+  r.nbs.clear();
+  r.keys.clear();
   for (std::size_t slot = 0; slot < r.faces.size(); ++slot)
   {
     // key: neighbour | slot | which (0: next corner, 1: previous corner)
@@ -1868,7 +1789,7 @@ void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
     const std::uint32_t opp = rf.t.v[which == 0 ? kPrevCorner[rf.corner] : kNextCorner[rf.corner]];
     if (r.nbs.empty() || r.nbs.back().v != v)
     {
-      r.nbs.push_back({ v, 1, { opp, kNone }, slot, { 0, 0, 0 } });
+      r.nbs.push_back({ v, 1, { opp, kNone }, { 0, 0, 0 } });
     }
     else
     {
@@ -1890,7 +1811,7 @@ void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
         Prefetch(pp + n.v);
       }
     }
-    r.px = w.P.Get(x);
+    r.px = w.P.Get(r.x);
     for (Nb& n : r.nbs)
     {
       n.p = w.P.Get(n.v);
@@ -1933,7 +1854,7 @@ void Decimator::BuildQuadrics()
       {
         continue;
       }
-      const int c = int(t.v[1] == u) + 2 * int(t.v[2] == u); // (no branches)
+      const int c = CornerOf(t, u);
       tris.push_back(t);
       next.push_back(t.v[kNextCorner[c]]);
       prev.push_back(t.v[kPrevCorner[c]]);
@@ -2083,9 +2004,13 @@ void Decimator::BuildQuadrics()
           }
           for (std::uint32_t k = ROp[u + 4], e = ROp[u + 5]; k < e; ++k)
           {
-            for (const std::uint32_t y : Fp[RFp[k]].v)
+            const Tri& t = Fp[RFp[k]];
+            if (Alive(t)) // (the duplicate search may have killed some)
             {
-              Prefetch(Pp + y);
+              for (const std::uint32_t y : t.v)
+              {
+                Prefetch(Pp + y);
+              }
             }
           }
         }
@@ -2147,7 +2072,8 @@ bool Decimator::FaceOk(Vec3 c[3], int corner, const Vec3& p) const
   return k >= 0 ? (dot >= 0 && dot * dot >= bound2) : (dot >= 0 || dot * dot <= bound2);
 }
 
-// Is collapsing u (ring in ru_, with positions) and nb.v to p legal? Loads rv_ (positions).
+// Is collapsing u (ring in s.ru, with its neighbour table and positions) and nb.v to p legal?
+// Loads s.rv the same way unless rvLoaded.
 bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded)
 {
   const std::uint32_t v = nb.v;
@@ -2248,6 +2174,9 @@ bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
   }
   if (m == 2 && opp[0] == opp[1])
   {
+    // Two faces (u, v, o) and (v, u, o): Legal counted o once and could let one more common
+    // neighbour through; neither BuildRings (it settles such pairs) nor a legal collapse makes
+    // them, and the stricter answer is the right one.
     return false;
   }
   const std::uint32_t o1 = m == 2 ? opp[1] : opp[0];
@@ -2272,23 +2201,10 @@ bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
   {
     return false;
   }
-  if (m == 2)
+  // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
+  if (m == 2 && ru.HasFaceWith(opp[0], opp[1]) && rv.HasFaceWith(opp[0], opp[1]))
   {
-    // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
-    auto hasFace = [&opp](const Ring& r) {
-      for (const RingFace& f : r.faces)
-      {
-        if (Has(f.t, opp[0]) && Has(f.t, opp[1]))
-        {
-          return true;
-        }
-      }
-      return false;
-    };
-    if (hasFace(ru) && hasFace(rv))
-    {
-      return false;
-    }
+    return false;
   }
   Views& w = this->W(s);
   for (const Ring* r : { &ru, &rv })
@@ -2615,11 +2531,9 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     {
       continue;
     }
-    // (no branches: which corner is u's is random)
-    const std::uint32_t m0 = 0u - std::uint32_t(t.v[0] == u), m1 = 0u - std::uint32_t(t.v[1] == u),
-                        m2 = 0u - std::uint32_t(t.v[2] == u);
-    next[n] = (t.v[1] & m0) | (t.v[2] & m1) | (t.v[0] & m2);
-    prev[n] = (t.v[2] & m0) | (t.v[0] & m1) | (t.v[1] & m2);
+    const int c = CornerOf(t, u);
+    next[n] = t.v[kNextCorner[c]];
+    prev[n] = t.v[kPrevCorner[c]];
     ++n;
   }
   if (n == 0)
@@ -2933,8 +2847,8 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
   w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
 }
 
-// Collapses u and c.partner (rings loaded in s.ru and s.rv) into u at c.p; returns the number of
-// faces removed.
+// Collapses u and c.partner (their faces loaded in s.ru and s.rv) into u at c.p; returns the
+// number of faces removed.
 std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
 {
   Views& w = this->W(s);
@@ -3069,12 +2983,13 @@ Decimator::Try Decimator::TryCollapse(
     }
   }
   const Vec3 p = { c.p[0], c.p[1], c.p[2] };
-  bool legal = false;
-  if (m > 2)
+  bool legal = false; // (m == 0: v is no neighbour)
+  if (m > 2 || (m > 0 && s.ru.faces.size() * s.rv.faces.size() > kLegalFacesMax))
   {
-    // A non-manifold edge: the neighbour tables.
-    this->LoadRing(w, u, s.ru, true);
-    this->LoadRing(w, v, s.rv, true);
+    // A non-manifold edge, or rings too large for LegalFaces' pairwise test: the sorted
+    // neighbour tables.
+    this->BuildNeighbours(w, s.ru, true);
+    this->BuildNeighbours(w, s.rv, true);
     legal = this->Legal(u, *s.ru.Find(v), p, s, true);
   }
   else if (m > 0)
@@ -3113,6 +3028,19 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   const Quadric* Qp = this->lazySums_ ? nullptr : w.Q.Ptr(0);
   const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
   constexpr std::uint64_t kAhead = 16;
+  // The corners of the live faces around y (faces killed earlier in the pass hold kNone).
+  auto corners = [&](std::uint32_t y, auto&& fn) {
+    for (std::uint32_t k = ROp[y], e = ROp[y + 1]; k < e; ++k)
+    {
+      const Tri& t = Fp[RFp[k]];
+      if (Alive(t))
+      {
+        fn(t.v[0]);
+        fn(t.v[1]);
+        fn(t.v[2]);
+      }
+    }
+  };
   auto prefetchList = [&](std::uint32_t y) { // its face ids: the first and the last line
     const std::uint32_t b = ROp[y], e = ROp[y + 1];
     Prefetch(RFp + b);
@@ -3172,13 +3100,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         const std::uint32_t w = Op[i + kAhead / 4];
         if (freePair(w, x))
         {
-          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
-          {
-            const Tri& t = Fp[RFp[k]];
-            Prefetch(Pp + t.v[0]);
-            Prefetch(Pp + t.v[1]);
-            Prefetch(Pp + t.v[2]);
-          }
+          corners(w, [&](std::uint32_t y) { Prefetch(Pp + y); });
           for (std::uint32_t k = ROp[x], e = ROp[x + 1]; k < e; ++k)
           {
             Prefetch(Fp + RFp[k]);
@@ -3198,21 +3120,11 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         const std::uint32_t w = Op[i + kAhead / 8];
         if (freePair(w, x))
         {
-          for (std::uint32_t k = ROp[x], e = ROp[x + 1]; k < e; ++k)
-          {
-            for (const std::uint32_t y : Fp[RFp[k]].v)
-            {
-              Prefetch(Pp + y);
-              Prefetch(Sp + y);
-            }
-          }
-          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
-          {
-            for (const std::uint32_t y : Fp[RFp[k]].v)
-            {
-              Prefetch(Sp + y);
-            }
-          }
+          corners(x, [&](std::uint32_t y) {
+            Prefetch(Pp + y);
+            Prefetch(Sp + y);
+          });
+          corners(w, [&](std::uint32_t y) { Prefetch(Sp + y); });
         }
       }
     }

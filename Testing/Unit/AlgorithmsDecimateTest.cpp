@@ -497,6 +497,52 @@ TEST(AlgorithmsDecimate, HoleKeepsItsBoundary)
   }
 }
 
+// A flat disc: one center vertex with n faces around it. Collapsing the center into a rim vertex
+// costs nothing, so the step meets rings of n and 2 faces (above LegalFaces' product bound:
+// the sorted-table path), and later rings of every size down to a few faces.
+TEST(AlgorithmsDecimate, HighValenceFanStaysAFlatDisc)
+{
+  const std::uint32_t n = 600;
+  Mesh d;
+  d.xyz = { 0, 0, 0 };
+  for (std::uint32_t i = 0; i < n; ++i)
+  {
+    const double a = 2 * 3.14159265358979323846 * i / n;
+    d.xyz.insert(d.xyz.end(), { float(std::cos(a)), float(std::sin(a)), 0.0f });
+  }
+  for (std::uint32_t i = 0; i < n; ++i)
+  {
+    d.tris.insert(d.tris.end(), { 0, 1 + i, 1 + (i + 1) % n });
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 60;
+  Outcome a = Simplify(MemorySource(d), o);
+  ExpectValid(a.out);
+  EXPECT_LE(a.out.Triangles(), 60u);
+  EXPECT_GE(a.out.Triangles(), 40u);
+  EXPECT_EQ(BoundaryLoops(a.out), 1);
+  for (auto& [e, c] : EdgeUse(a.out))
+  {
+    EXPECT_LE(c, 2);
+  }
+  for (std::size_t f = 0; f < a.out.Triangles(); ++f)
+  {
+    EXPECT_GT(FaceNormal(a.out, f)[2], 0.0) << "face " << f << " flipped or degenerate";
+  }
+  for (std::size_t i = 0; i < a.out.Vertices(); ++i)
+  {
+    const auto p = a.out.P(i);
+    EXPECT_EQ(p[2], 0.0);
+    // (Boundary constraint lines of neighbouring rim edges meet just outside the circle.)
+    EXPECT_LE(std::sqrt(p[0] * p[0] + p[1] * p[1]), 1.01) << "vertex " << i << " left the disc";
+  }
+  o.storage.policy = st::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 64 * 1024;
+  Outcome b = Simplify(MemorySource(d), o);
+  EXPECT_TRUE(b.stats.storage.usedOutOfCore);
+  ExpectSameOutput(a, b, "disc in core / out of core");
+}
+
 TEST(AlgorithmsDecimate, LockBoundaryKeepsEveryBoundaryVertex)
 {
   Mesh g = Grid(16, Bumps);
