@@ -3035,6 +3035,8 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   const Quadric* Qp = this->lazySums_ ? nullptr : w.Q.Ptr(0);
   const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
   constexpr std::uint64_t kAhead = 16;
+  // (The loops over a ring's corners below are written out: through a shared generic lambda,
+  // GCC 12 emitted half of these prefetches and the step ran 3-5% slower.)
   auto prefetchList = [&](std::uint32_t y) { // its face ids: the first and the last line
     const std::uint32_t b = ROp[y], e = ROp[y + 1];
     Prefetch(RFp + b);
