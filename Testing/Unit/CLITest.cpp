@@ -218,3 +218,79 @@ TEST_F(CLI, InterruptCleansUp)
     EXPECT_TRUE(name == "octa.ply" || name == "big.ply") << "left behind: " << name;
   }
 }
+
+namespace
+{
+std::string ReadAll(const fs::path& p)
+{
+  std::ifstream f(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(f), {});
+}
+} // namespace
+
+TEST_F(CLI, RefusesToOverwriteTheInput)
+{
+  // The input is never replaced: not by OUTPUT as given, through ./, a symlink or a hard link,
+  // nor by a level of detail or the statistics file. Each is a usage error (exit 2) that names
+  // the path, and the input keeps its bytes.
+  const std::string before = ReadAll(this->dir / "octa.ply");
+  fs::create_symlink(this->dir / "octa.ply", this->dir / "link.ply");
+  fs::create_hard_link(this->dir / "octa.ply", this->dir / "hard.ply");
+  fs::copy_file(this->dir / "octa.ply", this->dir / "scan_lod1.ply");
+  const std::string lodBefore = ReadAll(this->dir / "scan_lod1.ply");
+  const std::string cd = "cd " + this->dir.string() + " && " + SIPMSS_CLI;
+  struct Case
+  {
+    std::string cmd, named;
+  };
+  const Case cases[] = {
+    { std::string(SIPMSS_CLI) + " simplify " + P("octa.ply") + " " + P("octa.ply"), "octa.ply" },
+    { cd + " simplify octa.ply ./octa.ply", "./octa.ply" },
+    { cd + " simplify ./octa.ply " + P("octa.ply"), "octa.ply" },
+    { std::string(SIPMSS_CLI) + " simplify " + P("octa.ply") + " " + P("link.ply"), "link.ply" },
+    { std::string(SIPMSS_CLI) + " simplify " + P("link.ply") + " " + P("octa.ply"), "octa.ply" },
+    { std::string(SIPMSS_CLI) + " simplify " + P("octa.ply") + " " + P("hard.ply"), "hard.ply" },
+    { std::string(SIPMSS_CLI) + " simplify " + P("octa.ply") + " " + P("out.ply") + " --stats-json " +
+        P("octa.ply"),
+      "octa.ply" },
+    { std::string(SIPMSS_CLI) + " simplify " + P("scan_lod1.ply") + " " + P("scan.ply") +
+        " --algorithm decimate --lods 3",
+      "scan_lod1.ply" },
+  };
+  for (const auto& c : cases)
+  {
+    for (const char* algorithm : { "", " --algorithm decimate", " --algorithm two-stage" })
+    {
+      Result r;
+      const std::string cmd = c.cmd + (c.cmd.find("--algorithm") == std::string::npos ? algorithm : "") +
+        " --quiet 2>&1";
+      FILE* p = ::popen(cmd.c_str(), "r");
+      std::array<char, 4096> buf{};
+      std::size_t n;
+      while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0)
+      {
+        r.out.append(buf.data(), n);
+      }
+      const int st = ::pclose(p);
+      r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+      EXPECT_EQ(r.status, 2) << cmd << "\n" << r.out;
+      EXPECT_NE(r.out.find("refusing to overwrite the input"), std::string::npos) << cmd << "\n" << r.out;
+      EXPECT_NE(r.out.find(c.named), std::string::npos) << cmd << "\n" << r.out;
+      EXPECT_EQ(ReadAll(this->dir / "octa.ply"), before) << cmd;
+      EXPECT_EQ(ReadAll(this->dir / "scan_lod1.ply"), lodBefore) << cmd;
+    }
+  }
+  EXPECT_TRUE(fs::is_symlink(this->dir / "link.ply"));
+  EXPECT_FALSE(fs::exists(this->dir / "out.ply"));
+  EXPECT_FALSE(fs::exists(this->dir / "scan.ply"));
+  for (const auto& e : fs::directory_iterator(this->dir))
+  {
+    const std::string name = e.path().filename().string();
+    EXPECT_NE(name.rfind(".sipmss-", 0), 0u) << "left behind: " << name;
+  }
+  // a different file with the same content is not the input
+  fs::copy_file(this->dir / "octa.ply", this->dir / "copy.ply");
+  Result ok = RunCli("simplify " + P("octa.ply") + " " + P("copy.ply") + " --grid 2 --quiet");
+  EXPECT_EQ(ok.status, 0) << ok.out;
+  EXPECT_EQ(ReadAll(this->dir / "octa.ply"), before);
+}

@@ -214,6 +214,27 @@ fs::path LodPath(const fs::path& output, int level)
   return output.parent_path() / (stem + "_lod" + std::to_string(level) + ext);
 }
 
+// Refuses any path this run would write (OUTPUT, its levels of detail, the statistics) that is
+// the input file itself: the same device and inode, so `./in.ply`, a symlink or a hard link to
+// the input are caught too. The input is the user's data; a run never replaces it.
+void RefuseToOverwriteInput(const std::string& input, const std::vector<fs::path>& writes)
+{
+  struct stat in{};
+  if (::stat(input.c_str(), &in) != 0)
+  {
+    return; // the reader reports a missing or unreadable input with its own message
+  }
+  for (const auto& w : writes)
+  {
+    struct stat out{};
+    if (::stat(w.c_str(), &out) == 0 && out.st_dev == in.st_dev && out.st_ino == in.st_ino)
+    {
+      throw CLI::ValidationError(w.string() + ": is the input file " + input +
+        " (the same file); refusing to overwrite the input, choose another output path");
+    }
+  }
+}
+
 struct SimplifyArgs
 {
   std::string input, output, algorithm = "cluster", statsJson;
@@ -230,6 +251,18 @@ struct SimplifyArgs
 
 int RunSimplify(const SimplifyArgs& a)
 {
+  {
+    std::vector<fs::path> writes{ fs::path(a.output) };
+    for (int level = 0; level < a.lods && a.lods > 1; ++level)
+    {
+      writes.push_back(LodPath(a.output, level));
+    }
+    if (!a.statsJson.empty())
+    {
+      writes.emplace_back(a.statsJson);
+    }
+    RefuseToOverwriteInput(a.input, writes);
+  }
   const bool tty = !a.quiet && ::isatty(STDERR_FILENO);
   TerminalProgress progress(tty);
   storage::Profile profile;
