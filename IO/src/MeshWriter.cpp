@@ -1,5 +1,6 @@
 // Streaming mesh writers: PLY (binary little-endian or ASCII), STL (binary or ASCII), OBJ.
-// Buffered 1 MiB writes with write(2); every I/O failure throws MeshIOError(path: strerror).
+// Buffered 1 MiB writes with write(2), gzip-compressed (zlib's deflate, level 6) when the path
+// ends in .gz; every I/O failure throws MeshIOError(path: strerror).
 #include "MeshIODetail.h"
 
 #include <algorithm>
@@ -12,6 +13,8 @@
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <unistd.h>
+
+#include <zlib.h>
 
 namespace sipmss::io
 {
@@ -43,7 +46,31 @@ using detail::HostIsLittleEndian;
   WriteFail(path, std::string(what) + ": " + std::strerror(err));
 }
 
-// Buffered output to a file descriptor.
+std::string LowerExtension(const std::string& path)
+{
+  const std::size_t slash = path.find_last_of('/');
+  const std::size_t dot = path.find_last_of('.');
+  if (dot == std::string::npos || (slash != std::string::npos && dot < slash))
+    return {};
+  std::string ext = path.substr(dot);
+  for (char& c : ext)
+    if (c >= 'A' && c <= 'Z')
+      c = char(c - 'A' + 'a');
+  return ext;
+}
+
+bool IsGzipPath(const std::string& path)
+{
+  return LowerExtension(path) == ".gz";
+}
+
+// The mesh format's extension: the last one, or the one before ".gz".
+std::string MeshExtension(const std::string& path)
+{
+  return IsGzipPath(path) ? LowerExtension(path.substr(0, path.size() - 3)) : LowerExtension(path);
+}
+
+// Buffered output to a file descriptor, optionally through a gzip stream.
 class FileOut
 {
 public:
@@ -52,17 +79,28 @@ public:
   FileOut& operator=(const FileOut&) = delete;
   ~FileOut()
   {
+    if (gzip_)
+      deflateEnd(&z_);
     if (fd_ >= 0)
       ::close(fd_);
   }
 
-  void Open(const std::string& path)
+  void Open(const std::string& path, bool gzip = false)
   {
     path_ = path;
     fd_ = ::open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0666);
     if (fd_ < 0)
       ErrnoFail(path_, "cannot be opened for writing", errno);
     buf_.resize(detail::kDefaultBufferBytes);
+    if (gzip)
+    {
+      z_ = z_stream{};
+      // windowBits 15 + 16: a gzip header and trailer, as gzip(1) writes and the readers read
+      if (deflateInit2(&z_, 6, Z_DEFLATED, 15 + 16, 8, Z_DEFAULT_STRATEGY) != Z_OK)
+        WriteFail(path_, "cannot start gzip compression");
+      gzip_ = true;
+      zbuf_.resize(detail::kDefaultBufferBytes);
+    }
   }
   void Adopt(int fd, const std::string& path)
   {
@@ -103,6 +141,12 @@ public:
   void Close()
   {
     Flush();
+    if (gzip_)
+    {
+      Deflate(nullptr, 0, Z_FINISH);
+      deflateEnd(&z_);
+      gzip_ = false;
+    }
     const int fd = fd_;
     fd_ = -1;
     if (fd >= 0 && ::close(fd) != 0)
@@ -114,6 +158,39 @@ private:
   {
     if (fd_ < 0 && n)
       WriteFail(path_, "write after close");
+    if (gzip_)
+    {
+      if (n)
+        Deflate(d, n, Z_NO_FLUSH);
+      return;
+    }
+    WriteRaw(d, n);
+  }
+  // Compresses n bytes (flush = Z_FINISH: and ends the stream) and writes what deflate produced.
+  void Deflate(const char* d, std::size_t n, int flush)
+  {
+    while (true)
+    {
+      const uInt in = uInt(std::min<std::size_t>(n, std::size_t(1) << 30));
+      z_.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(d));
+      z_.avail_in = in;
+      do
+      {
+        z_.next_out = reinterpret_cast<Bytef*>(zbuf_.data());
+        z_.avail_out = uInt(zbuf_.size());
+        const int rc = deflate(&z_, n > in ? Z_NO_FLUSH : flush);
+        if (rc == Z_STREAM_ERROR)
+          WriteFail(path_, "gzip compression failed");
+        WriteRaw(zbuf_.data(), zbuf_.size() - z_.avail_out);
+      } while (z_.avail_out == 0);
+      d += in;
+      n -= in;
+      if (n == 0)
+        return;
+    }
+  }
+  void WriteRaw(const char* d, std::size_t n)
+  {
     while (n)
     {
       const ssize_t r = ::write(fd_, d, std::min<std::size_t>(n, std::size_t(1) << 30));
@@ -134,6 +211,9 @@ private:
   int fd_ = -1;
   std::vector<char> buf_;
   std::size_t len_ = 0;
+  bool gzip_ = false;
+  z_stream z_{};
+  std::vector<char> zbuf_;
 };
 
 inline void StoreLE32(char* p, const void* v)
@@ -160,7 +240,7 @@ public:
   explicit WriterBase(const std::string& path)
     : path_(path)
   {
-    out_.Open(path);
+    out_.Open(path, IsGzipPath(path));
   }
 
   void Begin(std::uint64_t vertexCount, std::uint64_t triangleCount, const VertexLayout& layout) override
@@ -625,31 +705,27 @@ private:
   }
 };
 
-std::string LowerExtension(const std::string& path)
-{
-  const std::size_t slash = path.find_last_of('/');
-  const std::size_t dot = path.find_last_of('.');
-  if (dot == std::string::npos || (slash != std::string::npos && dot < slash))
-    return {};
-  std::string ext = path.substr(dot);
-  for (char& c : ext)
-    if (c >= 'A' && c <= 'Z')
-      c = char(c - 'A' + 'a');
-  return ext;
-}
 
 } // namespace
 
+void MeshWriter::CheckExtension(const std::string& path, const std::string& shownAs)
+{
+  const std::string ext = MeshExtension(path);
+  if (ext != ".ply" && ext != ".stl" && ext != ".obj")
+    throw MeshIOError((shownAs.empty() ? path : shownAs) +
+      (ext.empty() ? ": no mesh file extension" : ": unknown mesh file extension '" + ext + "'") +
+      " (expected .ply, .stl or .obj, each optionally followed by .gz)");
+}
+
 std::unique_ptr<MeshWriter> MeshWriter::Create(const std::string& path, bool ascii)
 {
-  const std::string ext = LowerExtension(path);
+  CheckExtension(path);
+  const std::string ext = MeshExtension(path);
   if (ext == ".ply")
     return std::make_unique<PlyWriter>(path, ascii);
   if (ext == ".stl")
     return std::make_unique<StlWriter>(path, ascii);
-  if (ext == ".obj")
-    return std::make_unique<ObjWriter>(path);
-  throw MeshIOError(path + ": unknown mesh file extension '" + ext + "' (expected .ply, .stl or .obj)");
+  return std::make_unique<ObjWriter>(path);
 }
 
 } // namespace sipmss::io

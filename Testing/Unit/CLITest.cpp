@@ -2,14 +2,18 @@
 #include <gtest/gtest.h>
 
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <vector>
 
 #include <sys/wait.h>
 #include <unistd.h>
+#include <zlib.h>
 
 namespace fs = std::filesystem;
 
@@ -293,4 +297,177 @@ TEST_F(CLI, RefusesToOverwriteTheInput)
   Result ok = RunCli("simplify " + P("octa.ply") + " " + P("copy.ply") + " --grid 2 --quiet");
   EXPECT_EQ(ok.status, 0) << ok.out;
   EXPECT_EQ(ReadAll(this->dir / "octa.ply"), before);
+}
+
+TEST_F(CLI, OutputIsCheckedBeforeTheRun)
+{
+  // A big input whose read alone takes seconds: every output problem must be reported at once,
+  // naming the user's path (not a temporary name), with nothing written.
+  const std::string big = P("big.ply");
+  {
+    const int n = 1500; // 4.5M triangles, 54 MB
+    std::ofstream f(big, std::ios::binary);
+    f << "ply\nformat binary_little_endian 1.0\nelement vertex " << (n + 1) * (n + 1)
+      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
+      << "\nproperty list uchar int vertex_indices\nend_header\n";
+    std::vector<float> row(3 * (n + 1));
+    for (int j = 0; j <= n; ++j)
+    {
+      for (int i = 0; i <= n; ++i)
+      {
+        row[3 * i] = float(i), row[3 * i + 1] = float(j), row[3 * i + 2] = float((i * j) % 7);
+      }
+      f.write(reinterpret_cast<const char*>(row.data()), std::streamsize(row.size() * 4));
+    }
+    std::vector<char> faces(13 * 2 * std::size_t(n));
+    for (int j = 0; j < n; ++j)
+    {
+      char* p = faces.data();
+      for (int i = 0; i < n; ++i)
+      {
+        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+        const int t[2][3] = { { a, b, c }, { a, c, d } };
+        for (const auto& tri : t)
+        {
+          *p++ = 3;
+          std::memcpy(p, tri, 12);
+          p += 12;
+        }
+      }
+      f.write(faces.data(), std::streamsize(faces.size()));
+    }
+  }
+  fs::create_directory(this->dir / "adir.ply");
+  struct Case
+  {
+    std::string output, extra, says;
+  };
+  const Case cases[] = {
+    { P("out.vtp"), "", "out.vtp: unknown mesh file extension '.vtp'" },
+    { P("out"), "", "out: no mesh file extension" },
+    { P("out.gz"), "", "out.gz: no mesh file extension" },
+    { P("missing/out.ply"), "", "missing/out.ply: cannot write the output: the directory" },
+    { P("adir.ply"), "", "adir.ply: cannot write the output: it is a directory" },
+    { P("out.ply"), " --stats-json " + P("missing/s.json"),
+      "missing/s.json: cannot write the statistics: the directory" },
+    { P("out.ply"), " --algorithm decimate --lods 2 --stats-json " + P("adir.ply/x/s.json"),
+      "adir.ply/x/s.json: cannot write the statistics" },
+  };
+  for (const auto& c : cases)
+  {
+    const auto start = std::chrono::steady_clock::now();
+    Result r = RunCli("simplify " + big + " " + c.output + c.extra + " --quiet");
+    const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    EXPECT_EQ(r.status, 1) << c.output << c.extra << "\n" << r.out;
+    EXPECT_NE(r.out.find(c.says), std::string::npos) << r.out;
+    EXPECT_EQ(r.out.find(".sipmss-"), std::string::npos) << "names a temporary: " << r.out;
+    EXPECT_LT(seconds, 1.0) << c.output << c.extra; // the read alone takes longer
+  }
+  for (const auto& e : fs::directory_iterator(this->dir))
+  {
+    const std::string name = e.path().filename().string();
+    EXPECT_TRUE(name == "octa.ply" || name == "big.ply" || name == "adir.ply") << name;
+  }
+}
+
+TEST_F(CLI, CompressedOutputs)
+{
+  for (const char* ext : { ".ply.gz", ".stl.gz", ".obj.gz", ".PLY.GZ" })
+  {
+    const std::string out = P(std::string("out") + ext);
+    Result r = RunCli("simplify " + P("octa.ply") + " " + out + " --algorithm decimate --target 4 --quiet");
+    ASSERT_EQ(r.status, 0) << ext << "\n" << r.out;
+    const std::string bytes = ReadAll(out);
+    ASSERT_GE(bytes.size(), 2u);
+    EXPECT_EQ(static_cast<unsigned char>(bytes[0]), 0x1f) << ext; // gzip magic
+    EXPECT_EQ(static_cast<unsigned char>(bytes[1]), 0x8b) << ext;
+    Result info = RunCli("info " + out);
+    ASSERT_EQ(info.status, 0) << info.out;
+    EXPECT_NE(info.out.find("\"triangles\": 4"), std::string::npos) << ext << "\n" << info.out;
+  }
+  // the same bytes, compressed or not
+  ASSERT_EQ(RunCli("simplify " + P("octa.ply") + " " + P("plain.ply") + " --algorithm decimate --target 4 --quiet").status, 0);
+  gzFile gz = gzopen(P("out.ply.gz").c_str(), "rb");
+  ASSERT_NE(gz, nullptr);
+  std::string unzipped(1 << 16, '\0');
+  const int n = gzread(gz, unzipped.data(), unsigned(unzipped.size()));
+  gzclose(gz);
+  ASSERT_GT(n, 0);
+  unzipped.resize(std::size_t(n));
+  EXPECT_EQ(unzipped, ReadAll(this->dir / "plain.ply"));
+}
+
+TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
+{
+  const std::string io = "simplify " + P("octa.ply") + " " + P("out.ply") + " --quiet ";
+  const char* bad[] = {
+    "--algorithm decimate --target -5",
+    "--algorithm decimate --target 0",
+    "--algorithm decimate --target -1",
+    "--algorithm decimate --target 1e3x",
+    "--target 100",                              // cluster has no target
+    "--algorithm cluster --reduction 0.5",
+    "--algorithm cluster --lods 2",
+    "--algorithm decimate --grid 100",           // decimate has no grid
+    "--algorithm two-stage --boundary-weight 1", // boundary quadrics are the clustering's
+    "--algorithm decimate --reduction nan",
+    "--algorithm decimate --reduction inf",
+    "--boundary-weight nan",
+    "--memory-mb nan",
+    "--memory-mb inf",
+    "--memory-mb -1",
+    "--memory-mb 1e-7",
+    "--memory-mb 0.01",
+    "--grid -3",
+  };
+  for (const char* args : bad)
+  {
+    Result r = RunCli(io + args);
+    EXPECT_EQ(r.status, 2) << args << "\n" << r.out;
+    EXPECT_FALSE(fs::exists(this->dir / "out.ply")) << args;
+  }
+  Result applies = RunCli(io + "--target 100");
+  EXPECT_NE(applies.out.find("does not apply to --algorithm cluster"), std::string::npos) << applies.out;
+  // what is meaningful still runs
+  const char* good[] = { "--algorithm decimate --target 1", "--algorithm two-stage --grid 10 --target 4",
+    "--algorithm decimate --reduction 0", "--memory-mb 0", "--memory-mb 0.0625", "--boundary-weight 1" };
+  for (const char* args : good)
+  {
+    Result r = RunCli(io + args);
+    EXPECT_EQ(r.status, 0) << args << "\n" << r.out;
+  }
+}
+
+TEST_F(CLI, RepairsAreReported)
+{
+  // one good triangle, one face with two vertices and one with a repeated vertex
+  {
+    std::ofstream f(this->dir / "repair.ply");
+    f << "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+         "property float z\nelement face 3\nproperty list uchar int vertex_indices\nend_header\n"
+         "0 0 0\n1 0 0\n0 1 0\n1 1 0\n3 0 1 2\n2 1 3\n3 1 1 3\n";
+  }
+  for (const char* algorithm : { "cluster", "decimate", "two-stage" })
+  {
+    Result r = RunCli("simplify " + P("repair.ply") + " " + P("out.ply") + " --quiet --algorithm " +
+      algorithm + " --stats-json " + P("s.json"));
+    ASSERT_EQ(r.status, 0) << algorithm << "\n" << r.out;
+    EXPECT_NE(r.out.find("repair.ply: dropped 2 degenerate faces"), std::string::npos) << r.out;
+    EXPECT_NE(ReadAll(this->dir / "s.json").find("\"dropped_input_faces\": 2"), std::string::npos);
+  }
+  // nothing left to simplify: an error naming the file, nothing written
+  {
+    std::ofstream f(this->dir / "empty.ply");
+    f << "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+         "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+         "0 0 0\n1 0 0\n0 1 0\n2 0 1\n";
+  }
+  for (const char* algorithm : { "cluster", "decimate", "two-stage" })
+  {
+    Result r = RunCli("simplify " + P("empty.ply") + " " + P("none.ply") + " --quiet --algorithm " + algorithm);
+    EXPECT_EQ(r.status, 1) << algorithm << "\n" << r.out;
+    EXPECT_NE(r.out.find("empty.ply: nothing to simplify"), std::string::npos) << algorithm << "\n" << r.out;
+    EXPECT_FALSE(fs::exists(this->dir / "none.ply"));
+  }
 }

@@ -23,8 +23,8 @@
 #include <unistd.h>
 
 #include <cerrno>
-
 #include <cmath>
+#include <cstring>
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
@@ -235,11 +235,35 @@ void RefuseToOverwriteInput(const std::string& input, const std::vector<fs::path
   }
 }
 
+// Numeric options: NaN and infinities are refused (a Range alone lets NaN through).
+const CLI::Validator Finite(
+  [](std::string& value) {
+    double v = 0;
+    if (!CLI::detail::lexical_cast(value, v) || !std::isfinite(v))
+    {
+      return std::string("must be a finite number, not ") + value;
+    }
+    return std::string();
+  },
+  "FINITE");
+
+// 0 means unbounded; a positive budget below 64 KiB would round to nothing (or to unbounded).
+const CLI::Validator MemoryBudget(
+  [](std::string& value) {
+    double v = 0;
+    if (!CLI::detail::lexical_cast(value, v) || !(v == 0 || (v >= 0.0625 && v <= 1e9)))
+    {
+      return std::string("must be 0 (unbounded) or between 0.0625 (64 KiB) and 1e9 MiB, not ") + value;
+    }
+    return std::string();
+  },
+  "0 or [0.0625 - 1e9]");
+
 struct SimplifyArgs
 {
   std::string input, output, algorithm = "cluster", statsJson;
   int grid = 0;
-  std::uint64_t target = 0;
+  std::int64_t target = 0;
   double reduction = -1;
   double memoryMB = 0;
   double boundaryWeight = 0;
@@ -249,20 +273,53 @@ struct SimplifyArgs
   bool quiet = false;
 };
 
+// A path this run will write must be a writable place: its directory exists and is writable, and
+// the path is not a directory. Checked before any work, naming the user's path.
+void CheckWritablePath(const fs::path& path, const char* what)
+{
+  const fs::path dir = path.parent_path().empty() ? fs::path(".") : path.parent_path();
+  std::error_code ec;
+  if (!fs::is_directory(dir, ec))
+  {
+    throw io::MeshIOError(path.string() + ": cannot write the " + what + ": the directory " +
+      dir.string() + (fs::exists(dir, ec) ? " is not a directory" : " does not exist"));
+  }
+  if (::access(dir.c_str(), W_OK | X_OK) != 0)
+  {
+    throw io::MeshIOError(path.string() + ": cannot write the " + what + ": the directory " +
+      dir.string() + " is not writable (" + std::strerror(errno) + ")");
+  }
+  if (fs::is_directory(path, ec))
+  {
+    throw io::MeshIOError(path.string() + ": cannot write the " + what + ": it is a directory");
+  }
+}
+
+// Everything about OUTPUT, the levels of detail and the statistics file that can be known before
+// the run: the input is not among them, the mesh formats are known, the directories writable.
+void CheckOutputs(const SimplifyArgs& a)
+{
+  std::vector<fs::path> writes{ fs::path(a.output) };
+  for (int level = 0; level < a.lods && a.lods > 1; ++level)
+  {
+    writes.push_back(LodPath(a.output, level));
+  }
+  if (!a.statsJson.empty())
+  {
+    writes.emplace_back(a.statsJson);
+  }
+  RefuseToOverwriteInput(a.input, writes);
+  io::MeshWriter::CheckExtension(a.output);
+  for (std::size_t i = 0; i < writes.size(); ++i)
+  {
+    const bool stats = !a.statsJson.empty() && i + 1 == writes.size();
+    CheckWritablePath(writes[i], stats ? "statistics" : i == 0 ? "output" : "level of detail");
+  }
+}
+
 int RunSimplify(const SimplifyArgs& a)
 {
-  {
-    std::vector<fs::path> writes{ fs::path(a.output) };
-    for (int level = 0; level < a.lods && a.lods > 1; ++level)
-    {
-      writes.push_back(LodPath(a.output, level));
-    }
-    if (!a.statsJson.empty())
-    {
-      writes.emplace_back(a.statsJson);
-    }
-    RefuseToOverwriteInput(a.input, writes);
-  }
+  CheckOutputs(a);
   const bool tty = !a.quiet && ::isatty(STDERR_FILENO);
   TerminalProgress progress(tty);
   storage::Profile profile;
@@ -304,7 +361,7 @@ int RunSimplify(const SimplifyArgs& a)
   else if (a.algorithm == "decimate" || a.algorithm == "two-stage")
   {
     algorithms::DecimateOptions o;
-    o.targetTriangles = a.target;
+    o.targetTriangles = static_cast<std::uint64_t>(a.target);
     if (a.reduction >= 0)
     {
       o.targetReduction = a.reduction;
@@ -338,6 +395,12 @@ int RunSimplify(const SimplifyArgs& a)
   {
     throw CLI::ValidationError("--algorithm", "unknown algorithm " + a.algorithm);
   }
+  if (stats.inputTriangles == 0)
+  {
+    throw io::MeshIOError(a.input + ": nothing to simplify: the input has no valid triangle" +
+      (stats.droppedInputFaces ? " (" + std::to_string(stats.droppedInputFaces) +
+            " degenerate faces were dropped)" : std::string()));
+  }
   sink.Commit();
   for (auto& s : lodSinks)
   {
@@ -347,6 +410,14 @@ int RunSimplify(const SimplifyArgs& a)
   const double seconds =
     std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 
+  if (stats.droppedInputFaces)
+  {
+    // a repair of the input is reported even with --quiet
+    std::fprintf(stderr,
+      "sipmss: warning: %s: dropped %llu degenerate faces (fewer than 3 vertices or a repeated "
+      "vertex) while reading\n",
+      a.input.c_str(), (unsigned long long)stats.droppedInputFaces);
+  }
   if (!a.quiet)
   {
     std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices) in %.2f s, peak RSS %.1f MB, "
@@ -451,41 +522,64 @@ int main(int argc, char** argv)
   SimplifyArgs sa;
   CLI::App* simplify = app.add_subcommand("simplify", "simplify INPUT into OUTPUT");
   simplify->add_option("INPUT", sa.input, "PLY, STL or OBJ file (.gz too)")->required();
-  simplify->add_option("OUTPUT", sa.output, "output file (.ply, .stl or .obj)")->required();
+  simplify->add_option("OUTPUT", sa.output,
+    "output file (.ply, .stl or .obj, optionally .gz); never the input file")->required();
   simplify->add_option("--algorithm", sa.algorithm, "cluster, decimate or two-stage")
     ->check(CLI::IsMember({ "cluster", "decimate", "two-stage" }));
-  simplify->add_option("--grid", sa.grid,
-    "maximum grid dimension of the clustering (cluster: default 50; two-stage: default 300)")
+  auto* grid = simplify->add_option("--grid", sa.grid,
+    "cluster, two-stage: maximum grid dimension of the clustering (cluster: default 50; "
+    "two-stage: default 300)")
     ->check(CLI::Range(1, 65535));
-  auto* target = simplify->add_option("--target", sa.target, "decimate, two-stage: target triangle count");
-  simplify->add_option("--reduction", sa.reduction, "decimate, two-stage: fraction of triangles to remove")
-    ->check(CLI::Range(0.0, 1.0))
+  auto* target = simplify->add_option("--target", sa.target,
+    "decimate, two-stage: target triangle count (at least 1)")
+    ->check(CLI::Range(std::int64_t(1), std::numeric_limits<std::int64_t>::max()));
+  auto* reduction = simplify->add_option("--reduction", sa.reduction,
+    "decimate, two-stage: fraction of triangles to remove (default 0.9 without --target)")
+    ->check(Finite & CLI::Range(0.0, 1.0))
     ->excludes(target);
-  simplify->add_option("--boundary-weight", sa.boundaryWeight,
+  auto* boundaryWeight = simplify->add_option("--boundary-weight", sa.boundaryWeight,
     "cluster: boundary quadrics of this weight keep holes in place (0 = off; slower)")
-    ->check(CLI::Range(0.0, 1e9));
-  simplify->add_option("--memory-mb", sa.memoryMB, "memory budget in MiB (0 = unbounded)")
-    ->check(CLI::Range(0.0, 1e9));
+    ->check(Finite & CLI::Range(0.0, 1e9));
+  simplify->add_option("--memory-mb", sa.memoryMB,
+    "memory budget in MiB: 0 = unbounded, else at least 0.0625 (64 KiB)")
+    ->check(Finite & MemoryBudget);
   // One directory per --tmpdir (repeat it for more): a list option would also swallow the
   // positionals after it (`--tmpdir /scratch in.ply out.ply`).
   simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)")
     ->expected(1)
     ->allow_extra_args(false)
     ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
-  simplify->add_option("--lods", sa.lods, "decimate, two-stage: levels of detail, written as OUTPUT_lodK")
+  auto* lods = simplify->add_option("--lods", sa.lods,
+    "decimate, two-stage: levels of detail, written as OUTPUT_lodK")
     ->check(CLI::Range(1, 64));
   simplify->add_option("--stats-json", sa.statsJson, "write run statistics as JSON");
   simplify->add_option("--threads", sa.threads,
     "threads (0 = all cores; the output does not depend on it)")
     ->check(CLI::Range(0, 256));
   simplify->add_flag("--quiet", sa.quiet, "no progress bar and no summary");
+  // An option that does not apply to the chosen algorithm is a usage error, not ignored.
+  simplify->callback([&]() {
+    const bool cluster = sa.algorithm == "cluster";
+    const std::pair<CLI::Option*, bool> applies[] = { { grid, sa.algorithm != "decimate" },
+      { target, !cluster }, { reduction, !cluster }, { lods, !cluster },
+      { boundaryWeight, cluster } };
+    for (const auto& [option, ok] : applies)
+    {
+      if (option->count() > 0 && !ok)
+      {
+        throw CLI::ValidationError(option->get_name(),
+          "does not apply to --algorithm " + sa.algorithm + " (see sipmss simplify --help)");
+      }
+    }
+  });
 
   std::string ref, cand;
   std::uint64_t samples = 0;
   CLI::App* compare = app.add_subcommand("compare", "Metro-style distance between two meshes");
   compare->add_option("REFERENCE", ref)->required();
   compare->add_option("CANDIDATE", cand)->required();
-  compare->add_option("--samples", samples, "samples per side (default: automatic)");
+  compare->add_option("--samples", samples, "samples per side (default: automatic)")
+    ->check(CLI::Range(std::uint64_t(0), std::uint64_t(1) << 40));
 
   std::string infoPath;
   CLI::App* info = app.add_subcommand("info", "format, counts and bounds of a mesh file");

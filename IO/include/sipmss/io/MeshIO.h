@@ -128,8 +128,12 @@ MeshHeader ReadHeader(const std::string& path);
 class MeshWriter
 {
 public:
-  // format chosen from the extension (.ply binary LE unless ascii=true, .stl binary, .obj)
+  // format chosen from the extension (.ply binary LE unless ascii=true, .stl binary, .obj), each
+  // optionally followed by .gz (then the file is gzip-compressed)
   static std::unique_ptr<MeshWriter> Create(const std::string& path, bool ascii = false);
+  // Throws MeshIOError when Create would refuse path's extension; the message names shownAs
+  // (default: path). Touches no file.
+  static void CheckExtension(const std::string& path, const std::string& shownAs = {});
   virtual ~MeshWriter() = default;
   virtual void Begin(std::uint64_t vertexCount, std::uint64_t triangleCount,
     const VertexLayout& layout) = 0;
