@@ -53,9 +53,9 @@ int vtkSIPMSSDecimate::RequestData(
       options.weldDistance = this->WeldDistance;
       options.storage = profile;
       options.threads = this->NumberOfThreads;
-      auto onLevel = [levels](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
+      auto onLevel = [this, levels](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
         vtkNew<vtkPolyData> lod;
-        vtkSIPMSSPolyDataBridge::PolyDataSink lodSink(lod);
+        vtkSIPMSSPolyDataBridge::PolyDataSink lodSink(lod, this->InputPointData);
         emit(lodSink);
         levels->SetBlock(static_cast<unsigned int>(level), lod);
         levels->GetMetaData(static_cast<unsigned int>(level))

@@ -2,10 +2,15 @@
 
 #include "vtkSIPMSSPolyDataBridge.h"
 
+#include "vtkCellData.h"
 #include "vtkInformation.h"
 #include "vtkInformationVector.h"
 #include "vtkObjectFactory.h"
 #include "vtkPolyData.h"
+
+#include <cmath>
+#include <string>
+#include <vector>
 
 vtkSIPMSSFilterBase::vtkSIPMSSFilterBase() = default;
 
@@ -64,15 +69,61 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     {
       vtkWarningMacro("Ignoring " << skipped << " vertex and line cells of the input.");
     }
-    bounds = bridge::Bounds(input);
+    auto list = [](const std::vector<std::string>& names) {
+      std::string s;
+      for (const auto& n : names)
+      {
+        s += (s.empty() ? "" : ", ") + n;
+      }
+      return s;
+    };
+    std::vector<std::string> cellArrays;
+    for (int i = 0; i < input->GetCellData()->GetNumberOfArrays(); ++i)
+    {
+      vtkAbstractArray* a = input->GetCellData()->GetAbstractArray(i);
+      cellArrays.emplace_back(a && a->GetName() ? a->GetName() : "(unnamed)");
+    }
+    if (!cellArrays.empty())
+    {
+      vtkWarningMacro("Cell data is not carried (the simplified faces are new): dropping "
+        << list(cellArrays) << ".");
+    }
+    const std::vector<std::string> notCarried = bridge::PointArraysNotCarried(input);
+    if (!notCarried.empty())
+    {
+      vtkWarningMacro("Non-numeric point data is not carried: dropping " << list(notCarried) << ".");
+    }
+    const std::vector<std::string> imprecise = bridge::ImpreciseIntegerArrays(input);
+    if (!imprecise.empty())
+    {
+      vtkWarningMacro("Point data is carried in single precision: integer values beyond 2^24 of "
+        << list(imprecise) << " come out rounded.");
+    }
+    this->InputPointData = input->GetPointData();
     haveBounds = true;
     what = "the input";
   }
 
+  if (!std::isfinite(this->MemoryBudgetMB))
+  {
+    vtkErrorMacro("MemoryBudgetMB must be a finite number of MiB (0 = unbounded), not "
+      << this->MemoryBudgetMB << ".");
+    return 0;
+  }
+  // the input's point data for the output sinks (cleared when the run ends)
+  struct ClearInputPointData
+  {
+    vtkSIPMSSFilterBase* self;
+    ~ClearInputPointData() { self->InputPointData = nullptr; }
+  } clearInputPointData{ this };
   bridge::AlgorithmProgress progress(this);
-  bridge::PolyDataSink sink(output);
+  bridge::PolyDataSink sink(output, this->InputPointData);
   try
   {
+    if (haveBounds)
+    {
+      bounds = bridge::Bounds(vtkPolyData::GetData(inputVector[0], 0));
+    }
     const auto start = std::chrono::steady_clock::now();
     sipmss::algorithms::RunStats stats =
       run(source, haveBounds, bounds, sink, bridge::MakeProfile(this), progress);

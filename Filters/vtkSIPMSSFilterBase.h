@@ -15,6 +15,7 @@
 #include "sipmssFiltersModule.h" // for export macro
 #include "vtkPolyDataAlgorithm.h"
 
+class vtkPointData;
 class vtkPolyData;
 
 #include <array>      // for std::array
@@ -127,6 +128,12 @@ protected:
     const std::array<double, 6>& bounds, sipmss::io::MeshSink& output,
     const sipmss::storage::Profile& profile, sipmss::algorithms::Progress& progress)>;
   int Simplify(vtkInformationVector** inputVector, vtkPolyData* output, const CoreRun& run);
+#endif
+
+#ifndef __VTK_WRAP__
+  // During a run on the input port: the input's point data, whose arrays every output (also
+  // a level of detail) rebuilds with their names, types and roles. Null for FileName runs.
+  vtkPointData* InputPointData = nullptr;
 #endif
 
   char* FileName = nullptr;

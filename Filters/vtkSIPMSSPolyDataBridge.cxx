@@ -8,12 +8,15 @@
 #include "vtkDataArray.h"
 #include "vtkFloatArray.h"
 #include "vtkIdTypeArray.h"
+#include "vtkDataSetAttributes.h"
 #include "vtkPointData.h"
 #include "vtkPoints.h"
 #include "vtkPolyData.h"
 #include "vtkUnsignedCharArray.h"
 
 #include <algorithm>
+#include <cmath>
+#include <string>
 #include <cstring>
 #include <sstream>
 #include <vector>
@@ -24,20 +27,25 @@ namespace io = sipmss::io;
 
 namespace
 {
-// Which point-data arrays become which attributes.
+// Which point-data arrays become which attributes of the core's vertex record. Every numeric
+// point-data array is carried: the active normals (3 components) and texture coordinates (2) in
+// their slots, the first unsigned char array of 3 or 4 components as the colour, and every
+// component of every other array as one float channel. The sink rebuilds each array with its
+// own name, component count, type and attribute role from the same plan.
 struct AttributePlan
 {
   vtkDataArray* normals = nullptr;
   vtkDataArray* colors = nullptr; // unsigned char, 3 or 4 components
   vtkDataArray* tcoords = nullptr;
-  std::vector<vtkDataArray*> scalars;
+  std::vector<vtkDataArray*> channels; // one per scalar channel (an array once per component)
+  std::vector<int> channelComponent;
+  std::vector<vtkDataArray*> others; // the arrays behind the channels, in order
   io::VertexLayout layout;
 };
 
-AttributePlan Plan(vtkPolyData* pd)
+AttributePlan Plan(vtkPointData* pointData)
 {
   AttributePlan plan;
-  vtkPointData* pointData = pd->GetPointData();
   plan.normals = pointData->GetNormals();
   if (plan.normals && plan.normals->GetNumberOfComponents() != 3)
   {
@@ -59,11 +67,15 @@ AttributePlan Plan(vtkPolyData* pd)
     if (!plan.colors && a->GetDataType() == VTK_UNSIGNED_CHAR && (nc == 3 || nc == 4))
     {
       plan.colors = a;
+      continue;
     }
-    else if (nc == 1 && a->GetName())
+    plan.others.push_back(a);
+    for (int k = 0; k < nc; ++k)
     {
-      plan.scalars.push_back(a);
-      plan.layout.scalars.emplace_back(a->GetName());
+      plan.channels.push_back(a);
+      plan.channelComponent.push_back(k);
+      const std::string name = a->GetName() ? a->GetName() : "array" + std::to_string(i);
+      plan.layout.scalars.push_back(nc == 1 ? name : name + "_" + std::to_string(k));
     }
   }
   plan.layout.normals = plan.normals != nullptr;
@@ -71,12 +83,98 @@ AttributePlan Plan(vtkPolyData* pd)
   plan.layout.texcoords = plan.tcoords != nullptr;
   return plan;
 }
+
+// A new array like `like` (type, name, components and their names) of n tuples.
+vtkSmartPointer<vtkDataArray> NewArrayLike(vtkDataArray* like, vtkIdType n)
+{
+  vtkSmartPointer<vtkDataArray> a = vtk::TakeSmartPointer(like->NewInstance());
+  a->SetName(like->GetName());
+  a->SetNumberOfComponents(like->GetNumberOfComponents());
+  a->CopyComponentNames(like);
+  a->SetNumberOfTuples(n);
+  return a;
+}
+
+// A carried float value stored into an array of like's type: integer types take the nearest
+// representable value (the core interpolates in float), floating types the value.
+double Representable(vtkDataArray* like, double v)
+{
+  const int t = like->GetDataType();
+  if (t == VTK_FLOAT || t == VTK_DOUBLE)
+  {
+    return v;
+  }
+  if (!std::isfinite(v))
+  {
+    return 0;
+  }
+  return std::clamp(std::nearbyint(v), like->GetDataTypeMin(), like->GetDataTypeMax());
+}
+}
+
+std::vector<std::string> PointArraysNotCarried(vtkPolyData* input)
+{
+  std::vector<std::string> names;
+  vtkPointData* pd = input->GetPointData();
+  for (int i = 0; i < pd->GetNumberOfArrays(); ++i)
+  {
+    if (!pd->GetArray(i)) // string, variant and other non-numeric arrays
+    {
+      vtkAbstractArray* a = pd->GetAbstractArray(i);
+      names.emplace_back(a && a->GetName() ? a->GetName() : "(unnamed)");
+    }
+  }
+  return names;
+}
+
+std::vector<std::string> ImpreciseIntegerArrays(vtkPolyData* input)
+{
+  // The core carries point data as float: integers beyond 2^24 in magnitude lose digits.
+  std::vector<std::string> names;
+  const AttributePlan plan = Plan(input->GetPointData());
+  for (vtkDataArray* a : plan.others)
+  {
+    const int t = a->GetDataType();
+    if (t == VTK_FLOAT || t == VTK_DOUBLE || a->GetDataTypeSize() < 4)
+    {
+      continue;
+    }
+    for (int k = 0; k < a->GetNumberOfComponents(); ++k)
+    {
+      double r[2];
+      a->GetRange(r, k);
+      if (std::max(std::fabs(r[0]), std::fabs(r[1])) > double(1 << 24))
+      {
+        names.emplace_back(a->GetName() ? a->GetName() : "(unnamed)");
+        break;
+      }
+    }
+  }
+  return names;
 }
 
 std::array<double, 6> Bounds(vtkPolyData* input)
 {
-  std::array<double, 6> b;
-  input->GetPoints()->GetBounds(b.data());
+  std::array<double, 6> b{ VTK_DOUBLE_MAX, VTK_DOUBLE_MIN, VTK_DOUBLE_MAX, VTK_DOUBLE_MIN,
+    VTK_DOUBLE_MAX, VTK_DOUBLE_MIN };
+  vtkPoints* points = input->GetPoints();
+  double p[3];
+  for (vtkIdType i = 0, n = input->GetNumberOfPoints(); i < n; ++i)
+  {
+    points->GetPoint(i, p);
+    if (!std::isfinite(p[0]) || !std::isfinite(p[1]) || !std::isfinite(p[2]))
+    {
+      std::ostringstream m;
+      m << "point " << i << " has a non-finite coordinate (" << p[0] << ", " << p[1] << ", "
+        << p[2] << ")";
+      throw io::MeshIOError(m.str());
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      b[2 * k] = std::min(b[2 * k], p[k]);
+      b[2 * k + 1] = std::max(b[2 * k + 1], p[k]);
+    }
+  }
   return b;
 }
 
@@ -90,7 +188,7 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
     {
       throw io::MeshIOError("the input has more points than 32-bit indices can address");
     }
-    AttributePlan plan = Plan(input);
+    AttributePlan plan = Plan(input->GetPointData());
     io::MeshHeader header;
     header.vertexCount = static_cast<std::uint64_t>(np);
     header.faceCount =
@@ -158,15 +256,16 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
         }
         c.texcoords = tcoords.data();
       }
-      if (!plan.scalars.empty())
+      if (!plan.channels.empty())
       {
-        const std::size_t ns = plan.scalars.size();
+        const std::size_t ns = plan.channels.size();
         scalars.resize(ns * n);
         for (vtkIdType i = 0; i < n; ++i)
         {
           for (std::size_t s = 0; s < ns; ++s)
           {
-            scalars[ns * i + s] = float(plan.scalars[s]->GetComponent(first + i, 0));
+            scalars[ns * i + s] =
+              float(plan.channels[s]->GetComponent(first + i, plan.channelComponent[s]));
           }
         }
         c.scalars = scalars.data();
@@ -194,6 +293,16 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
       }
     };
     auto emit = [&](vtkIdType a, vtkIdType b, vtkIdType c) {
+      for (const vtkIdType id : { a, b, c })
+      {
+        if (id < 0 || id >= np)
+        {
+          // checked in 64 bits: an id of 2^32 or more must not wrap to a valid index
+          throw io::MeshIOError("polygon or strip " + std::to_string(stats.polygons - 1) +
+            " (counting polygons, then strips) references point id " + std::to_string(id) + ", but the input has " +
+            std::to_string(np) + " points");
+        }
+      }
       if (a == b || b == c || a == c)
       {
         ++stats.droppedFaces;
@@ -250,6 +359,7 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
 struct PolyDataSink::Impl
 {
   vtkPolyData* output;
+  vtkPointData* like = nullptr; // the input's point data, whose arrays the output rebuilds
   vtkSmartPointer<vtkFloatArray> points;
   vtkSmartPointer<vtkFloatArray> normals;
   vtkSmartPointer<vtkUnsignedCharArray> colors;
@@ -259,10 +369,11 @@ struct PolyDataSink::Impl
   std::uint64_t vertexCount = 0;
 };
 
-PolyDataSink::PolyDataSink(vtkPolyData* output)
+PolyDataSink::PolyDataSink(vtkPolyData* output, vtkPointData* inputPointData)
   : impl_(std::make_shared<Impl>())
 {
   this->impl_->output = output;
+  this->impl_->like = inputPointData;
 }
 
 void PolyDataSink::Begin(const io::MeshHeader& h)
@@ -362,21 +473,72 @@ void PolyDataSink::End(const io::ReadStats&)
   m.output->SetPoints(points);
   m.output->SetPolys(polys);
   vtkPointData* pd = m.output->GetPointData();
-  if (m.normals)
+  if (!m.like)
   {
-    pd->SetNormals(m.normals);
+    // a file's attributes: the names the file readers give them
+    if (m.normals)
+    {
+      pd->SetNormals(m.normals);
+    }
+    if (m.colors)
+    {
+      pd->SetScalars(m.colors);
+    }
+    if (m.tcoords)
+    {
+      pd->SetTCoords(m.tcoords);
+    }
+    for (auto& a : m.scalars)
+    {
+      pd->AddArray(a);
+    }
+    return;
   }
-  if (m.colors)
-  {
-    pd->SetScalars(m.colors);
-  }
-  if (m.tcoords)
-  {
-    pd->SetTCoords(m.tcoords);
-  }
-  for (auto& a : m.scalars)
-  {
+
+  // the input's arrays: the same names, component counts, types and attribute roles
+  const AttributePlan plan = Plan(m.like);
+  const vtkIdType n = vtkIdType(m.vertexCount);
+  auto rebuild = [&](vtkDataArray* like, const auto& valueOf) {
+    vtkSmartPointer<vtkDataArray> a = NewArrayLike(like, n);
+    const int nc = like->GetNumberOfComponents();
+    for (vtkIdType i = 0; i < n; ++i)
+    {
+      for (int k = 0; k < nc; ++k)
+      {
+        a->SetComponent(i, k, Representable(like, valueOf(i, k)));
+      }
+    }
     pd->AddArray(a);
+    for (int role = 0; role < vtkDataSetAttributes::NUM_ATTRIBUTES; ++role)
+    {
+      if (m.like->GetAttribute(role) == like)
+      {
+        pd->SetAttribute(a, role);
+      }
+    }
+  };
+  if (plan.normals && m.normals)
+  {
+    rebuild(plan.normals, [&](vtkIdType i, int k) { return double(m.normals->GetValue(3 * i + k)); });
+  }
+  if (plan.colors && m.colors)
+  {
+    rebuild(plan.colors, [&](vtkIdType i, int k) { return double(m.colors->GetValue(4 * i + k)); });
+  }
+  if (plan.tcoords && m.tcoords)
+  {
+    rebuild(plan.tcoords, [&](vtkIdType i, int k) { return double(m.tcoords->GetValue(2 * i + k)); });
+  }
+  std::size_t channel = 0;
+  for (vtkDataArray* like : plan.others)
+  {
+    if (channel + std::size_t(like->GetNumberOfComponents()) > m.scalars.size())
+    {
+      break;
+    }
+    const std::size_t first = channel;
+    rebuild(like, [&](vtkIdType i, int k) { return double(m.scalars[first + k]->GetValue(i)); });
+    channel += std::size_t(like->GetNumberOfComponents());
   }
 }
 

@@ -7,6 +7,7 @@
 #include "vtkSmartPointer.h"
 
 class vtkAlgorithm;
+class vtkPointData;
 class vtkPolyData;
 class vtkSIPMSSFilterBase;
 
@@ -18,13 +19,24 @@ namespace vtkSIPMSSPolyDataBridge
 sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* skippedCells);
 
 // Bounds of the input's points (xmin xmax ymin ymax zmin zmax).
+// The input's bounds; throws MeshIOError naming the first point with a non-finite coordinate
+// (the filters call it for every pipeline input before a run).
 std::array<double, 6> Bounds(vtkPolyData* input);
+
+// Names of the input's point arrays that are not numeric (string, variant): not carried.
+std::vector<std::string> PointArraysNotCarried(vtkPolyData* input);
+// Names of the input's integer point arrays with values beyond 2^24 in magnitude: the core carries
+// point data as float, so they come out rounded.
+std::vector<std::string> ImpreciseIntegerArrays(vtkPolyData* input);
 
 // A sink that builds a vtkPolyData (float points, triangles, point data arrays).
 class PolyDataSink : public sipmss::io::MeshSink
 {
 public:
-  explicit PolyDataSink(vtkPolyData* output);
+  // With inputPointData (the input's point data), the output's point data rebuilds its arrays:
+  // the same names, component counts, types and attribute roles (integers take the nearest
+  // value); without it, a file's attributes get the readers' names (Normals, RGBA, TCoords).
+  explicit PolyDataSink(vtkPolyData* output, vtkPointData* inputPointData = nullptr);
   void Begin(const sipmss::io::MeshHeader& header) override;
   void Vertices(const sipmss::io::VertexChunk& chunk) override;
   void Triangles(const std::uint32_t* indices, std::size_t count) override;

@@ -12,7 +12,74 @@ from vtkmodules.vtkFiltersGeneral import vtkDistancePolyDataFilter, vtkTransform
 import json
 import subprocess
 
+from vtkmodules.vtkCommonCore import (VTK_DOUBLE, VTK_FLOAT, VTK_INT, VTK_LONG_LONG, VTK_STRING,
+                                      VTK_UNSIGNED_CHAR, vtkDoubleArray, vtkFloatArray, vtkIntArray,
+                                      vtkLongLongArray, vtkPoints, vtkStringArray,
+                                      vtkUnsignedCharArray)
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.util.misc import calldata_type
+
 from sipmss import vtkSIPMSSCluster, vtkSIPMSSDecimate, vtkSIPMSSFilterBase
+
+
+class Messages:
+    """Collects a filter's warning and error messages."""
+
+    def __init__(self, f):
+        self.warnings, self.errors = [], []
+
+        @calldata_type(VTK_STRING)
+        def on_warning(_obj, _event, text):
+            self.warnings.append(text)
+
+        @calldata_type(VTK_STRING)
+        def on_error(_obj, _event, text):
+            self.errors.append(text)
+
+        f.AddObserver("WarningEvent", on_warning)
+        f.AddObserver("ErrorEvent", on_error)
+
+
+def attributed_sphere():
+    """A sphere with point data of many kinds and roles, and cell data."""
+    src = sphere(60)
+    pd = vtkPolyData()
+    pd.DeepCopy(src.GetOutput())
+    n = pd.GetNumberOfPoints()
+    rgb = vtkUnsignedCharArray()
+    rgb.SetName("RGB")
+    rgb.SetNumberOfComponents(3)
+    tc = vtkFloatArray()
+    tc.SetName("TextureCoordinates")
+    tc.SetNumberOfComponents(2)
+    label = vtkIntArray()
+    label.SetName("Label")
+    vel = vtkDoubleArray()
+    vel.SetName("Velocity")
+    vel.SetNumberOfComponents(3)
+    vel.SetComponentName(0, "vx")
+    big = vtkLongLongArray()
+    big.SetName("Id64")
+    names = vtkStringArray()
+    names.SetName("Names")
+    for i in range(n):
+        x, y, z = pd.GetPoint(i)
+        rgb.InsertNextTuple3(255 if x > 0 else 0, 128, 10)
+        tc.InsertNextTuple2(x + 0.5, y + 0.5)
+        label.InsertNextValue(0 if z < -0.2 else (3 if z < 0.2 else 7))
+        vel.InsertNextTuple3(x, -y, 2 * z)
+        big.InsertNextValue(1000 + i)
+        names.InsertNextValue("p%d" % i)
+    for a in (rgb, tc, label, vel, big, names):
+        pd.GetPointData().AddArray(a)
+    pd.GetPointData().SetActiveScalars("RGB")
+    pd.GetPointData().SetActiveTCoords("TextureCoordinates")
+    region = vtkIntArray()
+    region.SetName("Region")
+    for i in range(pd.GetNumberOfCells()):
+        region.InsertNextValue(i % 3)
+    pd.GetCellData().AddArray(region)
+    return pd
 
 
 def sphere(resolution=100):
@@ -126,6 +193,92 @@ class SIPMSSPythonTest(unittest.TestCase):
         self.assertAlmostEqual(ours["hausdorff_absolute"], vtk_max, delta=0.03 * vtk_max)
         self.assertAlmostEqual(ours["mean_absolute"], vtk_mean, delta=0.03 * vtk_mean)
         self.assertAlmostEqual(ours["diagonal"], 3 ** 0.5, delta=1e-3)
+
+
+    def test_arrays_keep_names_types_and_roles(self):
+        pd = attributed_sphere()
+        expect = {"Normals": (3, VTK_FLOAT), "RGB": (3, VTK_UNSIGNED_CHAR),
+                  "TextureCoordinates": (2, VTK_FLOAT), "Label": (1, VTK_INT),
+                  "Velocity": (3, VTK_DOUBLE), "Id64": (1, VTK_LONG_LONG)}
+        cluster = vtkSIPMSSCluster()
+        cluster.SetMaximumGridDimension(20)
+        decimate = vtkSIPMSSDecimate()
+        decimate.SetTargetNumberOfTriangles(500)
+        decimate.SetNumberOfLevelsOfDetail(2)
+        two_stage = vtkSIPMSSDecimate()
+        two_stage.SetTargetNumberOfTriangles(500)
+        two_stage.SetPreClusterGridDimension(30)
+        for f in (cluster, decimate, two_stage):
+            msgs = Messages(f)
+            f.SetInputData(pd)
+            f.Update()
+            outputs = [f.GetOutput()]
+            if f is decimate:
+                lods = f.GetOutputDataObject(1)
+                outputs += [lods.GetBlock(i) for i in range(lods.GetNumberOfBlocks())]
+            for out in outputs:
+                self.assertGreater(out.GetNumberOfPolys(), 0)
+                opd = out.GetPointData()
+                got = {opd.GetArrayName(i): (opd.GetArray(i).GetNumberOfComponents(),
+                                            opd.GetArray(i).GetDataType())
+                       for i in range(opd.GetNumberOfArrays())}
+                self.assertEqual(got, expect, f.GetClassName())
+                self.assertEqual(opd.GetScalars().GetName(), "RGB")
+                self.assertEqual(opd.GetTCoords().GetName(), "TextureCoordinates")
+                self.assertEqual(opd.GetNormals().GetName(), "Normals")
+                self.assertEqual(opd.GetArray("Velocity").GetComponentName(0), "vx")
+                # integers take values the input has (nearest, never a fraction)
+                labels = {opd.GetArray("Label").GetValue(i) for i in range(out.GetNumberOfPoints())}
+                self.assertTrue(labels <= {0, 1, 2, 3, 4, 5, 6, 7}, labels)
+                red = {opd.GetArray("RGB").GetComponent(i, 0) for i in range(out.GetNumberOfPoints())}
+                self.assertTrue(red <= set(float(v) for v in range(256)))
+            # what is not carried is named once in a warning
+            text = " ".join(msgs.warnings)
+            self.assertIn("Region", text)
+            self.assertIn("Names", text)
+            self.assertEqual(msgs.errors, [])
+
+    def test_non_finite_points_are_an_error(self):
+        for bad in (float("nan"), float("inf")):
+            pd = vtkPolyData()
+            pd.DeepCopy(sphere(20).GetOutput())
+            pd.GetPoints().SetPoint(7, 0.1, bad, 0.2)
+            for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
+                msgs = Messages(f)
+                f.SetInputData(pd)
+                f.Update()
+                self.assertEqual(f.GetOutput().GetNumberOfPoints(), 0)
+                self.assertEqual(len(msgs.errors), 1, msgs.errors)
+                self.assertIn("point 7 has a non-finite coordinate", msgs.errors[0])
+
+    def test_point_ids_are_checked_in_64_bits(self):
+        pts = vtkPoints()
+        for p in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)):
+            pts.InsertNextPoint(p)
+        cells = vtkCellArray()
+        cells.InsertNextCell(3, (0, 1, 3))
+        cells.InsertNextCell(3, (0, 1, 2 ** 32 + 2))  # must not wrap to (0, 1, 2)
+        pd = vtkPolyData()
+        pd.SetPoints(pts)
+        pd.SetPolys(cells)
+        for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
+            msgs = Messages(f)
+            f.SetInputData(pd)
+            f.Update()
+            self.assertEqual(f.GetOutput().GetNumberOfPolys(), 0)
+            self.assertEqual(len(msgs.errors), 1, msgs.errors)
+            self.assertIn("references point id 4294967298, but the input has 4 points", msgs.errors[0])
+
+    def test_memory_budget_nan_is_an_error(self):
+        f = vtkSIPMSSDecimate()
+        msgs = Messages(f)
+        src = sphere(20)  # alive while the filter uses its port
+        f.SetInputConnection(src.GetOutputPort())
+        f.SetMemoryBudgetMB(float("nan"))
+        f.Update()
+        self.assertEqual(f.GetOutput().GetNumberOfPolys(), 0)
+        self.assertEqual(len(msgs.errors), 1)
+        self.assertIn("MemoryBudgetMB must be a finite number", msgs.errors[0])
 
 
 if __name__ == "__main__":
