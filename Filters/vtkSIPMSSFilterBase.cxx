@@ -137,6 +137,11 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     this->BytesRead = stats.storage.bytesRead;
     this->BytesWritten = stats.storage.bytesWritten;
     this->Reconfigurations = stats.storage.reconfigurations;
+    if (stats.droppedInputFaces)
+    {
+      vtkWarningMacro("Dropped " << stats.droppedInputFaces << " degenerate faces of " << what
+        << " (fewer than 3 vertices or a repeated vertex).");
+    }
   }
   catch (const sipmss::algorithms::AbortedError&)
   {

@@ -269,6 +269,26 @@ class SIPMSSPythonTest(unittest.TestCase):
             self.assertEqual(len(msgs.errors), 1, msgs.errors)
             self.assertIn("references point id 4294967298, but the input has 4 points", msgs.errors[0])
 
+    def test_dropped_faces_are_reported(self):
+        pts = vtkPoints()
+        for p in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)):
+            pts.InsertNextPoint(p)
+        cells = vtkCellArray()
+        cells.InsertNextCell(3, (0, 1, 3))
+        cells.InsertNextCell(3, (0, 3, 2))
+        cells.InsertNextCell(3, (1, 1, 2))  # a repeated vertex
+        cells.InsertNextCell(2, (1, 2))     # two vertices
+        pd = vtkPolyData()
+        pd.SetPoints(pts)
+        pd.SetPolys(cells)
+        for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
+            msgs = Messages(f)
+            f.SetInputData(pd)
+            f.Update()
+            self.assertEqual(msgs.errors, [])
+            self.assertTrue(any("Dropped 2 degenerate faces of the input" in w for w in msgs.warnings),
+                            msgs.warnings)
+
     def test_memory_budget_nan_is_an_error(self):
         f = vtkSIPMSSDecimate()
         msgs = Messages(f)

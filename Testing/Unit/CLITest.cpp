@@ -230,6 +230,41 @@ std::string ReadAll(const fs::path& p)
   std::ifstream f(p, std::ios::binary);
   return std::string(std::istreambuf_iterator<char>(f), {});
 }
+
+// A binary PLY of an n x n grid of quads (2 n^2 triangles) with a bumpy height.
+void WriteGrid(const std::string& path, int n)
+{
+  std::ofstream f(path, std::ios::binary);
+  f << "ply\nformat binary_little_endian 1.0\nelement vertex " << (n + 1) * (n + 1)
+    << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
+    << "\nproperty list uchar int vertex_indices\nend_header\n";
+  std::vector<float> row(3 * std::size_t(n + 1));
+  for (int j = 0; j <= n; ++j)
+  {
+    for (int i = 0; i <= n; ++i)
+    {
+      row[3 * i] = float(i), row[3 * i + 1] = float(j), row[3 * i + 2] = float((i * j) % 7);
+    }
+    f.write(reinterpret_cast<const char*>(row.data()), std::streamsize(row.size() * 4));
+  }
+  std::vector<char> faces(13 * 2 * std::size_t(n));
+  for (int j = 0; j < n; ++j)
+  {
+    char* p = faces.data();
+    for (int i = 0; i < n; ++i)
+    {
+      const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+      const int t[2][3] = { { a, b, c }, { a, c, d } };
+      for (const auto& tri : t)
+      {
+        *p++ = 3;
+        std::memcpy(p, tri, 12);
+        p += 12;
+      }
+    }
+    f.write(faces.data(), std::streamsize(faces.size()));
+  }
+}
 } // namespace
 
 TEST_F(CLI, RefusesToOverwriteTheInput)
@@ -304,39 +339,7 @@ TEST_F(CLI, OutputIsCheckedBeforeTheRun)
   // A big input whose read alone takes seconds: every output problem must be reported at once,
   // naming the user's path (not a temporary name), with nothing written.
   const std::string big = P("big.ply");
-  {
-    const int n = 1500; // 4.5M triangles, 54 MB
-    std::ofstream f(big, std::ios::binary);
-    f << "ply\nformat binary_little_endian 1.0\nelement vertex " << (n + 1) * (n + 1)
-      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
-      << "\nproperty list uchar int vertex_indices\nend_header\n";
-    std::vector<float> row(3 * (n + 1));
-    for (int j = 0; j <= n; ++j)
-    {
-      for (int i = 0; i <= n; ++i)
-      {
-        row[3 * i] = float(i), row[3 * i + 1] = float(j), row[3 * i + 2] = float((i * j) % 7);
-      }
-      f.write(reinterpret_cast<const char*>(row.data()), std::streamsize(row.size() * 4));
-    }
-    std::vector<char> faces(13 * 2 * std::size_t(n));
-    for (int j = 0; j < n; ++j)
-    {
-      char* p = faces.data();
-      for (int i = 0; i < n; ++i)
-      {
-        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
-        const int t[2][3] = { { a, b, c }, { a, c, d } };
-        for (const auto& tri : t)
-        {
-          *p++ = 3;
-          std::memcpy(p, tri, 12);
-          p += 12;
-        }
-      }
-      f.write(faces.data(), std::streamsize(faces.size()));
-    }
-  }
+  WriteGrid(big, 1500); // 4.5M triangles, 54 MB
   fs::create_directory(this->dir / "adir.ply");
   struct Case
   {
@@ -470,4 +473,37 @@ TEST_F(CLI, RepairsAreReported)
     EXPECT_NE(r.out.find("empty.ply: nothing to simplify"), std::string::npos) << algorithm << "\n" << r.out;
     EXPECT_FALSE(fs::exists(this->dir / "none.ply"));
   }
+}
+
+TEST_F(CLI, ProgressBarShowsPhasePercentElapsedAndTimeLeft)
+{
+  // On a terminal (script(1) gives the run a pseudo-terminal) the bar shows the phase, percent,
+  // the elapsed time and, once a second has passed, an estimate of the time left.
+  WriteGrid(P("grid.ply"), 900); // 1.6M triangles: more than a second at 4 MB on one thread
+  const std::string cmd = "script -qec '" + std::string(SIPMSS_CLI) + " simplify " + P("grid.ply") +
+    " " + P("out.ply") + " --algorithm decimate --target 1000 --memory-mb 4 --threads 1 --tmpdir " +
+    this->dir.string() + "' /dev/null";
+  Result r = RunCli("--version"); // the CLI exists
+  ASSERT_EQ(r.status, 0);
+  FILE* p = ::popen((cmd + " 2>&1").c_str(), "r");
+  std::string out;
+  std::array<char, 4096> buf{};
+  std::size_t k;
+  while ((k = std::fread(buf.data(), 1, buf.size(), p)) > 0)
+  {
+    out.append(buf.data(), k);
+  }
+  ASSERT_EQ(::pclose(p), 0) << out;
+  EXPECT_NE(out.find("% collapse"), std::string::npos) << out.substr(0, 2000);
+  EXPECT_NE(out.find(" elapsed"), std::string::npos) << out.substr(0, 2000);
+  EXPECT_NE(out.find(" left"), std::string::npos) << out.substr(0, 2000);
+  // percentages never go down
+  int last = -1;
+  for (std::size_t at = out.find("] "); at != std::string::npos; at = out.find("] ", at + 2))
+  {
+    const int percent = std::atoi(out.c_str() + at + 2);
+    EXPECT_GE(percent, last) << out.substr(at > 200 ? at - 200 : 0, 400);
+    last = percent;
+  }
+  EXPECT_GT(last, 50);
 }

@@ -51,42 +51,68 @@ extern "C" void OnInterrupt(int sig)
   std::signal(sig, SIG_DFL);
 }
 
-// A progress bar on a terminal; silent otherwise. Aborted() on SIGINT/SIGTERM.
+// A progress bar on a terminal: the phase, percent, elapsed time and an estimate of the time left
+// (from the run's progress so far); silent otherwise. Aborted() on SIGINT/SIGTERM.
 class TerminalProgress final : public algorithms::Progress
 {
 public:
   explicit TerminalProgress(bool enabled)
     : enabled_(enabled)
+    , start_(std::chrono::steady_clock::now())
   {
     this->SetInterval(0.1);
   }
-  ~TerminalProgress() override { this->Finish(); }
+  ~TerminalProgress() override { this->Clear(); }
   void Report(double fraction, const char* phase) override
   {
     if (!this->enabled_)
     {
       return;
     }
+    const double elapsed =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - this->start_).count();
     const int width = 30;
     const int filled = static_cast<int>(fraction * width + 0.5);
-    std::fprintf(stderr, "\r[%.*s%*s] %3d%% %-10s", filled, "##############################",
-      width - filled, "", static_cast<int>(fraction * 100 + 0.5), phase);
+    std::string left = "";
+    if (fraction >= 0.02 && fraction < 1 && elapsed >= 1)
+    {
+      left = ", ~" + Clock(elapsed * (1 - fraction) / fraction) + " left";
+    }
+    std::fprintf(stderr, "\r[%.*s%*s] %3d%% %-12s %s elapsed%s   ", filled,
+      "##############################", width - filled, "", static_cast<int>(fraction * 100),
+      phase, Clock(elapsed).c_str(), left.c_str());
     std::fflush(stderr);
     this->drawn_ = true;
   }
   bool Aborted() override { return g_interrupted != 0; }
-  void Finish()
+  void Clear()
   {
     if (this->drawn_)
     {
-      std::fprintf(stderr, "\r%*s\r", 50, "");
+      std::fprintf(stderr, "\r%*s\r", 90, "");
       this->drawn_ = false;
     }
   }
 
 private:
+  static std::string Clock(double seconds)
+  {
+    const long s = std::lround(seconds);
+    char buf[32];
+    if (s >= 3600)
+    {
+      std::snprintf(buf, sizeof(buf), "%ld:%02ld:%02ld", s / 3600, s / 60 % 60, s % 60);
+    }
+    else
+    {
+      std::snprintf(buf, sizeof(buf), "%ld:%02ld", s / 60, s % 60);
+    }
+    return buf;
+  }
+
   bool enabled_;
   bool drawn_ = false;
+  std::chrono::steady_clock::time_point start_;
 };
 
 // Writes a streamed mesh to a temporary name next to OUTPUT; Commit() renames it into place.
@@ -406,7 +432,7 @@ int RunSimplify(const SimplifyArgs& a)
   {
     s->Commit();
   }
-  progress.Finish();
+  progress.Clear();
   const double seconds =
     std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 
