@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 #include <zlib.h>
@@ -506,4 +507,63 @@ TEST_F(CLI, ProgressBarShowsPhasePercentElapsedAndTimeLeft)
     last = percent;
   }
   EXPECT_GT(last, 50);
+}
+
+TEST_F(CLI, OutputsThatAreNotRegularFilesAreNeverReplaced)
+{
+  // A symlink as OUTPUT: the mesh goes to the link's target, the link stays a link.
+  std::ofstream(this->dir / "real.ply") << "old";
+  fs::create_symlink(this->dir / "real.ply", this->dir / "link.ply");
+  Result r = RunCli("simplify " + P("octa.ply") + " " + P("link.ply") + " --grid 2 --quiet");
+  ASSERT_EQ(r.status, 0) << r.out;
+  EXPECT_TRUE(fs::is_symlink(this->dir / "link.ply"));
+  EXPECT_EQ(ReadAll(this->dir / "real.ply").rfind("ply\n", 0), 0u);
+  // A FIFO, a directory or a device is refused before the run and stays what it was.
+  ASSERT_EQ(::mkfifo(P("fifo.ply").c_str(), 0600), 0);
+  Result f = RunCli("simplify " + P("octa.ply") + " " + P("fifo.ply") + " --grid 2 --quiet");
+  EXPECT_EQ(f.status, 1) << f.out;
+  EXPECT_NE(f.out.find("fifo.ply: cannot write the output: it exists and is not a regular file"),
+    std::string::npos) << f.out;
+  EXPECT_TRUE(fs::is_fifo(this->dir / "fifo.ply"));
+  Result s = RunCli("simplify " + P("octa.ply") + " " + P("o.ply") + " --grid 2 --quiet --stats-json /dev/null");
+  EXPECT_EQ(s.status, 1) << s.out;
+  EXPECT_NE(s.out.find("/dev/null: cannot write the statistics: it exists and is not a regular file"),
+    std::string::npos) << s.out;
+  EXPECT_FALSE(fs::exists(this->dir / "o.ply"));
+}
+
+TEST_F(CLI, StatisticsOnAFullDiskAreAnError)
+{
+  // A 16 KiB tmpfs, filled up: the statistics cannot be written, so the run fails (exit 1) and
+  // writes nothing, neither the mesh nor a partial statistics file.
+  const fs::path mnt = this->dir / "full";
+  fs::create_directory(mnt);
+  if (std::system(("mount -t tmpfs -o size=16k tmpfs " + mnt.string() + " 2>/dev/null").c_str()) != 0)
+  {
+    GTEST_SKIP() << "cannot mount a tmpfs here (needs root): skipping the full-disk test";
+  }
+  {
+    std::ofstream fill(mnt / "fill", std::ios::binary);
+    const std::string block(1024, 'x');
+    for (int i = 0; i < 64 && fill; ++i)
+    {
+      fill << block << std::flush;
+    }
+  }
+  Result r = RunCli("simplify " + P("octa.ply") + " " + P("out.ply") + " --grid 2 --quiet --stats-json " +
+    (mnt / "s.json").string());
+  const std::vector<std::string> left = [&] {
+    std::vector<std::string> names;
+    for (const auto& e : fs::directory_iterator(mnt))
+    {
+      names.push_back(e.path().filename().string());
+    }
+    return names;
+  }();
+  EXPECT_EQ(std::system(("umount " + mnt.string()).c_str()), 0);
+  EXPECT_EQ(r.status, 1) << r.out;
+  EXPECT_NE(r.out.find("s.json: cannot write the statistics: No space left on device"), std::string::npos)
+    << r.out;
+  EXPECT_FALSE(fs::exists(this->dir / "out.ply"));
+  EXPECT_EQ(left, std::vector<std::string>{ "fill" });
 }

@@ -19,6 +19,7 @@
 #include <nlohmann/json.hpp>
 
 #include <sys/resource.h>
+#include <fcntl.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -32,6 +33,7 @@
 #include <fstream>
 #include <iostream>
 #include <limits>
+#include <optional>
 #include <random>
 
 namespace fs = std::filesystem;
@@ -197,6 +199,93 @@ private:
   bool committed_ = false;
 };
 
+// Where writing `path` lands: the file a symlink points to (the link stays a link, its target
+// gets the new content), else path itself.
+fs::path WriteTarget(const fs::path& path)
+{
+  std::error_code ec;
+  if (fs::is_symlink(path, ec))
+  {
+    const fs::path target = fs::weakly_canonical(path, ec);
+    if (!ec)
+    {
+      return target;
+    }
+  }
+  return path;
+}
+
+// A small file written whole to a hidden temporary name beside its target (through a symlink, the
+// link's target): any write failure is an error naming the user's path, and the temporary is
+// removed. Commit() renames it into place.
+class PendingFile
+{
+public:
+  PendingFile(const std::string& path, const std::string& content)
+    : path_(path)
+    , target_(WriteTarget(path))
+  {
+    this->temp_ = this->target_.parent_path() /
+      (".sipmss-" + std::to_string(::getpid()) + "-" + this->target_.filename().string());
+    const int fd = ::open(this->temp_.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0666);
+    if (fd < 0)
+    {
+      this->Fail(errno);
+    }
+    std::size_t done = 0;
+    while (done < content.size())
+    {
+      const ssize_t n = ::write(fd, content.data() + done, content.size() - done);
+      if (n < 0 && errno == EINTR)
+      {
+        continue;
+      }
+      if (n <= 0)
+      {
+        const int err = n < 0 ? errno : EIO;
+        ::close(fd);
+        this->Fail(err);
+      }
+      done += std::size_t(n);
+    }
+    if (::close(fd) != 0)
+    {
+      this->Fail(errno);
+    }
+  }
+  PendingFile(const PendingFile&) = delete;
+  PendingFile& operator=(const PendingFile&) = delete;
+  ~PendingFile()
+  {
+    if (!this->committed_)
+    {
+      std::error_code ec;
+      fs::remove(this->temp_, ec);
+    }
+  }
+  void Commit()
+  {
+    std::error_code ec;
+    fs::rename(this->temp_, this->target_, ec);
+    if (ec)
+    {
+      throw io::MeshIOError(this->path_ + ": cannot write: " + ec.message());
+    }
+    this->committed_ = true;
+  }
+
+private:
+  [[noreturn]] void Fail(int err)
+  {
+    std::error_code ec;
+    fs::remove(this->temp_, ec);
+    throw io::MeshIOError(this->path_ + ": cannot write the statistics: " + std::strerror(err));
+  }
+  std::string path_;
+  fs::path target_, temp_;
+  bool committed_ = false;
+};
+
 // Gathers the header, counts and bounds (for info).
 class InfoSink final : public io::MeshSink
 {
@@ -300,29 +389,36 @@ struct SimplifyArgs
 };
 
 // A path this run will write must be a writable place: its directory exists and is writable, and
-// the path is not a directory. Checked before any work, naming the user's path.
+// what is there now, if anything, is a regular file (never a directory, FIFO, device or socket).
+// Checked before any work, naming the user's path.
 void CheckWritablePath(const fs::path& path, const char* what)
 {
-  const fs::path dir = path.parent_path().empty() ? fs::path(".") : path.parent_path();
+  const fs::path target = WriteTarget(path);
+  const std::string named =
+    path.string() + (target != path ? " (a symlink to " + target.string() + ")" : std::string());
+  const fs::path dir = target.parent_path().empty() ? fs::path(".") : target.parent_path();
   std::error_code ec;
   if (!fs::is_directory(dir, ec))
   {
-    throw io::MeshIOError(path.string() + ": cannot write the " + what + ": the directory " +
+    throw io::MeshIOError(named + ": cannot write the " + what + ": the directory " +
       dir.string() + (fs::exists(dir, ec) ? " is not a directory" : " does not exist"));
   }
   if (::access(dir.c_str(), W_OK | X_OK) != 0)
   {
-    throw io::MeshIOError(path.string() + ": cannot write the " + what + ": the directory " +
+    throw io::MeshIOError(named + ": cannot write the " + what + ": the directory " +
       dir.string() + " is not writable (" + std::strerror(errno) + ")");
   }
-  if (fs::is_directory(path, ec))
+  const fs::file_status st = fs::symlink_status(target, ec);
+  if (fs::exists(st) && !fs::is_regular_file(st))
   {
-    throw io::MeshIOError(path.string() + ": cannot write the " + what + ": it is a directory");
+    throw io::MeshIOError(named + ": cannot write the " + what + ": " +
+      (fs::is_directory(st) ? "it is a directory" : "it exists and is not a regular file") +
+      " (it is never replaced)");
   }
 }
 
 // Everything about OUTPUT, the levels of detail and the statistics file that can be known before
-// the run: the input is not among them, the mesh formats are known, the directories writable.
+// the run: the input is not among them, the mesh formats are known, the places writable.
 void CheckOutputs(const SimplifyArgs& a)
 {
   std::vector<fs::path> writes{ fs::path(a.output) };
@@ -336,6 +432,7 @@ void CheckOutputs(const SimplifyArgs& a)
   }
   RefuseToOverwriteInput(a.input, writes);
   io::MeshWriter::CheckExtension(a.output);
+  io::MeshWriter::CheckExtension(WriteTarget(a.output), a.output + " (through its symlink)");
   for (std::size_t i = 0; i < writes.size(); ++i)
   {
     const bool stats = !a.statsJson.empty() && i + 1 == writes.size();
@@ -371,7 +468,7 @@ int RunSimplify(const SimplifyArgs& a)
   }
 
   std::vector<std::unique_ptr<FileSink>> lodSinks;
-  FileSink sink(a.output);
+  FileSink sink(WriteTarget(a.output));
   algorithms::RunStats stats;
   const auto start = std::chrono::steady_clock::now();
   if (a.algorithm == "cluster")
@@ -399,7 +496,7 @@ int RunSimplify(const SimplifyArgs& a)
     if (a.lods > 1)
     {
       onLevel = [&](int level, const std::function<void(io::MeshSink&)>& emit) {
-        auto s = std::make_unique<FileSink>(LodPath(a.output, level));
+        auto s = std::make_unique<FileSink>(WriteTarget(LodPath(a.output, level)));
         emit(*s);
         lodSinks.push_back(std::move(s));
       };
@@ -427,40 +524,13 @@ int RunSimplify(const SimplifyArgs& a)
       (stats.droppedInputFaces ? " (" + std::to_string(stats.droppedInputFaces) +
             " degenerate faces were dropped)" : std::string()));
   }
-  sink.Commit();
-  for (auto& s : lodSinks)
-  {
-    s->Commit();
-  }
   progress.Clear();
   const double seconds =
     std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 
-  if (stats.droppedInputFaces)
-  {
-    // a repair of the input is reported even with --quiet
-    std::fprintf(stderr,
-      "sipmss: warning: %s: dropped %llu degenerate faces (fewer than 3 vertices or a repeated "
-      "vertex) while reading\n",
-      a.input.c_str(), (unsigned long long)stats.droppedInputFaces);
-  }
-  if (!a.quiet)
-  {
-    std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices) in %.2f s, peak RSS %.1f MB, "
-                "%s%s\n",
-      a.algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
-      (unsigned long long)stats.outputTriangles, (unsigned long long)stats.outputVertices, seconds,
-      PeakRssMB(),
-      stats.storage.usedOutOfCore ? (stats.storage.usedInCore ? "out of core then in core" : "out of core")
-                                  : "in core",
-      "");
-    std::printf("sipmss: wrote %s\n", a.output.c_str());
-    if (a.lods > 1 && !lodSinks.empty())
-    {
-      std::printf("sipmss: wrote %zu levels of detail %s .. %s\n", lodSinks.size(),
-        LodPath(a.output, 0).c_str(), LodPath(a.output, int(lodSinks.size()) - 1).c_str());
-    }
-  }
+  // The statistics are written to a temporary file first: a failure (a full disk) is an error
+  // before anything is renamed into place.
+  std::optional<PendingFile> statsFile;
   if (!a.statsJson.empty())
   {
     nlohmann::json j;
@@ -487,11 +557,40 @@ int RunSimplify(const SimplifyArgs& a)
       { "used_out_of_core", s.usedOutOfCore }, { "peak_bytes", s.peakBytes }, { "hits", s.hits },
       { "misses", s.misses }, { "bytes_read", s.bytesRead }, { "bytes_written", s.bytesWritten },
       { "reconfigurations", s.reconfigurations }, { "forks", s.forks } };
-    std::ofstream f(a.statsJson);
-    f << j.dump(2) << "\n";
-    if (!f)
+    statsFile.emplace(a.statsJson, j.dump(2) + "\n");
+  }
+  sink.Commit();
+  for (auto& s : lodSinks)
+  {
+    s->Commit();
+  }
+  if (statsFile)
+  {
+    statsFile->Commit();
+  }
+
+  if (stats.droppedInputFaces)
+  {
+    // a repair of the input is reported even with --quiet
+    std::fprintf(stderr,
+      "sipmss: warning: %s: dropped %llu degenerate faces (fewer than 3 vertices or a repeated "
+      "vertex) while reading\n",
+      a.input.c_str(), (unsigned long long)stats.droppedInputFaces);
+  }
+  if (!a.quiet)
+  {
+    std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices) in %.2f s, peak RSS %.1f MB, "
+                "%s\n",
+      a.algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
+      (unsigned long long)stats.outputTriangles, (unsigned long long)stats.outputVertices, seconds,
+      PeakRssMB(),
+      stats.storage.usedOutOfCore ? (stats.storage.usedInCore ? "out of core then in core" : "out of core")
+                                  : "in core");
+    std::printf("sipmss: wrote %s\n", a.output.c_str());
+    if (a.lods > 1 && !lodSinks.empty())
     {
-      throw io::MeshIOError(a.statsJson + ": cannot write the statistics");
+      std::printf("sipmss: wrote %zu levels of detail %s .. %s\n", lodSinks.size(),
+        LodPath(a.output, 0).c_str(), LodPath(a.output, int(lodSinks.size()) - 1).c_str());
     }
   }
   return 0;
