@@ -33,12 +33,56 @@ vtk_module_scan(
   PROVIDES_MODULES  _sipmss_modules
   ENABLE_TESTS      OFF) # our filter tests live in Testing/ (plain CTest, see below)
 
+# C++ users: `find_package(SIPMSS)` then link SIPMSS::Filters, from this build tree (add it to
+# CMAKE_PREFIX_PATH) or from an installed prefix. vtk_module_build installs the headers, the
+# targets and the module properties into CMAKE_DESTINATION and, with INSTALL_HEADERS and
+# INSTALL_EXPORT, also export()s the same targets into that directory below the build tree; the
+# build tree's lib/cmake/SIPMSS mirrors the install layout, so one SIPMSSConfig.cmake serves both.
+set(SIPMSS_CMAKE_DESTINATION "${CMAKE_INSTALL_LIBDIR}/cmake/SIPMSS")
 vtk_module_build(
   MODULES              ${_sipmss_modules}
-  INSTALL_HEADERS      OFF
-  INSTALL_EXPORT       SIPMSSFilters
+  PACKAGE              SIPMSS
+  INSTALL_HEADERS      ON
+  HEADERS_DESTINATION  "${CMAKE_INSTALL_INCLUDEDIR}/sipmss"
+  CMAKE_DESTINATION    "${SIPMSS_CMAKE_DESTINATION}"
+  INSTALL_EXPORT       SIPMSS
   VERSION              "${PROJECT_VERSION}"
   SOVERSION            "1")
+# What the consumer's VTK must be: the same major.minor and the same build of it (ParaView's VTK
+# names its libraries libvtk*-pv<version>, a plain VTK libvtk*-<version>), told apart by the
+# soname of VTK::CommonCore.
+get_target_property(_sipmss_vtk_configs VTK::CommonCore IMPORTED_CONFIGURATIONS)
+list(GET _sipmss_vtk_configs 0 _sipmss_vtk_config)
+get_target_property(SIPMSS_VTK_COMMONCORE_SONAME VTK::CommonCore
+  "IMPORTED_SONAME_${_sipmss_vtk_config}")
+if (NOT SIPMSS_VTK_COMMONCORE_SONAME)
+  set(SIPMSS_VTK_COMMONCORE_SONAME "")
+endif ()
+if (SIPMSS_FRONTEND STREQUAL "paraview")
+  set(SIPMSS_VTK_FLAVOUR "the VTK of ParaView ${ParaView_VERSION}")
+else ()
+  set(SIPMSS_VTK_FLAVOUR "a plain VTK")
+endif ()
+vtk_module_export_find_packages(
+  CMAKE_DESTINATION    "${SIPMSS_CMAKE_DESTINATION}"
+  FILE_NAME            "SIPMSS-vtk-module-find-packages.cmake"
+  MODULES              ${_sipmss_modules})
+# SIPMSSConfig.cmake finds its VTK, then includes the files above. It locates everything relative
+# to itself, so the one file serves the build tree and any (moved) install prefix.
+include(CMakePackageConfigHelpers)
+set(_sipmss_cmake_build_dir "${CMAKE_BINARY_DIR}/${SIPMSS_CMAKE_DESTINATION}")
+configure_package_config_file("${CMAKE_SOURCE_DIR}/cmake/SIPMSSConfig.cmake.in"
+  "${_sipmss_cmake_build_dir}/SIPMSSConfig.cmake"
+  INSTALL_DESTINATION "${SIPMSS_CMAKE_DESTINATION}"
+  NO_SET_AND_CHECK_MACRO)
+write_basic_package_version_file("${_sipmss_cmake_build_dir}/SIPMSSConfigVersion.cmake"
+  VERSION "${PROJECT_VERSION}"
+  COMPATIBILITY SameMinorVersion) # 0.x: a minor release may change the API
+install(
+  FILES       "${_sipmss_cmake_build_dir}/SIPMSSConfig.cmake"
+              "${_sipmss_cmake_build_dir}/SIPMSSConfigVersion.cmake"
+  DESTINATION "${SIPMSS_CMAKE_DESTINATION}"
+  COMPONENT   development)
 
 # Python: `import sipmss` / `from sipmss import vtkSIPMSSCluster`.
 set(SIPMSS_PYTHON_SITE "${CMAKE_INSTALL_LIBDIR}/python3/dist-packages")
@@ -67,6 +111,7 @@ if (SIPMSS_FRONTEND STREQUAL "paraview")
     TARGET            SIPMSSPlugins
     LIBRARY_SUBDIRECTORY "paraview-plugins"
     AUTOLOAD          ""
+    INSTALL_HEADERS   OFF # SIPMSSPlugins.h serves only static plugins linked into an application
     ADD_INSTALL_RPATHS ON)
   set(SIPMSS_PLUGIN_DIR "${CMAKE_BINARY_DIR}/${CMAKE_INSTALL_LIBDIR}/paraview-plugins/SIPMSS")
 endif ()
@@ -99,6 +144,7 @@ file(WRITE "${CMAKE_BINARY_DIR}/sipmss-env.sh"
 if (BUILD_TESTING)
   add_subdirectory(Testing/Cxx)
   add_subdirectory(Testing/Python)
+  add_subdirectory(Testing/Consumer)
   if (SIPMSS_FRONTEND STREQUAL "paraview")
     add_subdirectory(Testing/ParaView)
   endif ()
