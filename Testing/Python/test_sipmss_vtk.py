@@ -40,6 +40,20 @@ class Messages:
         f.AddObserver("ErrorEvent", on_error)
 
 
+def unit_square_with(polygons):
+    """The four corners of the unit square with these polygons (point id tuples)."""
+    pts = vtkPoints()
+    for p in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)):
+        pts.InsertNextPoint(p)
+    cells = vtkCellArray()
+    for ids in polygons:
+        cells.InsertNextCell(len(ids), ids)
+    pd = vtkPolyData()
+    pd.SetPoints(pts)
+    pd.SetPolys(cells)
+    return pd
+
+
 def attributed_sphere():
     """A sphere with point data of many kinds and roles, and cell data."""
     src = sphere(60)
@@ -252,15 +266,7 @@ class SIPMSSPythonTest(unittest.TestCase):
                 self.assertIn("point 7 has a non-finite coordinate", msgs.errors[0])
 
     def test_point_ids_are_checked_in_64_bits(self):
-        pts = vtkPoints()
-        for p in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)):
-            pts.InsertNextPoint(p)
-        cells = vtkCellArray()
-        cells.InsertNextCell(3, (0, 1, 3))
-        cells.InsertNextCell(3, (0, 1, 2 ** 32 + 2))  # must not wrap to (0, 1, 2)
-        pd = vtkPolyData()
-        pd.SetPoints(pts)
-        pd.SetPolys(cells)
+        pd = unit_square_with([(0, 1, 3), (0, 1, 2 ** 32 + 2)])  # must not wrap to (0, 1, 2)
         for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
             msgs = Messages(f)
             f.SetInputData(pd)
@@ -270,17 +276,8 @@ class SIPMSSPythonTest(unittest.TestCase):
             self.assertIn("references point id 4294967298, but the input has 4 points", msgs.errors[0])
 
     def test_dropped_faces_are_reported(self):
-        pts = vtkPoints()
-        for p in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)):
-            pts.InsertNextPoint(p)
-        cells = vtkCellArray()
-        cells.InsertNextCell(3, (0, 1, 3))
-        cells.InsertNextCell(3, (0, 3, 2))
-        cells.InsertNextCell(3, (1, 1, 2))  # a repeated vertex
-        cells.InsertNextCell(2, (1, 2))     # two vertices
-        pd = vtkPolyData()
-        pd.SetPoints(pts)
-        pd.SetPolys(cells)
+        # two good triangles, one with a repeated vertex, one with two vertices
+        pd = unit_square_with([(0, 1, 3), (0, 3, 2), (1, 1, 2), (1, 2)])
         for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
             msgs = Messages(f)
             f.SetInputData(pd)
