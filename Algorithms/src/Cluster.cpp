@@ -31,6 +31,41 @@ namespace
 using storage::Array;
 using storage::DML;
 
+// Progress weights: seconds per element of each phase, measured in core on one thread on a
+// 2M-triangle scan at grid 300 (docs/architecture.md, "Progress and abort"). Only their ratios
+// matter.
+namespace kWork
+{
+constexpr double kBounds = 1.2e-8;     // per input vertex (a vertices-only read)
+constexpr double kCluster = 2.3e-7;    // per input vertex + face
+constexpr double kBoundaries = 1.0e-7; // per input face (its three edges)
+constexpr double kTriangles = 1.8e-7;  // per candidate triangle + occupied cell
+constexpr double kOutput = 1.9e-7;     // per occupied cell + output triangle
+// Before the clustering pass: a surface occupies about kSurfaceCells * m^2 cells of a grid of
+// maximum dimension m, and there are about kCandidatesPerCell candidate triangles per cell.
+constexpr double kSurfaceCells = 3.0;
+constexpr double kCandidatesPerCell = 2.0;
+}
+
+double EstimatedCells(std::uint64_t V, int m)
+{
+  return std::min(double(V), kWork::kSurfaceCells * double(m) * double(m));
+}
+
+// The work after the clustering pass's read, for the (estimated or counted) occupied cells and
+// candidate triangles.
+double ClusterWorkAfter(double cells, double candidates, std::uint64_t F, const ClusterOptions& o)
+{
+  return (o.boundaryQuadrics ? kWork::kBoundaries * double(F) : 0.0) +
+    kWork::kTriangles * (candidates + cells) + kWork::kOutput * (cells + candidates);
+}
+
+double ClusterWorkAfterRead(std::uint64_t V, std::uint64_t F, int m, const ClusterOptions& o)
+{
+  const double cells = EstimatedCells(V, m);
+  return ClusterWorkAfter(cells, std::min(double(F), kWork::kCandidatesPerCell * cells), F, o);
+}
+
 struct VertexRec
 {
   float x, y, z;
@@ -151,9 +186,10 @@ constexpr std::uint32_t kNoCell = std::numeric_limits<std::uint32_t>::max();
 class CellMap
 {
 public:
-  explicit CellMap(DML& dml)
+  CellMap(DML& dml, Progress& progress)
     : dml_(dml)
     , slots_(dml, 1u << 12)
+    , progress_(progress)
   {
   }
   // Returns the cell of `key`, inserting it as `next` if absent (then *inserted = true).
@@ -199,6 +235,10 @@ private:
       [&](KeySlot* data, std::uint64_t, std::uint64_t count) {
         for (std::uint64_t j = 0; j < count; ++j)
         {
+          if ((j & 4095) == 4095)
+          {
+            this->progress_.Poll();
+          }
           if (data[j].key == 0)
           {
             continue;
@@ -216,6 +256,7 @@ private:
 
   DML& dml_;
   Array<KeySlot> slots_;
+  Progress& progress_; // polled while the table grows
   std::uint64_t size_ = 0;
 };
 
@@ -260,11 +301,14 @@ public:
       [&](TriSlot* d, std::uint64_t first, std::uint64_t count) {
         for (std::uint64_t j = 0; j < count; ++j)
         {
+          if (((first + j) & 4095) == 0)
+          {
+            progress.Tick(0.5 * double(first + j) / double(std::max<std::uint64_t>(n, 1)));
+          }
           CellRec r = cells.Get(d[j].v[0]);
           buckets.Set(--r.triangles, d[j]);
           cells.Set(d[j].v[0], r);
         }
-        progress.Tick(0.5 * double(first + count) / double(std::max<std::uint64_t>(n, 1)));
       });
     this->candidates_.Close();
     // each bucket [begin, end) now starts at cells[c].triangles; dedup within it
@@ -290,10 +334,14 @@ public:
           this->order_.Set(this->size_++, bucket[k]);
         }
       }
-      progress.Tick(0.5 + 0.5 * double(c) / double(numCells));
+      if ((c & 1023) == 0)
+      {
+        progress.Tick(0.5 + 0.5 * double(c) / double(numCells));
+      }
     }
   }
   std::uint64_t Size() const { return this->size_; }
+  std::uint64_t Candidates() const { return this->numCandidates_; }
   Array<TriSlot>& Order() { return this->order_; }
 
 private:
@@ -308,11 +356,24 @@ private:
 class BoundsSink final : public io::MeshSink
 {
 public:
-  explicit BoundsSink(Progress& p)
+  BoundsSink(Progress& p, std::function<double(std::uint64_t, std::uint64_t)> afterBounds)
     : progress_(p)
+    , afterBounds_(std::move(afterBounds))
   {
   }
-  void Begin(const io::MeshHeader& h) override { this->expected_ = h.vertexCount; }
+  std::uint64_t Faces() const { return this->faces_; }
+  std::uint64_t seen() const { return this->seen_; }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->expected_ = h.vertexCount;
+    this->faces_ = h.faceCount;
+    if (h.vertexCount)
+    {
+      this->progress_.Sized(h.vertexCount, h.faceCount);
+      this->progress_.BeginPhase("bounds", kWork::kBounds * double(h.vertexCount),
+        this->afterBounds_(h.vertexCount, h.faceCount));
+    }
+  }
   void Vertices(const io::VertexChunk& c) override
   {
     for (std::size_t i = 0; i < c.count; ++i)
@@ -337,7 +398,8 @@ public:
 
 private:
   Progress& progress_;
-  std::uint64_t expected_ = 0, seen_ = 0;
+  std::function<double(std::uint64_t, std::uint64_t)> afterBounds_;
+  std::uint64_t expected_ = 0, seen_ = 0, faces_ = 0;
 };
 
 // The clustering pass: vertices to cells, faces to quadrics and output triangles.
@@ -351,7 +413,7 @@ public:
     , options_(options)
     , configure_(configure)
     , progress_(progress)
-    , cellMap_(dml)
+    , cellMap_(dml, progress)
     , triangles_(dml)
   {
   }
@@ -385,6 +447,18 @@ public:
       this->attrBuf_.assign(this->attrStride_, 0.f);
     }
     this->expected_ = h.vertexCount + h.faceCount;
+    if (!this->expected_)
+    {
+      this->expected_ = this->expectedHint_; // (compressed inputs announce no sizes)
+    }
+    else
+    {
+      // (nothing done yet in this phase: the announced sizes replace the estimate)
+      this->progress_.Sized(h.vertexCount, h.faceCount);
+      this->progress_.BeginPhase("cluster", kWork::kCluster * double(this->expected_),
+        ClusterWorkAfterRead(
+          h.vertexCount, h.faceCount, this->options_.maximumGridDimension, this->options_));
+    }
   }
 
   void Vertices(const io::VertexChunk& c) override
@@ -398,6 +472,10 @@ public:
     std::uint32_t lastCell = kNoCell;
     for (std::size_t i = 0; i < c.count; ++i)
     {
+      if ((i & 4095) == 4095)
+      {
+        this->Tick(i);
+      }
       const float* p = c.xyz + 3 * i;
       const std::uint64_t key = this->grid_.Key(p[0], p[1], p[2]);
       std::uint32_t cell = lastCell;
@@ -442,6 +520,10 @@ public:
   {
     for (std::size_t t = 0; t < count; ++t)
     {
+      if ((t & 4095) == 4095)
+      {
+        this->Tick(t);
+      }
       const std::uint32_t* f = idx + 3 * t;
       if (f[0] >= this->verticesSeen_ || f[1] >= this->verticesSeen_ || f[2] >= this->verticesSeen_)
       {
@@ -487,6 +569,9 @@ public:
 
   void FinishTriangles() { this->triangles_.Finish(this->cells_, this->numCells_, this->progress_); }
   void FinishBoundaries() { this->AddBoundaryQuadrics(); }
+  std::uint64_t Cells() const { return this->numCells_; }
+  std::uint64_t Candidates() const { return this->triangles_.Candidates(); }
+  std::uint64_t OutputTriangles() const { return this->triangles_.Size(); }
 
   void Emit(io::MeshSink& out, RunStats& stats)
   {
@@ -498,10 +583,16 @@ public:
       this->dml_.Fill(outIndex.Id(), &unused);
     }
     auto& order = this->triangles_.Order();
+    // Progress: 4 steps over cells + triangles (mark, number, vertices, triangles).
+    const double total = 2.0 * double(this->numCells_) + 2.0 * double(numTris) + 1.0;
     order.ForEachChunk(0, numTris, storage::Access::Read,
-      [&](TriSlot* d, std::uint64_t, std::uint64_t n) {
+      [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
         for (std::uint64_t j = 0; j < n; ++j)
         {
+          if (((f + j) & 4095) == 0)
+          {
+            this->progress_.Tick(double(f + j) / total);
+          }
           for (int k = 0; k < 3; ++k)
           {
             outIndex.Set(d[j].v[k], 0);
@@ -511,6 +602,10 @@ public:
     std::uint32_t numOut = 0;
     for (std::uint32_t c = 0; c < this->numCells_; ++c)
     {
+      if ((c & 4095) == 0)
+      {
+        this->progress_.Tick(double(numTris + c) / total);
+      }
       if (outIndex.Get(c) != kNoCell)
       {
         outIndex.Set(c, numOut++);
@@ -600,7 +695,7 @@ public:
       if (xyz.size() / 3 == chunk)
       {
         flush();
-        this->progress_.Tick(double(c) / double(this->numCells_));
+        this->progress_.Tick(double(numTris + this->numCells_ + c) / total);
       }
     }
     flush();
@@ -608,9 +703,14 @@ public:
     std::vector<std::uint32_t> tri;
     tri.reserve(3 * chunk);
     order.ForEachChunk(0, numTris, storage::Access::Read,
-      [&](TriSlot* d, std::uint64_t, std::uint64_t n) {
+      [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
         for (std::uint64_t j = 0; j < n; ++j)
         {
+          if (((f + j) & 4095) == 0)
+          {
+            this->progress_.Tick(
+              double(numTris + 2 * std::uint64_t(this->numCells_) + f + j) / total);
+          }
           for (int k = 0; k < 3; ++k)
           {
             tri.push_back(outIndex.Get(d[j].v[k]));
@@ -637,9 +737,10 @@ public:
 
 
 private:
-  void Tick()
+  void Tick(std::uint64_t more = 0)
   {
-    this->progress_.Tick(this->expected_ ? double(this->done_) / double(this->expected_) : 0.0);
+    const double done = double(this->done_ + more);
+    this->progress_.Tick(this->expected_ ? done / double(this->expected_) : 0.0);
   }
 
   void AddCell(const float* p)
@@ -725,7 +826,11 @@ private:
   {
     if (!this->edges_.IsOpen())
     {
-      this->edges_ = Array<EdgeRec>(this->dml_, 1024);
+      // Three edges per face: sized from the header when it announces the faces (as the
+      // vertices are), so that no doubling copies the whole block at once (a gap in the polls
+      // that grows with the input).
+      this->edges_ = Array<EdgeRec>(
+        this->dml_, std::max<std::uint64_t>(1024, 3 * this->header_.faceCount));
       this->edgeCount_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(this->vertices_.Size(), 1));
     }
     for (int k = 0; k < 3; ++k)
@@ -767,7 +872,10 @@ private:
       const std::uint32_t end = this->edgeCount_.Get(e.a) - 1;
       this->edgeCount_.Set(e.a, end);
       buckets.Set(end, e);
-      this->progress_.Tick(0.5 * double(i) / double(this->numEdges_));
+      if ((i & 1023) == 0)
+      {
+        this->progress_.Tick(0.5 * double(i) / double(this->numEdges_));
+      }
     }
     this->edges_.Close();
     std::vector<EdgeRec> bucket;
@@ -792,7 +900,10 @@ private:
           this->AddBoundaryPlane(bucket[k]);
         }
       }
-      this->progress_.Tick(0.5 + 0.5 * double(v) / double(nv));
+      if ((v & 1023) == 0)
+      {
+        this->progress_.Tick(0.5 + 0.5 * double(v) / double(nv));
+      }
     }
     this->edgeCount_.Close();
   }
@@ -989,9 +1100,25 @@ private:
   std::uint32_t numCells_ = 0;
   std::uint64_t verticesSeen_ = 0;
   std::uint64_t expected_ = 0, done_ = 0;
+
+public:
+  // The bounds pass's estimate of vertices + faces, for inputs whose header has no sizes.
+  std::uint64_t expectedHint_ = 0;
 };
 
 } // namespace
+
+double EstimateClusterWork(std::uint64_t V, std::uint64_t F, const ClusterOptions& options)
+{
+  return (options.useBounds ? 0.0 : kWork::kBounds * double(V)) + kWork::kCluster * double(V + F) +
+    ClusterWorkAfterRead(V, F, options.maximumGridDimension, options);
+}
+
+double EstimateClusterFaces(std::uint64_t V, std::uint64_t F, const ClusterOptions& options)
+{
+  return std::min(
+    double(F), kWork::kCandidatesPerCell * EstimatedCells(V, options.maximumGridDimension));
+}
 
 ClusterGrid ClusterGrid::Make(const std::array<double, 6>& b, int maximumGridDimension)
 {
@@ -1049,46 +1176,66 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
     dml.Config(options.storage);
   }
 
+  // Progress: each phase's work (kWork) against the rest's, re-planned as the sizes become known
+  // (the header, then the occupied cells and candidates).
   std::array<double, 6> bounds = options.bounds;
+  std::uint64_t V = 0, F = 0; // from the bounds pass's header, if any
   if (!options.useBounds)
   {
-    progress.BeginPhase("bounds", 0.0, 0.15);
+    progress.BeginPhase("bounds", 0.0, 1.0); // (its share once the header gives the sizes)
     PhaseTimer timer(stats, dml, "bounds");
-    BoundsSink bs(progress);
+    BoundsSink bs(progress, [&options](std::uint64_t v, std::uint64_t f) {
+      return kWork::kCluster * double(v + f) +
+        ClusterWorkAfterRead(v, f, options.maximumGridDimension, options);
+    });
     io::ReadOptions ro;
     ro.verticesOnly = true;
     input(bs, ro);
     bounds = bs.b;
+    V = bs.seen();
+    F = bs.Faces();
+    if (F == 0)
+    {
+      F = 2 * V; // (no sizes in the header: a closed surface has about two faces per vertex)
+    }
   }
   const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
 
   ClusterSink sink(dml, grid, options, own.has_value(), progress);
+  sink.expectedHint_ = V + F;
   {
-    progress.BeginPhase("cluster", options.useBounds ? 0.0 : 0.15, 0.9);
+    // (re-planned by the sink when the header announces the sizes)
+    progress.BeginPhase("cluster", kWork::kCluster * double(V + F),
+      V + F ? ClusterWorkAfterRead(V, F, options.maximumGridDimension, options) : 1.0);
     PhaseTimer timer(stats, dml, "cluster");
     const io::ReadStats read = input(sink, io::ReadOptions{});
     stats.inputVertices = read.vertices;
     stats.inputTriangles = read.triangles;
     stats.droppedInputFaces = read.droppedFaces;
   }
+  const double cells = double(sink.Cells()), candidates = double(sink.Candidates());
+  ClusterOptions noBoundaries = options;
+  noBoundaries.boundaryQuadrics = false;
   if (options.boundaryQuadrics)
   {
-    progress.BeginPhase("boundaries", 0.85, 0.9);
+    progress.BeginPhase("boundaries", kWork::kBoundaries * double(stats.inputTriangles),
+      ClusterWorkAfter(cells, candidates, 0, noBoundaries));
     PhaseTimer timer(stats, dml, "boundaries");
     sink.FinishBoundaries();
   }
   sink.ReleaseInputBlocks();
   {
-    progress.BeginPhase("triangles", 0.9, 0.95);
+    progress.BeginPhase("triangles", kWork::kTriangles * (candidates + cells),
+      kWork::kOutput * (cells + candidates));
     PhaseTimer timer(stats, dml, "triangles");
     sink.FinishTriangles();
   }
   {
-    progress.BeginPhase("output", 0.95, 1.0);
+    progress.BeginPhase("output", kWork::kOutput * (cells + double(sink.OutputTriangles())), 0.0);
     PhaseTimer timer(stats, dml, "output");
     sink.Emit(output, stats);
   }
-  progress.BeginPhase("done", 1.0, 1.0);
+  progress.Finish();
   stats.storage = dml.GetStats();
   return stats;
 }

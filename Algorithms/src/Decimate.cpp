@@ -52,7 +52,10 @@
 //             the step's chunks and compaction (by vertex range or by array) run on all cores;
 //             the output is the same for any thread count and storage mode.
 //   write     the final level is streamed to the output sink.
-// Every loop over many elements ticks the progress (abort within a few milliseconds).
+// Every loop over many elements ticks the progress (abort within a few milliseconds). Each
+// phase and each step of a pass announces its work (kWork: measured seconds per element) and an
+// estimate of the rest of the run (the remaining passes simulated with the pass schedule): the
+// progress is monotonic and about linear in time (Progress::BeginPhase).
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Placement.h"
 
@@ -517,6 +520,24 @@ public:
     }
     this->cv_.wait(lock, [&] { return gen != this->gen_; });
   }
+  // Wait(), and returns `flag` as the last participant to arrive saw it: the same value for
+  // all of them (a flag read after the barrier may already be set by a participant that went
+  // on, e.g. an abort in the next round: the others would then leave while it waits alone).
+  bool WaitAndAgree(const std::atomic<bool>& flag)
+  {
+    std::unique_lock<std::mutex> lock(this->m_);
+    const std::uint64_t gen = this->gen_;
+    if (++this->count_ == this->n_)
+    {
+      this->count_ = 0;
+      this->agreed_ = flag.load();
+      ++this->gen_;
+      this->cv_.notify_all();
+      return this->agreed_;
+    }
+    this->cv_.wait(lock, [&] { return gen != this->gen_; });
+    return this->agreed_; // (the next generation needs this participant: not overwritten yet)
+  }
   // One participant leaves for good (a thread that could not be started).
   void Drop()
   {
@@ -535,6 +556,7 @@ private:
   int n_;
   int count_ = 0;
   std::uint64_t gen_ = 0;
+  bool agreed_ = false;
 };
 
 // Runs work(0) on the calling thread and work(1..T-1) on new ones, and joins them. A thread that
@@ -617,6 +639,21 @@ void ForRanges(int T, std::uint64_t n, const RangeBody& body,
 
 class Decimator;
 
+// Progress weights: seconds per element of each phase, measured in core on one thread on a
+// 2M-triangle scan (docs/architecture.md, "Progress and abort"). Only their ratios matter.
+namespace kWork
+{
+constexpr double kRead = 4.0e-8;     // per input vertex + face
+constexpr double kWeld = 1.0e-7;     // per vertex + face
+constexpr double kRings = 1.1e-7;    // per face
+constexpr double kQuadrics = 2.4e-7; // per face
+constexpr double kSweep = 3.0e-7;    // per vertex of the pass
+constexpr double kOrder = 2.5e-8;    // per vertex of the pass (histogram and order)
+constexpr double kStep = 2.5e-7;     // per candidate the pass takes
+constexpr double kCompact = 3.5e-8;  // per face + vertex of the pass
+constexpr double kWrite = 5.0e-8;    // per output vertex + face
+}
+
 // The sink that streams the source into the DML.
 class Loader final : public io::MeshSink
 {
@@ -670,6 +707,13 @@ public:
 
   void Run(const MeshSource& input, io::MeshSink& output,
     const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel);
+  // The estimated work of a run on V vertices and F faces (EstimateDecimateWork).
+  double Plan(std::uint64_t V, std::uint64_t F)
+  {
+    this->announcedV_ = V;
+    this->announcedF_ = F;
+    return kWork::kRead * double(V + F) + this->WorkAfterRead(V, F);
+  }
 
   // Loader callbacks.
   void BeginInput(const io::MeshHeader& header);
@@ -690,7 +734,8 @@ private:
   void CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal,
     std::uint32_t* spare = nullptr);
   void BuildQuadrics();
-  bool Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan);
+  // One pass down to `goal` faces; workAfter: the estimated work of the rest of the run.
+  bool Pass(std::uint64_t goal, bool exact, double workAfter);
   void Compact();
   void Emit(io::MeshSink& sink);
 
@@ -804,12 +849,32 @@ private:
     return this->opt_.stepChunkSize ? this->opt_.stepChunkSize
                                     : std::max(kStepChunkMinSize, (nv + kStepChunks - 1) / kStepChunks);
   }
+  // tickAt >= 0 (the calling thread only): ticks the step's progress at position tickAt +
+  // tickScale * (i - first) of the pass's stepTotal_ candidates every 1024 candidates.
   std::uint64_t Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo, std::uint32_t hi,
-    std::uint64_t budget, Scratch& s, StepRun& run, bool tick);
+    std::uint64_t budget, Scratch& s, StepRun& run, std::int64_t tickAt = -1,
+    std::uint64_t tickScale = 1);
+  std::uint64_t stepTotal_ = 1; // the candidates the pass takes (the step's progress unit)
   void StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
     std::uint64_t goal, StepRun& total);
   void EnsureVertexCapacity(std::uint64_t n);
   void EnsureFaceCapacity(std::uint64_t n);
+  // The levels' targets for F0 faces (the last one is the final target).
+  std::vector<std::uint64_t> Levels(std::uint64_t F0) const;
+  // Progress planning: estimated work of the passes from `faces` live faces at `level` (the
+  // pass schedule of Run simulated, vertices per face as now), and of writing the result.
+  double PassesWork(std::uint64_t faces, std::size_t level, const std::vector<std::uint64_t>& levels) const;
+  double VerticesPerFace() const
+  {
+    const double v = double(this->nv_ ? this->nv_ : this->announcedV_);
+    const double f = double(this->liveFaces_ ? this->liveFaces_ : (this->nf_ ? this->nf_ : this->announcedF_));
+    return f > 0 ? v / f : 0.5;
+  }
+  // Work after the read: weld, rings, quadrics, the passes and the write, for V and F.
+  double WorkAfterRead(std::uint64_t V, std::uint64_t F) const { return this->RestWork(0, V, F); }
+  // Work of the stages from `stage` on (0 weld, 1 rings, 2 quadrics, 3 passes and write).
+  double RestWork(int stage, std::uint64_t V, std::uint64_t F) const;
+  bool emitsLevels_ = false; // onLevel given: each level is emitted during the passes
   void Tick(std::uint64_t i, std::uint64_t n)
   {
     if ((i & 1023) == 0)
@@ -915,6 +980,12 @@ void Decimator::BeginInput(const io::MeshHeader& header)
   this->recSize_ = this->nFloats_ * sizeof(float) + (this->layout_.colors ? 4 : 0);
   this->announcedV_ = header.vertexCount;
   this->announcedF_ = header.faceCount;
+  if (header.vertexCount + header.faceCount > 0)
+  {
+    this->progress_.Sized(header.vertexCount, header.faceCount);
+    this->progress_.BeginPhase("read", kWork::kRead * double(header.vertexCount + header.faceCount),
+      this->WorkAfterRead(header.vertexCount, header.faceCount));
+  }
 
   // The profile: the structures of the run, sized from the header (0 when unknown: the blocks
   // then grow with Resize and the DML re-evaluates the mode as they do).
@@ -1081,7 +1152,7 @@ void Decimator::AddTriangles(const std::uint32_t* idx, std::size_t count)
 void Decimator::Read(const MeshSource& input)
 {
   PhaseTimer timer(this->stats_, this->dml_, "read");
-  this->progress_.BeginPhase("read", 0.0, 0.25);
+  this->progress_.BeginPhase("read", 0.0, 1.0); // (its share once the header gives the sizes)
   Loader loader(*this, this->progress_);
   io::ReadOptions ro;
   io::ReadStats rs;
@@ -1417,7 +1488,8 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
 void Decimator::BuildRings()
 {
   PhaseTimer timer(this->stats_, this->dml_, "rings");
-  this->progress_.BeginPhase("rings", 0.25, 0.3);
+  this->progress_.BeginPhase(
+    "rings", kWork::kRings * double(this->nf_), this->RestWork(2, this->nv_, this->nf_));
   const std::uint64_t nv = this->nv_, nf = this->nf_;
   if (3 * nf >= kNone)
   {
@@ -1834,7 +1906,8 @@ void Decimator::BuildNeighbours(Views& w, Ring& r, bool positions)
 void Decimator::BuildQuadrics()
 {
   PhaseTimer timer(this->stats_, this->dml_, "quadrics");
-  this->progress_.BeginPhase("quadrics", 0.3, 0.35);
+  this->progress_.BeginPhase("quadrics", kWork::kQuadrics * double(this->liveFaces_),
+    this->RestWork(3, this->nv_, this->liveFaces_));
   const std::uint64_t nv = this->nv_;
   this->quad_ = Array<Quadric>(this->dml_, std::max<std::uint64_t>(nv, 1));
   this->state_ = Array<State>(this->dml_, std::max<std::uint64_t>(nv, 1));
@@ -2444,12 +2517,13 @@ void Decimator::Sweep(std::uint64_t nv)
           stop = true;
         }
       }
-      barrier.Wait(); // everyone is done with the queues (and agrees on stop)
+      // Everyone is done with the queues and agrees on stop.
+      const bool quit = barrier.WaitAndAgree(stop);
       for (auto& q : s.out)
       {
         q.clear();
       }
-      if (stop)
+      if (quit)
       {
         break;
       }
@@ -3016,7 +3090,8 @@ Decimator::Try Decimator::TryCollapse(
 // faces are removed; deferred ones get kDeferred (no list: the footprint stays in the DML).
 // Returns where it stopped.
 std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo,
-  std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run, bool tick)
+  std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run, std::int64_t tickAt,
+  std::uint64_t tickScale)
 {
   Views& w = this->W(s);
   // In core: prefetch the data of the candidates ahead, in stages, each reading what the one
@@ -3052,9 +3127,10 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   std::uint64_t i = first;
   for (; i < last && run.removed < budget; ++i)
   {
-    if (tick)
+    if (tickAt >= 0 && ((i - first) & 1023) == 0)
     {
-      this->Tick(i - first, last - first);
+      this->progress_.Tick(
+        double(std::uint64_t(tickAt) + tickScale * (i - first)) / double(this->stepTotal_));
     }
     if (prefetch)
     {
@@ -3253,6 +3329,10 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   }
   std::vector<std::uint64_t> roundStart(n);
   std::vector<StepRun> runs(n);
+  // Progress: the step's position is that of the candidates consumed (those of the earlier
+  // groups, whose rest is dropped when a group ends, then this group's).
+  const std::uint64_t at = groupBegin;
+  std::uint64_t done = 0;
   std::vector<std::uint64_t> quota(n);
   while (this->liveFaces_ > goal)
   {
@@ -3272,7 +3352,10 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       StepRun run;
       for (std::size_t c = 0; c < n && run.removed < R; ++c)
       {
-        cursor[c] = this->Step(cursor[c], end[c], 0, kNone, R, this->scratch_[0], run, false);
+        const std::uint64_t from = cursor[c];
+        cursor[c] = this->Step(
+          cursor[c], end[c], 0, kNone, R, this->scratch_[0], run, std::int64_t(at + done));
+        done += cursor[c] - from;
       }
       this->liveFaces_ -= run.removed;
       total.done += run.done;
@@ -3286,6 +3369,9 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       runs[c] = StepRun();
       roundStart[c] = cursor[c];
     }
+    // Progress (the calling thread): the candidates of its own chunks as it goes, everyone's
+    // at the end of the round.
+    std::uint64_t mine = 0;
     std::atomic<std::size_t> next{ 0 };
     std::atomic<bool> stop{ false };
     std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
@@ -3295,13 +3381,15 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       {
         for (std::size_t c; !stop.load(std::memory_order_relaxed) && (c = next++) < n;)
         {
-          if (t == 0)
-          {
-            this->Tick(c, n); // progress and abort: the calling thread only
-          }
           const std::uint32_t lo = std::uint32_t(c * size);
           const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], false);
+          // progress and abort: the calling thread only
+          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
+            t == 0 ? std::int64_t(at + done + mine) : -1);
+          if (t == 0)
+          {
+            mine += cursor[c] - roundStart[c];
+          }
         }
       }
       catch (...)
@@ -3344,13 +3432,14 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
               {
                 return;
               }
-              if (t == 0)
-              {
-                this->Tick(c, n);
-              }
               const std::uint32_t lo = std::uint32_t(c * size);
               const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-              cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c], false);
+              cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
+                t == 0 ? std::int64_t(at + done + mine) : -1);
+              if (t == 0)
+              {
+                mine += cursor[c] - roundStart[c];
+              }
             }
           }
         },
@@ -3373,6 +3462,10 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     StepRun b;
     for (std::size_t c = 0; c < n; ++c)
     {
+      done += cursor[c] - roundStart[c];
+    }
+    for (std::size_t c = 0; c < n; ++c)
+    {
       this->liveFaces_ -= runs[c].removed;
       total.done += runs[c].done;
       total.illegal += runs[c].illegal;
@@ -3392,7 +3485,8 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       }
       if (this->liveFaces_ > goal + b.removed)
       {
-        this->Step(roundStart[c], k, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], b, false);
+        this->Step(roundStart[c], k, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], b,
+          std::int64_t(at + done), 0); // (polls only: these candidates were counted)
       }
     }
     this->liveFaces_ -= std::min(b.removed, this->liveFaces_);
@@ -3401,21 +3495,28 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   }
 }
 
-bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double progressSpan)
+bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
 {
   const std::uint64_t nv = this->nv_;
   this->BindViews();
+  // Progress: the pass's steps by their work (kWork), then the rest of the run.
+  const double wantGuess = double(2 * (this->liveFaces_ - std::min(goal, this->liveFaces_)) + 16);
+  const double wStep = kWork::kStep * wantGuess;
+  const double wCompact = kWork::kCompact * double(this->nf_ + nv);
+  const double wOrder = kWork::kOrder * double(nv);
   // 1. Every vertex's cheapest collapse.
-  this->progress_.BeginPhase("collapse", progressBase, progressBase + 0.6 * progressSpan);
+  this->progress_.BeginPhase(
+    "collapse", kWork::kSweep * double(nv), wOrder + wStep + wCompact + workAfter);
   this->Sweep(nv);
   // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
   // about four times the collapses the goal needs (a collapse removes 2 faces, and both
   // endpoints may propose it). Ties in order of vertex index.
+  this->progress_.BeginPhase("collapse", wOrder, wStep + wCompact + workAfter);
   std::fill(this->hist_.begin(), this->hist_.end(), 0u);
   std::uint64_t candidates = 0;
   for (std::uint64_t u = 0; u < nv; ++u)
   {
-    this->Tick(u, nv);
+    this->Tick(u, 2 * nv);
     const Cand c = this->v_.C.Get(u);
     if (c.partner != kNone)
     {
@@ -3466,11 +3567,9 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
     sum += n;
   }
   this->BindViews();
-  this->progress_.BeginPhase(
-    "collapse", progressBase + 0.6 * progressSpan, progressBase + 0.7 * progressSpan);
   for (std::uint64_t u = 0; u < nv; ++u)
   {
-    this->Tick(u, nv);
+    this->Tick(nv + u, 2 * nv);
     const Cand c = this->v_.C.Get(u);
     if (c.partner == kNone)
     {
@@ -3487,8 +3586,8 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
   // in the next passes. A pass that may end on a level goes strictly in order, one collapse at
   // a time; the others go group by group through StepChunks (in parallel when in core).
-  this->progress_.BeginPhase(
-    "collapse", progressBase + 0.7 * progressSpan, progressBase + 0.85 * progressSpan);
+  this->stepTotal_ = std::max<std::uint64_t>(taken, 1);
+  this->progress_.BeginPhase("collapse", kWork::kStep * double(taken), wCompact + workAfter);
   this->lazySums_ = !this->AllInCore(); // (the mode does not change before Compact)
   StepRun run;
   if (groups && nv >= 2 * this->StepChunkSize(nv))
@@ -3502,13 +3601,12 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double progressBase, double
   }
   else
   {
-    this->Step(0, taken, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], run, true);
+    this->Step(0, taken, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], run, 0);
     this->liveFaces_ -= run.removed;
   }
   const std::uint64_t done = run.done, illegal = run.illegal;
   // 4. Compact into fresh blocks.
-  this->progress_.BeginPhase(
-    "collapse", progressBase + 0.85 * progressSpan, progressBase + progressSpan);
+  this->progress_.BeginPhase("collapse", wCompact, workAfter);
   this->Compact();
   // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
   // as long as some candidate exists.
@@ -3942,25 +4040,8 @@ void Decimator::Emit(io::MeshSink& sink)
 
 // ---------------------------------------------------------------------------------------------
 
-void Decimator::Run(const MeshSource& input, io::MeshSink& output,
-  const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel)
+std::vector<std::uint64_t> Decimator::Levels(std::uint64_t F0) const
 {
-  this->Read(input);
-  if (this->opt_.weldDistance >= 0)
-  {
-    PhaseTimer timer(this->stats_, this->dml_, "weld");
-    this->progress_.BeginPhase("weld", 0.25, 0.25);
-    this->Weld();
-  }
-  this->BuildRings();
-  this->BuildQuadrics();
-  if (this->opt_.sourceConsumed)
-  {
-    this->opt_.sourceConsumed();
-    this->dml_.Reconfigure();
-  }
-
-  const std::uint64_t F0 = this->liveFaces_;
   std::uint64_t target = this->opt_.targetTriangles;
   if (target == 0)
   {
@@ -3981,17 +4062,99 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
       levels[i] = std::max<std::uint64_t>(target, std::uint64_t(std::llround(x)));
     }
   }
+  return levels;
+}
+
+// Run's pass loop, on counts only: each pass removes its planned share (a pass that removes
+// fewer makes the next estimates larger: the progress then moves more slowly, never back).
+double Decimator::PassesWork(
+  std::uint64_t T, std::size_t level, const std::vector<std::uint64_t>& levels) const
+{
+  const double fraction = std::min(0.9, std::max(0.01, this->opt_.passFraction));
+  const double farFraction = std::min(0.9, std::max(fraction, this->opt_.farPassFraction));
+  const double vpf = this->VerticesPerFace();
+  double work = 0;
+  double nf = double(T), nv = vpf * double(T);
+  for (int guard = 0; level < levels.size() && guard < 10000; ++guard)
+  {
+    if (T <= levels[level])
+    {
+      if (this->emitsLevels_)
+      {
+        work += kWork::kWrite * double(T) * (1.0 + vpf);
+      }
+      ++level;
+      continue;
+    }
+    const bool far =
+      double(T) > this->opt_.farRatio * double(std::max<std::uint64_t>(levels[level], 1));
+    const std::uint64_t step =
+      std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
+    const std::uint64_t goal = std::max(levels[level], T > step ? T - step : 0);
+    work += (kWork::kSweep + kWork::kOrder) * nv + kWork::kStep * double(2 * (T - goal) + 16) +
+      kWork::kCompact * (nf + nv);
+    T = goal;
+    nf = double(T);
+    nv = vpf * double(T);
+  }
+  return work + kWork::kWrite * double(T) * (1.0 + vpf);
+}
+
+double Decimator::RestWork(int stage, std::uint64_t V, std::uint64_t F) const
+{
+  double work = 0;
+  if (stage <= 0 && this->opt_.weldDistance >= 0)
+  {
+    work += kWork::kWeld * double(V + F);
+  }
+  if (stage <= 1)
+  {
+    work += kWork::kRings * double(F);
+  }
+  if (stage <= 2)
+  {
+    work += kWork::kQuadrics * double(F);
+  }
+  // The passes from F faces (nv_ and nf_ are those of the input until the first pass).
+  return work + this->PassesWork(F, 0, this->Levels(F));
+}
+
+void Decimator::Run(const MeshSource& input, io::MeshSink& output,
+  const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel)
+{
+  this->emitsLevels_ = bool(onLevel);
+  this->Read(input);
+  if (this->opt_.weldDistance >= 0)
+  {
+    PhaseTimer timer(this->stats_, this->dml_, "weld");
+    this->progress_.BeginPhase("weld", kWork::kWeld * double(this->nv_ + this->nf_),
+      this->RestWork(1, this->nv_, this->nf_));
+    this->Weld();
+  }
+  this->BuildRings();
+  this->BuildQuadrics();
+  if (this->opt_.sourceConsumed)
+  {
+    this->opt_.sourceConsumed();
+    this->dml_.Reconfigure();
+  }
+
+  const std::uint64_t F0 = this->liveFaces_;
+  const std::vector<std::uint64_t> levels = this->Levels(F0);
+  const int K = int(levels.size());
   const double fraction = std::min(0.9, std::max(0.01, this->opt_.passFraction));
   const double farFraction = std::min(0.9, std::max(fraction, this->opt_.farPassFraction));
   auto emitLevel = [&](int level) {
     if (onLevel)
     {
+      // (the final write follows the last level's: this phase never ends the run)
+      this->progress_.BeginPhase("write", kWork::kWrite * double(this->nv_ + this->nf_),
+        this->PassesWork(this->liveFaces_, std::size_t(level) + 1, levels));
       onLevel(level, [this](io::MeshSink& sink) { this->Emit(sink); });
     }
   };
   {
     PhaseTimer timer(this->stats_, this->dml_, "collapse");
-    this->progress_.BeginPhase("collapse", 0.35, 0.35);
     int level = 0;
     bool compacted = false;
     while (level < K)
@@ -4014,8 +4177,7 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
       const std::uint64_t step =
         std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
       const std::uint64_t goal = std::max(levels[level], T > step ? T - step : 0);
-      const double done = F0 > target ? double(F0 - T) / double(F0 - target) : 1.0;
-      if (!this->Pass(goal, goal == levels[level], 0.35 + 0.6 * done, 0.6 * (1.0 - done) * fraction))
+      if (!this->Pass(goal, goal == levels[level], this->PassesWork(goal, std::size_t(level), levels)))
       {
         // No legal collapse under maximumError remains: this is the final level.
         if (!compacted)
@@ -4030,9 +4192,10 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
   }
   {
     PhaseTimer timer(this->stats_, this->dml_, "write");
-    this->progress_.BeginPhase("write", 0.95, 1.0);
+    this->progress_.BeginPhase("write", kWork::kWrite * double(this->nv_ + this->nf_), 0.0);
     this->Emit(output);
   }
+  this->progress_.Finish();
   this->stats_.outputVertices = this->nv_;
   this->stats_.outputTriangles = this->nf_;
   this->stats_.droppedInputFaces = this->dropped_ + this->readerDropped_;
@@ -4049,6 +4212,16 @@ RunStats Decimate(const MeshSource& input, io::MeshSink& output, const DecimateO
   Decimator d(options, progress, stats);
   d.Run(input, output, onLevel);
   return stats;
+}
+
+double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOptions& options)
+{
+  NullProgress none;
+  RunStats stats;
+  DecimateOptions o = options;
+  o.dml = nullptr;
+  Decimator d(o, none, stats);
+  return d.Plan(V, F);
 }
 
 } // namespace sipmss::algorithms

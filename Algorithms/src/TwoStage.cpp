@@ -188,29 +188,42 @@ private:
   std::uint64_t triangleCount_ = 0;
 };
 
-// Maps a stage's [0,1] progress into [begin,end) of the whole run.
+// Carries a stage's progress into the run's: the stage's [0,1] maps to [begin, end] of the
+// run. The first stage's end is set from the stages' estimated work once the input's size is
+// known (Sized, before any work on it); the second stage runs to 1.
 class StageProgress final : public Progress
 {
 public:
-  StageProgress(Progress& parent, double begin, double end, const char* prefix)
+  StageProgress(Progress& parent, const char* prefix,
+    std::function<double(std::uint64_t, std::uint64_t)> share = nullptr)
     : parent_(parent)
-    , begin_(begin)
-    , end_(end)
+    , begin_(parent.Position())
+    , end_(share ? begin_ + 0.5 * (1.0 - begin_) : 1.0)
     , prefix_(prefix)
+    , share_(std::move(share))
   {
-    this->SetInterval(0.05);
+    this->SetInterval(parent.Interval());
   }
   void Report(double f, const char* phase) override
   {
     this->label_ = std::string(this->prefix_) + phase;
-    this->parent_.Report(this->begin_ + (this->end_ - this->begin_) * f, this->label_.c_str());
+    this->parent_.ReportNested(this->begin_ + (this->end_ - this->begin_) * f, this->label_.c_str());
   }
   bool Aborted() override { return this->parent_.Aborted(); }
+  void Sized(std::uint64_t vertices, std::uint64_t faces) override
+  {
+    if (this->share_ && this->Position() == 0.0)
+    {
+      const double s = std::min(1.0, std::max(0.0, this->share_(vertices, faces)));
+      this->end_ = this->begin_ + s * (1.0 - this->begin_);
+    }
+  }
 
 private:
   Progress& parent_;
   double begin_, end_;
   const char* prefix_;
+  std::function<double(std::uint64_t, std::uint64_t)> share_;
   std::string label_;
 };
 
@@ -252,7 +265,16 @@ RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageO
         quadrics.Set(v, r);
       };
     }
-    StageProgress p1(progress, 0.0, 0.5, "stage 1: ");
+    // Stage 1's share of the run: its work against stage 2's on the estimated clustered mesh
+    // (about half as many vertices as faces).
+    DecimateOptions d2 = options.decimate;
+    StageProgress p1(progress, "stage 1: ", [co, d2](std::uint64_t V, std::uint64_t F) {
+      const double w1 = EstimateClusterWork(V, F, co);
+      const double faces = EstimateClusterFaces(V, F, co);
+      const double w2 =
+        EstimateDecimateWork(std::uint64_t(faces / 2), std::uint64_t(faces), d2);
+      return w1 + w2 > 0 ? w1 / (w1 + w2) : 0.5;
+    });
     RunStats s1 = Cluster(input, handoff, co, p1);
     stats.inputVertices = s1.inputVertices;
     stats.inputTriangles = s1.inputTriangles;
@@ -289,7 +311,7 @@ RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageO
     handoff.Release();
     quadrics.Close();
   };
-  StageProgress p2(progress, 0.5, 1.0, "stage 2: ");
+  StageProgress p2(progress, "stage 2: ");
   const std::size_t from = stats.phases.size();
   RunStats s2 = Decimate(
     [&handoff](io::MeshSink& sink, const io::ReadOptions& ro) { return handoff.Replay(sink, ro); },

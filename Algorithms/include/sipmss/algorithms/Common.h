@@ -25,32 +25,72 @@ public:
   }
 };
 
-// Progress and abort. The cores call Tick() often (cheap); it forwards to Report() at most every
-// `interval` seconds and throws AbortedError when Aborted() says so.
+// Progress and abort.
+//
+// The run's progress is a position in [0,1] that only moves forward. A core announces each phase
+// with the work it is about to do and its estimate of the work of everything after it (in one
+// unit per algorithm: measured seconds per element, see docs/architecture.md): the phase spans
+// that share of what is left of the run, from the current position. An estimate that turns out
+// wrong (a pass that removes fewer triangles than planned, an extra pass) changes how fast the
+// rest of the run moves, never its direction; the last phase (no work after it) ends at 1, and
+// Finish() reports 1.
+//
+// Polls: the cores call Tick() every few thousand elements of every long loop (a counter test in
+// the loop, no clock read per element). Each Tick asks Aborted() (AbortedError within
+// milliseconds of the request) and forwards to Report() when `interval` seconds have passed since
+// the last report.
 class Progress
 {
 public:
   virtual ~Progress() = default;
-  virtual void Report(double fraction, const char* phase) = 0; // fraction in [0,1] of the run
+  // fraction in [0,1] of the run, never decreasing; phase: the current phase's name
+  virtual void Report(double fraction, const char* phase) = 0;
   virtual bool Aborted() { return false; }
 
-  // Sets the phase and its share [begin, end) of the whole run.
-  void BeginPhase(const char* phase, double begin, double end)
-  {
-    this->phase_ = phase;
-    this->begin_ = begin;
-    this->end_ = end;
-    this->Emit(0.0);
-  }
-  // fractionOfPhase in [0,1]
+  // Starts a phase that does `work` units, with `workAfter` units (an estimate) after it: it
+  // spans work / (work + workAfter) of the rest [Position(), 1]. Reports, and checks Aborted().
+  void BeginPhase(const char* phase, double work, double workAfter);
+  // fractionOfPhase in [0,1], non-decreasing within a phase.
   void Tick(double fractionOfPhase)
   {
-    auto now = std::chrono::steady_clock::now();
+    this->Move(fractionOfPhase);
+    this->Poll();
+  }
+  // A tick that does not move (work whose share is not known, e.g. a hash table's growth):
+  // checks Aborted() and reports the current position when it is due.
+  void Poll()
+  {
+    if (this->Aborted())
+    {
+      throw AbortedError();
+    }
+    const auto now = std::chrono::steady_clock::now();
     if (now - this->last_ >= this->interval_)
     {
-      this->Emit(fractionOfPhase);
+      this->last_ = now;
+      this->Report(this->position_, this->phase_);
     }
   }
+  // The end of the run: position 1, reported.
+  void Finish();
+  // Called by a core once it knows its input's size, before any work on it (the two-stage run
+  // sizes its stages' shares from it). Default: nothing.
+  virtual void Sized(std::uint64_t vertices, std::uint64_t faces)
+  {
+    (void)vertices;
+    (void)faces;
+  }
+  // For a progress that carries a nested run's (two-stage): moves to `fraction` (the caller
+  // keeps it non-decreasing) and reports it under `phase`.
+  void ReportNested(double fraction, const char* phase)
+  {
+    this->begin_ = this->end_ = this->position_ = fraction;
+    this->Report(fraction, phase);
+  }
+  double Interval() const { return std::chrono::duration<double>(this->interval_).count(); }
+  double Position() const { return this->position_; }
+  const char* Phase() const { return this->phase_; }
+  // Report() at most this often (Tick's polls for Aborted() are not limited). Default 0.05 s.
   void SetInterval(double seconds)
   {
     this->interval_ = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
@@ -58,21 +98,25 @@ public:
   }
 
 private:
-  void Emit(double f)
+  void Move(double f)
   {
-    this->last_ = std::chrono::steady_clock::now();
-    if (this->Aborted())
-    {
-      throw AbortedError();
-    }
     f = f < 0 ? 0 : (f > 1 ? 1 : f);
-    this->Report(this->begin_ + (this->end_ - this->begin_) * f, this->phase_);
+    this->position_ = this->begin_ + (this->end_ - this->begin_) * f;
   }
   const char* phase_ = "";
-  double begin_ = 0, end_ = 1;
+  double begin_ = 0, end_ = 0, position_ = 0;
   std::chrono::steady_clock::time_point last_{};
   std::chrono::steady_clock::duration interval_ = std::chrono::milliseconds(50);
 };
+
+// Progress planning for runs that chain cores (two-stage): the estimated work of a run on V
+// vertices and F faces, in the cores' progress unit (measured seconds per element), and the
+// estimated faces of a clustering's output.
+struct ClusterOptions;
+struct DecimateOptions;
+double EstimateClusterWork(std::uint64_t V, std::uint64_t F, const ClusterOptions& options);
+double EstimateClusterFaces(std::uint64_t V, std::uint64_t F, const ClusterOptions& options);
+double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOptions& options);
 
 // A progress that reports nothing and never aborts.
 class NullProgress final : public Progress
