@@ -31,10 +31,33 @@ void Progress::Finish()
   this->Report(1.0, this->phase_);
 }
 
-MeshSource FileSource(const std::string& path)
+// Every pass reads the same input (io::MeshInputFile: a FIFO or /dev/stdin is copied once to an
+// unlinked temporary file as it is first read). An input without a vertex, or whose full read
+// gives no valid triangle, is the same named error for every algorithm and filter (the CLI's
+// words): "FILE: nothing to simplify: the input has no valid triangle[ (N degenerate faces were
+// dropped)]". A reader stopped by the sink's AbortRequested() is an AbortedError.
+MeshSource FileSource(const std::string& path, const std::string& tmpdir)
 {
-  return [path](io::MeshSink& sink, const io::ReadOptions& options) {
-    return io::ReadMesh(path, sink, options);
+  auto input = std::make_shared<io::MeshInputFile>(path, tmpdir);
+  return [input](io::MeshSink& sink, const io::ReadOptions& options) {
+    io::ReadStats stats;
+    try
+    {
+      stats = input->Read(sink, options);
+    }
+    catch (const io::ReadAbortedError&)
+    {
+      throw AbortedError();
+    }
+    if (stats.vertices == 0 || (!options.verticesOnly && stats.triangles == 0))
+    {
+      throw io::MeshIOError(input->Path() +
+        ": nothing to simplify: the input has no valid triangle" +
+        (stats.droppedFaces
+            ? " (" + std::to_string(stats.droppedFaces) + " degenerate faces were dropped)"
+            : std::string()));
+    }
+    return stats;
   };
 }
 

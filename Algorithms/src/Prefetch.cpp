@@ -1,6 +1,7 @@
 #include "sipmss/algorithms/Prefetch.h"
 
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <deque>
 #include <exception>
@@ -70,11 +71,19 @@ public:
     this->notEmpty_.notify_one();
     return true;
   }
-  // nullptr when the producer is done (then Error() may hold its exception)
-  std::unique_ptr<Item> Pop()
+  // nullptr when the producer is done (then Error() may hold its exception). While it waits,
+  // poll() runs every 50 ms (it may throw: an abort while the reader is inside a long chunk).
+  template <class Poll>
+  std::unique_ptr<Item> Pop(Poll&& poll)
   {
     std::unique_lock<std::mutex> lock(this->mutex_);
-    this->notEmpty_.wait(lock, [&] { return !this->items_.empty() || this->finished_; });
+    while (!this->notEmpty_.wait_for(lock, std::chrono::milliseconds(50),
+      [&] { return !this->items_.empty() || this->finished_; }))
+    {
+      lock.unlock();
+      poll();
+      lock.lock();
+    }
     if (this->items_.empty())
     {
       return nullptr;
@@ -250,7 +259,13 @@ MeshSource Prefetched(MeshSource source, std::size_t depth)
     });
     try
     {
-      while (auto item = channel.Pop())
+      const auto poll = [&] {
+        if (sink.AbortRequested())
+        {
+          throw AbortedError();
+        }
+      };
+      while (auto item = channel.Pop(poll))
       {
         if (sink.AbortRequested())
         {

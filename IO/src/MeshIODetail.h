@@ -41,7 +41,9 @@ inline bool HostIsLittleEndian()
 }
 
 // ---------------------------------------------------------------------------------------------
-// Byte sources. Read returns the number of bytes read, 0 at the end, -1 on error (ErrorText()).
+// Byte sources. Read returns the number of bytes read, 0 at the end, -1 on error (ErrorText()),
+// kReadAborted when abortSink asked to stop while the source was waiting for data (a FIFO).
+constexpr long long kReadAborted = -2;
 class Source
 {
 public:
@@ -51,9 +53,17 @@ public:
   bool sizeKnown = false;   // true for uncompressed files and memory: size is the input size
   std::uint64_t size = 0;
   bool compressed = false;
+  bool regular = true;      // false for FIFOs, character devices, sockets (no size, one pass)
+  // Asked for an abort on every refill of the input window (once per buffer, not per byte) and
+  // while a non-regular source waits for data. Null: never aborted.
+  MeshSink* abortSink = nullptr;
+  bool AbortRequested() const { return abortSink && abortSink->AbortRequested(); }
 };
 
-std::unique_ptr<Source> OpenFileSource(const std::string& path); // gzip by magic, else read(2)
+// gzip by magic (regular files), else read(2). Never blocks in open(2) (a FIFO without a writer
+// is opened non-blocking); a non-regular file's reads wait in poll(2), asking abortSink every
+// 0.1 s. `name` (default: path) names the input in errors.
+std::unique_ptr<Source> OpenFileSource(const std::string& path, const std::string& name = {});
 std::unique_ptr<Source> OpenMemorySource(const void* data, std::size_t size); // gzip by magic
 
 // Parses an integer in [s, e): optional sign, decimal digits. Sets q past it. False on no digits

@@ -9,7 +9,10 @@
 #include <climits>
 #include <cstring>
 
+#include <cstdlib>
+
 #include <fcntl.h>
+#include <poll.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -67,11 +70,31 @@ public:
   {
     for (;;)
     {
+      if (!regular)
+      {
+        // A FIFO, a terminal, a device: wait for data in poll(2), 0.1 s at a time, so an abort
+        // is seen even when nothing comes (a writer that never writes, or never opens).
+        pollfd pfd{ fd_, POLLIN, 0 };
+        const int pr = ::poll(&pfd, 1, 100);
+        if (pr < 0 && errno != EINTR)
+        {
+          err_ = errno;
+          return -1;
+        }
+        if (pr <= 0)
+        {
+          if (AbortRequested())
+            return kReadAborted;
+          continue;
+        }
+      }
       const ssize_t r = ::read(fd_, dst, std::min<std::size_t>(n, std::size_t(1) << 30));
       if (r >= 0)
         return r;
       if (errno == EINTR)
         continue;
+      if (errno == EAGAIN || errno == EWOULDBLOCK)
+        continue; // non-blocking descriptor with nothing to read yet: poll again
       err_ = errno;
       return -1;
     }
@@ -218,27 +241,78 @@ private:
   Fail(path, "file", what, "byte", 0);
 }
 
+std::string SpoolFailure(const std::string& dir, int err)
+{
+  return "cannot be copied (a pipe or device can be read only once) to a temporary file in " +
+    dir + ": " + std::strerror(err);
+}
+
+// Reads a non-regular input and appends every byte it delivers to the spool file; a failed
+// write (a full disk) is an error naming the input and the directory.
+class TeeSource final : public Source
+{
+public:
+  TeeSource(std::unique_ptr<Source> inner, int spool, std::string dir, std::string path)
+    : inner_(std::move(inner))
+    , spool_(spool)
+    , dir_(std::move(dir))
+    , path_(std::move(path))
+  {
+    regular = false;
+  }
+  long long Read(char* dst, std::size_t n) override
+  {
+    inner_->abortSink = abortSink;
+    const long long r = inner_->Read(dst, n);
+    for (long long done = 0; r > 0 && done < r;)
+    {
+      const ssize_t w = ::write(spool_, dst + done, std::size_t(r - done));
+      if (w < 0 && errno == EINTR)
+        continue;
+      if (w <= 0)
+        FailOpen(path_, SpoolFailure(dir_, w < 0 ? errno : EIO));
+      done += w;
+    }
+    return r;
+  }
+  std::string ErrorText() const override { return inner_->ErrorText(); }
+
+private:
+  std::unique_ptr<Source> inner_;
+  int spool_;
+  std::string dir_, path_;
+};
+
 } // namespace
 
-std::unique_ptr<Source> OpenFileSource(const std::string& path)
+std::unique_ptr<Source> OpenFileSource(const std::string& path, const std::string& shownAs)
 {
-  int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  const std::string& name = shownAs.empty() ? path : shownAs;
+  // O_NONBLOCK: opening a FIFO for reading would otherwise block until a writer opens it, deaf
+  // to Ctrl-C; reads of non-regular files wait in poll(2) instead (FdSource).
+  int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);
   if (fd < 0)
-    FailOpen(path, std::string("cannot be opened: ") + std::strerror(errno));
+    FailOpen(name, std::string("cannot be opened: ") + std::strerror(errno));
   struct stat st;
   if (::fstat(fd, &st) != 0)
   {
     const int err = errno;
     ::close(fd);
-    FailOpen(path, std::string("cannot be inspected: ") + std::strerror(err));
+    FailOpen(name, std::string("cannot be inspected: ") + std::strerror(err));
   }
   if (S_ISDIR(st.st_mode))
   {
     ::close(fd);
-    FailOpen(path, "is a directory");
+    FailOpen(name, "is a directory");
   }
   unsigned char magic[2] = { 0, 0 };
   const bool regular = S_ISREG(st.st_mode);
+  if (regular)
+  {
+    const int flags = ::fcntl(fd, F_GETFL);
+    if (flags >= 0)
+      ::fcntl(fd, F_SETFL, flags & ~O_NONBLOCK);
+  }
   if (regular && st.st_size >= 2 && ::pread(fd, magic, 2, 0) == 2 && magic[0] == 0x1f &&
     magic[1] == 0x8b)
   {
@@ -246,7 +320,7 @@ std::unique_ptr<Source> OpenFileSource(const std::string& path)
     if (!gz)
     {
       ::close(fd);
-      FailOpen(path, "cannot be opened as gzip");
+      FailOpen(name, "cannot be opened as gzip");
     }
     gzbuffer(gz, 256u << 10);
     return std::make_unique<GzFileSource>(gz);
@@ -258,6 +332,7 @@ std::unique_ptr<Source> OpenFileSource(const std::string& path)
   auto src = std::make_unique<FdSource>(fd);
   src->sizeKnown = regular;
   src->size = regular ? std::uint64_t(st.st_size) : 0;
+  src->regular = regular;
   return src;
 }
 
@@ -304,7 +379,13 @@ bool Input::Refill()
   const std::size_t space = capacity_ - keep;
   if (space == 0)
     return false;
+  // The abort poll of every loop that consumes input, however long a line, a run of skipped
+  // records or of dropped faces is: once per buffer refill (1 MiB), not per byte.
+  if (source_->AbortRequested())
+    Aborted(*this);
   const long long r = source_->Read(b + keep, space);
+  if (r == kReadAborted)
+    Aborted(*this);
   if (r < 0)
     Fail(path_, context, source_->ErrorText(), "byte", Offset(e));
   if (r == 0)
@@ -441,9 +522,9 @@ void VertexBuffer::Init(const VertexLayout& layout, std::size_t chunkElements, s
 
 void Aborted(const Input& in)
 {
-  if (in.text)
-    in.FailAtLine("read aborted");
-  in.FailAtByte("read aborted");
+  std::string m = in.Path() + ": " + std::string(in.context) + " read aborted, at " +
+    (in.text ? "line " + std::to_string(in.line) : "byte " + std::to_string(in.Offset()));
+  throw ReadAbortedError(m);
 }
 
 void VertexBuffer::Flush(MeshSink& sink, const Input& in)
@@ -548,21 +629,37 @@ bool IsPlyMagic(std::string_view w)
   return w.size() >= 4 && w.substr(0, 3) == "ply" && (w[3] == '\n' || (w[3] == '\r'));
 }
 
+bool IsGzipMagic(std::string_view w)
+{
+  return w.size() >= 2 && static_cast<unsigned char>(w[0]) == 0x1f &&
+    static_cast<unsigned char>(w[1]) == 0x8b;
+}
+
+bool NamedStl(const Input& in)
+{
+  return EndsWithNoCase(in.Path(), ".stl") || EndsWithNoCase(in.Path(), ".stl.gz");
+}
+
 Family DetectFamily(Input& in)
 {
   const std::size_t want = std::min<std::size_t>(in.Capacity() / 2, 64u << 10);
   in.Ensure(want);
   std::string_view w(in.p, in.Avail());
+  const Source& src = in.Src();
+  if (w.empty() || IsGzipMagic(w))
+    return Family::Unknown; // empty, or gzip that was not decompressed: FailUnknown says which
   if (IsPlyMagic(w))
     return Family::Ply;
 
-  const Source& src = in.Src();
-  if (src.sizeKnown && src.size >= 84 && w.size() >= 84 && in.Offset() == 0)
+  // The 80-byte header + facet count of a binary STL. A count of 0 is not evidence of an STL
+  // (84 zero bytes, /dev/zero): only a name ending in .stl makes such a file an empty STL.
+  std::uint64_t stlCount = 0;
+  if (w.size() >= 84 && in.Offset() == 0)
   {
     const auto* b = reinterpret_cast<const unsigned char*>(w.data()) + 80;
-    const std::uint64_t n = std::uint64_t(b[0]) | std::uint64_t(b[1]) << 8 |
-      std::uint64_t(b[2]) << 16 | std::uint64_t(b[3]) << 24;
-    if (84 + 50 * n == src.size)
+    stlCount = std::uint64_t(b[0]) | std::uint64_t(b[1]) << 8 | std::uint64_t(b[2]) << 16 |
+      std::uint64_t(b[3]) << 24;
+    if (src.sizeKnown && 84 + 50 * stlCount == src.size && (stlCount > 0 || NamedStl(in)))
       return Family::StlBinary;
   }
   const bool text = LooksLikeText(w.data(), std::min<std::size_t>(w.size(), 4096));
@@ -608,12 +705,41 @@ Family DetectFamily(Input& in)
     return Family::Obj; // blank/comments only: an empty OBJ
   }
   // Binary content that is not PLY: a binary STL if the name says so, or if its size cannot be
-  // checked (gzip); a wrong size is then reported by the STL reader.
-  if (!text && !w.empty() &&
-    ((!src.sizeKnown && w.size() >= 84) || EndsWithNoCase(in.Path(), ".stl") ||
-      EndsWithNoCase(in.Path(), ".stl.gz")))
+  // checked (gzip, a pipe) and it announces facets; a wrong size is then reported by the STL
+  // reader.
+  if (!text && !w.empty() && ((!src.sizeKnown && stlCount > 0) || NamedStl(in)))
     return Family::StlBinary;
   return Family::Unknown;
+}
+
+[[noreturn]] void FailUnknown(Input& in)
+{
+  std::string_view w(in.p, in.Avail());
+  const Source& src = in.Src();
+  if (w.empty() && in.Offset() == 0)
+    Fail(in.Path(), "file",
+      std::string("is empty (0 bytes") + (src.compressed ? " after decompression" : "") +
+        "; unknown format: expected PLY, STL or OBJ)",
+      "byte", 0);
+  if (IsGzipMagic(w) && src.compressed)
+    Fail(in.Path(), "file",
+      "is gzip inside gzip (compressed twice): decompress it once (gunzip) and read the result",
+      "byte", 0);
+  if (IsGzipMagic(w))
+    Fail(in.Path(), "file",
+      "is gzip-compressed data from a pipe or device (only regular files are decompressed): "
+      "decompress it first, e.g. zcat FILE.gz | sipmss ... /dev/stdin",
+      "byte", 0);
+  w = w.substr(0, 4096);
+  std::size_t zeros = 0;
+  while (zeros < w.size() && w[zeros] == '\0')
+    ++zeros;
+  if (zeros > 0 && zeros == w.size())
+    Fail(in.Path(), "file",
+      "is not a mesh file (unknown format: its first " + std::to_string(zeros) +
+        " bytes are all zero; expected PLY, STL or OBJ)",
+      "byte", 0);
+  Fail(in.Path(), "file", "is not a mesh file (unknown format: expected PLY, STL or OBJ)", "byte", 0);
 }
 
 Format PlyFormatFromWindow(std::string_view w)
@@ -677,6 +803,7 @@ Family FamilyOf(Format f)
 
 ReadStats ReadFromInput(Input& in, MeshSink& sink, const ReadOptions& options, Format force)
 {
+  in.Src().abortSink = &sink;
   Family fam = force == Format::Unknown ? DetectFamily(in) : FamilyOf(force);
   switch (fam)
   {
@@ -686,7 +813,7 @@ ReadStats ReadFromInput(Input& in, MeshSink& sink, const ReadOptions& options, F
     case Family::Obj: return ReadObj(in, sink, options);
     case Family::Unknown: break;
   }
-  Fail(in.Path(), "file", "is not a mesh file (unknown format: expected PLY, STL or OBJ)", "byte", 0);
+  FailUnknown(in);
 }
 
 // Counts what a full read delivers (ReadHeader's scan for formats without a header).
@@ -778,7 +905,81 @@ MeshHeader ReadHeader(const std::string& path)
     case Family::Obj: return ScanHeader(in, Format::Obj);
     case Family::Unknown: break;
   }
-  Fail(path, "file", "is not a mesh file (unknown format: expected PLY, STL or OBJ)", "byte", 0);
+  FailUnknown(in);
+}
+
+// ---------------------------------------------------------------------------------------------
+MeshInputFile::MeshInputFile(std::string path, std::string tmpdir)
+  : path_(std::move(path))
+  , tmpdir_(std::move(tmpdir))
+{
+}
+
+MeshInputFile::~MeshInputFile()
+{
+  if (spoolFd_ >= 0)
+    ::close(spoolFd_);
+}
+
+ReadStats MeshInputFile::Read(MeshSink& sink, const ReadOptions& options)
+{
+  using namespace detail;
+  if (spoolComplete_)
+  {
+    // /proc/self/fd/N opens the unlinked copy afresh: its own offset (and gzip works on it).
+    Input in(OpenFileSource("/proc/self/fd/" + std::to_string(spoolFd_), path_), path_);
+    return ReadFromInput(in, sink, options, Format::Unknown);
+  }
+  if (spoolFd_ != -1)
+    Fail(path_, "file",
+      "cannot be read again: a pipe or device can be read only once, and its first read failed",
+      "byte", 0);
+  std::unique_ptr<Source> src = OpenFileSource(path_);
+  if (src->regular)
+  {
+    Input in(std::move(src), path_);
+    return ReadFromInput(in, sink, options, Format::Unknown);
+  }
+
+  std::string dir = tmpdir_;
+  if (dir.empty())
+  {
+    const char* t = std::getenv("TMPDIR");
+    dir = t && *t ? t : "/tmp";
+  }
+  std::string name = dir + "/.sipmss-input-XXXXXX";
+  const int fd = ::mkstemp(name.data());
+  if (fd < 0)
+    Fail(path_, "file", SpoolFailure(dir, errno), "byte", 0);
+  ::unlink(name.c_str()); // nothing is left behind, whatever happens next
+  ::fcntl(fd, F_SETFD, FD_CLOEXEC);
+  spoolFd_ = fd;
+  try
+  {
+    Input in(std::make_unique<TeeSource>(std::move(src), fd, dir, path_), path_);
+    in.Src().abortSink = &sink;
+    // gzip is decompressed from the copy: copy it all first.
+    const bool gzip = in.Ensure(2) && static_cast<unsigned char>(in.p[0]) == 0x1f &&
+      static_cast<unsigned char>(in.p[1]) == 0x8b;
+    ReadStats st;
+    if (!gzip)
+      st = ReadFromInput(in, sink, options, Format::Unknown);
+    // The rest of the input (after a vertices-only pass), for the next reads.
+    in.context = "file";
+    do
+      in.p = in.e;
+    while (in.Refill());
+    spoolComplete_ = true;
+    if (gzip)
+      return Read(sink, options);
+    return st;
+  }
+  catch (...)
+  {
+    ::close(spoolFd_);
+    spoolFd_ = -2; // the input is consumed: a later Read says so
+    throw;
+  }
 }
 
 } // namespace sipmss::io

@@ -53,7 +53,10 @@ ReadStats ReadObj(Input& in, MeshSink& sink, const ReadOptions& options)
       in.SkipLine(); // optional w, or the r g b of the vertex-color extension
       continue;
     }
-    if (c0 == 'f' && (c1 == ' ' || c1 == '\t') && !options.verticesOnly)
+    // A vertices-only pass skips faces, except those before any vertex: they can only be wrong,
+    // and the error names them (instead of a caller's "no vertices").
+    if (c0 == 'f' && (c1 == ' ' || c1 == '\t') &&
+      (!options.verticesOnly || vb.first + vb.n == 0))
     {
       in.context = "face";
       ++in.p;

@@ -35,6 +35,17 @@ constexpr std::size_t TypeSize(PT t)
 }
 constexpr bool IsInteger(PT t) { return t <= PT::U32; }
 
+// The range of an integer type, and its PLY name (for errors).
+struct IntRange
+{
+  std::int64_t lo, hi;
+  const char* name;
+};
+constexpr IntRange kIntRanges[] = { { -128, 127, "char" }, { 0, 255, "uchar" },
+  { -32768, 32767, "short" }, { 0, 65535, "ushort" }, { -2147483648LL, 2147483647LL, "int" },
+  { 0, 4294967295LL, "uint" } };
+inline const IntRange& RangeOf(PT t) { return kIntRanges[int(t) <= int(PT::U32) ? int(t) : 0]; }
+
 bool ParseTypeName(std::string_view s, PT& t)
 {
   static const struct
@@ -686,7 +697,13 @@ private:
         else if (p.type == PT::F64)
           val = in_.ParseFloatToken<double>(p.name.c_str());
         else
-          val = double(in_.ParseIntToken(p.name.c_str()));
+        {
+          const std::int64_t iv = in_.ParseIntToken(p.name.c_str());
+          const IntRange& r = RangeOf(p.type);
+          if (iv < r.lo || iv > r.hi)
+            OutOfRange(el, p, iv, r);
+          val = double(iv);
+        }
         Store(v, ops[i].arr, ops[i].comp, p.type, val);
       }
       if (!AllFinite(vb_.xyz.data() + 3 * v, 3))
@@ -695,6 +712,16 @@ private:
       ++vb_.n;
       --remaining;
     }
+  }
+
+  [[noreturn]] __attribute__((noinline, cold)) void OutOfRange(
+    const Elem& el, const Prop& p, std::int64_t v, const IntRange& r)
+  {
+    Fail(in_.Path(), el.name,
+      "property '" + Printable(p.name) + "' has value " + std::to_string(v) +
+        ", out of range for " + r.name + " (" + std::to_string(r.lo) + " to " +
+        std::to_string(r.hi) + ")",
+      "line", in_.line);
   }
 
   [[noreturn]] void TooFew(const Prop& p)
@@ -937,12 +964,17 @@ private:
         if (cnt < 0)
           in_.FailAtLine("#" + std::to_string(polygons_) + " has a negative vertex count " +
             std::to_string(cnt));
+        if (cnt > RangeOf(p.countType).hi)
+          OutOfRange(el, p, cnt, RangeOf(p.countType));
+        const std::int64_t idxMax = RangeOf(p.type).hi;
         fan.Start();
         for (std::int64_t k = 0; k < cnt; ++k)
         {
           if (!in_.SkipBlanks())
             TooFew(p);
           const std::int64_t idx = in_.ParseIntToken("a vertex index");
+          if (idx > idxMax)
+            OutOfRange(el, p, idx, RangeOf(p.type));
           CheckIndex(idx, in_.line);
           AddFanIndex(fan, std::uint32_t(idx));
         }

@@ -53,6 +53,16 @@ ReadStats ReadStlBinary(Input& in, MeshSink& sink, const ReadOptions& options)
     in.FailAtByte("count " + std::to_string(n) + " is larger than the file allows (needs " +
         std::to_string(84 + 50 * n) + " bytes, the file has " + std::to_string(src.size) + ")",
       80);
+  // A count smaller than the data would silently lose the facets after it.
+  if (src.sizeKnown && 84 + 50 * n < src.size)
+  {
+    const std::uint64_t extra = src.size - 84 - 50 * n;
+    in.FailAtByte("count " + std::to_string(n) + " is smaller than the file: " +
+        std::to_string(extra) + " bytes follow the " + std::to_string(n) + " facets it announces" +
+        (extra % 50 == 0 ? " (the file holds " + std::to_string((src.size - 84) / 50) + " facets)"
+                         : std::string(" (not a whole number of 50-byte facets)")),
+      80);
+  }
 
   MeshHeader mh;
   mh.format = Format::StlBinary; // counts: 0 = unknown (see MeshHeader)
@@ -104,6 +114,11 @@ ReadStats ReadStlBinary(Input& in, MeshSink& sink, const ReadOptions& options)
     in.p += 50 * m;
     remaining -= m;
   }
+  // Size unknown up front (gzip, a pipe): data after the announced facets is the same mismatch.
+  if (!src.sizeKnown && in.Ensure(1))
+    in.FailAtByte("count " + std::to_string(n) + " is smaller than the data: more bytes follow the " +
+        std::to_string(n) + " facets it announces",
+      80);
   return Finish(in, sink, vb, tb, options.verticesOnly ? 0 : n);
 }
 

@@ -26,10 +26,11 @@ struct Result
   std::string out;
 };
 
-Result RunCli(const std::string& args)
+// Runs a shell command line; its stdout and stderr together, and its exit status.
+Result RunCommand(const std::string& commandLine)
 {
   Result r;
-  const std::string cmd = std::string(SIPMSS_CLI) + " " + args + " 2>&1";
+  const std::string cmd = commandLine + " 2>&1";
   FILE* p = ::popen(cmd.c_str(), "r");
   std::array<char, 4096> buf{};
   std::size_t n;
@@ -40,6 +41,11 @@ Result RunCli(const std::string& args)
   const int st = ::pclose(p);
   r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
   return r;
+}
+
+Result RunCli(const std::string& args)
+{
+  return RunCommand(std::string(SIPMSS_CLI) + " " + args);
 }
 
 class CLI : public ::testing::Test
@@ -301,18 +307,9 @@ TEST_F(CLI, RefusesToOverwriteTheInput)
   {
     for (const char* algorithm : { "", " --algorithm decimate", " --algorithm two-stage" })
     {
-      Result r;
       const std::string cmd = c.cmd + (c.cmd.find("--algorithm") == std::string::npos ? algorithm : "") +
-        " --quiet 2>&1";
-      FILE* p = ::popen(cmd.c_str(), "r");
-      std::array<char, 4096> buf{};
-      std::size_t n;
-      while ((n = std::fread(buf.data(), 1, buf.size(), p)) > 0)
-      {
-        r.out.append(buf.data(), n);
-      }
-      const int st = ::pclose(p);
-      r.status = WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+        " --quiet";
+      const Result r = RunCommand(cmd);
       EXPECT_EQ(r.status, 2) << cmd << "\n" << r.out;
       EXPECT_NE(r.out.find("refusing to overwrite the input"), std::string::npos) << cmd << "\n" << r.out;
       EXPECT_NE(r.out.find(c.named), std::string::npos) << cmd << "\n" << r.out;
@@ -367,6 +364,26 @@ TEST_F(CLI, OutputIsCheckedBeforeTheRun)
     EXPECT_NE(r.out.find(c.says), std::string::npos) << r.out;
     EXPECT_EQ(r.out.find(".sipmss-"), std::string::npos) << "names a temporary: " << r.out;
     EXPECT_LT(seconds, 1.0) << c.output << c.extra; // the read alone takes longer
+  }
+  // A 25M-triangle input (a sparse file: its header announces 12.5M vertices and 25M faces; no
+  // disk is used): the extension is refused at once, before any of it is read.
+  {
+    const std::uint64_t nv = 12500000, nf = 25000000;
+    std::ofstream f(P("huge.ply"), std::ios::binary);
+    f << "ply\nformat binary_little_endian 1.0\nelement vertex " << nv
+      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << nf
+      << "\nproperty list uchar int vertex_indices\nend_header\n";
+    const std::uint64_t size = std::uint64_t(f.tellp()) + 12 * nv + 13 * nf;
+    f.close();
+    fs::resize_file(P("huge.ply"), size);
+    const auto start = std::chrono::steady_clock::now();
+    Result r = RunCli("simplify " + P("huge.ply") + " " + P("out.vtp") + " --algorithm decimate --quiet");
+    const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    EXPECT_EQ(r.status, 1) << r.out;
+    EXPECT_NE(r.out.find("out.vtp: unknown mesh file extension '.vtp'"), std::string::npos) << r.out;
+    EXPECT_LT(seconds, 1.0);
+    fs::remove(P("huge.ply"));
   }
   for (const auto& e : fs::directory_iterator(this->dir))
   {
@@ -484,17 +501,9 @@ TEST_F(CLI, ProgressBarShowsPhasePercentElapsedAndTimeLeft)
   const std::string cmd = "script -qec '" + std::string(SIPMSS_CLI) + " simplify " + P("grid.ply") +
     " " + P("out.ply") + " --algorithm decimate --target 1000 --memory-mb 4 --threads 1 --tmpdir " +
     this->dir.string() + "' /dev/null";
-  Result r = RunCli("--version"); // the CLI exists
-  ASSERT_EQ(r.status, 0);
-  FILE* p = ::popen((cmd + " 2>&1").c_str(), "r");
-  std::string out;
-  std::array<char, 4096> buf{};
-  std::size_t k;
-  while ((k = std::fread(buf.data(), 1, buf.size(), p)) > 0)
-  {
-    out.append(buf.data(), k);
-  }
-  ASSERT_EQ(::pclose(p), 0) << out;
+  const Result r = RunCommand(cmd);
+  const std::string& out = r.out;
+  ASSERT_EQ(r.status, 0) << out;
   EXPECT_NE(out.find("% collapse"), std::string::npos) << out.substr(0, 2000);
   EXPECT_NE(out.find(" elapsed"), std::string::npos) << out.substr(0, 2000);
   EXPECT_NE(out.find(" left"), std::string::npos) << out.substr(0, 2000);
@@ -566,4 +575,200 @@ TEST_F(CLI, StatisticsOnAFullDiskAreAnError)
     << r.out;
   EXPECT_FALSE(fs::exists(this->dir / "out.ply"));
   EXPECT_EQ(left, std::vector<std::string>{ "fill" });
+}
+
+// ---------------------------------------------------------------------------------------------
+// Issue 20 items 4, 5, 9: aborts outside the cores, FIFO inputs, empty and degenerate inputs.
+namespace
+{
+// Runs `sh -c SCRIPT` and returns its combined output.
+std::string RunShell(const std::string& script)
+{
+  std::string quoted;
+  for (char c : script)
+  {
+    quoted += c == '\'' ? std::string("'\\''") : std::string(1, c);
+  }
+  return RunCommand("sh -c '" + quoted + "'").out;
+}
+
+// Starts `sipmss ARGS` in the background, sends SIGINT after `delay` seconds, and prints
+// "status=N seconds=S" (S: from the signal to the exit). A run that ignores the signal is killed
+// after 8 s (status=137).
+std::string InterruptAfter(const std::string& args, double delay)
+{
+  // --foreground: timeout forwards the SIGINT to the command only (without it, it also signals
+  // its process group, and the command gets a second SIGINT, which kills it at once).
+  return RunShell("timeout --foreground -s KILL 8 " + std::string(SIPMSS_CLI) + " " + args +
+    " & p=$!; sleep " + std::to_string(delay) + "; t0=$(date +%s%N); kill -INT $p; wait $p; "
+    "s=$?; t1=$(date +%s%N); echo status=$s seconds=$(( (t1 - t0) / 1000000 ))e-3");
+}
+
+double SecondsOf(const std::string& out)
+{
+  const auto at = out.find("seconds=");
+  return at == std::string::npos ? 1e9 : std::atof(out.c_str() + at + 8);
+}
+} // namespace
+
+TEST_F(CLI, InfoAndCompareStopOnTheFirstCtrlC)
+{
+  // compare with 1e11 samples runs for hours; info on a FIFO nobody writes to blocks forever.
+  ASSERT_EQ(::mkfifo(P("silent.ply").c_str(), 0600), 0);
+  const std::string runs[] = {
+    "compare " + P("octa.ply") + " " + P("octa.ply") + " --samples 100000000000",
+    "info " + P("silent.ply"),
+  };
+  for (const auto& args : runs)
+  {
+    const std::string out = InterruptAfter(args, 0.5);
+    EXPECT_NE(out.find("status=130"), std::string::npos) << args << "\n" << out;
+    EXPECT_NE(out.find("sipmss: interrupted; nothing was written"), std::string::npos) << out;
+    EXPECT_LT(SecondsOf(out), 1.0) << args << "\n" << out;
+  }
+}
+
+TEST_F(CLI, AFifoInputWorksAndCtrlCStopsAFifoWithoutWriter)
+{
+  WriteGrid(P("grid.ply"), 60);
+  ASSERT_EQ(::mkfifo(P("in.ply").c_str(), 0600), 0);
+  fs::create_directories(this->dir / "tmp");
+  for (const std::string algorithm : { "cluster", "decimate", "two-stage" })
+  {
+    const std::string options = " --algorithm " + algorithm + " --quiet" +
+      (algorithm == "cluster" ? " --grid 20" : " --target 500");
+    Result ref = RunCli("simplify " + P("grid.ply") + " " + P("ref.ply") + options);
+    ASSERT_EQ(ref.status, 0) << ref.out;
+    // The cluster's bounds pass then its real read used to open the FIFO twice: a hang.
+    const std::string out = RunShell("cat " + P("grid.ply") + " > " + P("in.ply") +
+      " & TMPDIR=" + P("tmp") + " timeout -s KILL 20 " + SIPMSS_CLI + " simplify " + P("in.ply") +
+      " " + P("out.ply") + options + "; echo status=$?");
+    EXPECT_NE(out.find("status=0"), std::string::npos) << algorithm << "\n" << out;
+    EXPECT_EQ(ReadAll(this->dir / "out.ply"), ReadAll(this->dir / "ref.ply")) << algorithm;
+    EXPECT_TRUE(fs::is_empty(this->dir / "tmp")) << algorithm; // the copy was never visible
+    fs::remove(this->dir / "out.ply");
+  }
+  // gzip through a pipe (/dev/stdin) works too.
+  {
+    const std::string out = RunShell("gzip -c " + P("grid.ply") + " | " + SIPMSS_CLI +
+      " simplify /dev/stdin " + P("out.ply") + " --grid 20 --quiet; echo status=$?");
+    EXPECT_NE(out.find("status=0"), std::string::npos) << out;
+    Result ref = RunCli("simplify " + P("grid.ply") + " " + P("ref.ply") + " --grid 20 --quiet");
+    EXPECT_EQ(ReadAll(this->dir / "out.ply"), ReadAll(this->dir / "ref.ply"));
+  }
+  // Nobody writes: the first Ctrl-C stops the run (it blocked in open(2), deaf to SIGINT).
+  for (const std::string options : { "", "--threads 1", "--algorithm decimate" })
+  {
+    const std::string out = InterruptAfter(
+      "simplify " + P("in.ply") + " " + P("never.ply") + " --quiet " + options, 0.5);
+    EXPECT_NE(out.find("status=130"), std::string::npos) << options << "\n" << out;
+    EXPECT_NE(out.find("sipmss: interrupted; nothing was written"), std::string::npos) << out;
+    EXPECT_LT(SecondsOf(out), 1.0) << options << "\n" << out;
+    EXPECT_FALSE(fs::exists(this->dir / "never.ply"));
+  }
+}
+
+TEST_F(CLI, CtrlCStopsTheReaderInsideAHugeCommentLine)
+{
+  // A .gz holding a comment line of 8 GiB (8 MB compressed): the readers asked for an abort
+  // only between chunks, so a run went on reading for many seconds after Ctrl-C.
+  {
+    const std::string chunk = std::string(64u << 20, 'x');
+    std::vector<unsigned char> member(compressBound(uLong(chunk.size())) + 64);
+    z_stream z{};
+    ASSERT_EQ(deflateInit2(&z, 9, Z_DEFLATED, 15 + 16, 9, Z_DEFAULT_STRATEGY), Z_OK);
+    z.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(chunk.data()));
+    z.avail_in = uInt(chunk.size());
+    z.next_out = member.data();
+    z.avail_out = uInt(member.size());
+    ASSERT_EQ(deflate(&z, Z_FINISH), Z_STREAM_END);
+    member.resize(z.total_out);
+    deflateEnd(&z);
+    std::ofstream f(this->dir / "huge.obj.gz", std::ios::binary);
+    const std::string head = "# ";
+    gzFile g = gzopen(P("head.gz").c_str(), "wb");
+    gzwrite(g, head.data(), unsigned(head.size()));
+    gzclose(g);
+    f << ReadAll(this->dir / "head.gz");
+    fs::remove(this->dir / "head.gz");
+    for (int i = 0; i < 128; ++i) // gzip members concatenate: 128 x 64 MiB of 'x'
+    {
+      f.write(reinterpret_cast<const char*>(member.data()), std::streamsize(member.size()));
+    }
+  }
+  for (const std::string options : { "", "--threads 1", "--algorithm decimate" })
+  {
+    const std::string out = InterruptAfter(
+      "simplify " + P("huge.obj.gz") + " " + P("out.ply") + " --quiet " + options, 0.5);
+    EXPECT_NE(out.find("status=130"), std::string::npos) << options << "\n" << out;
+    EXPECT_LT(SecondsOf(out), 1.0) << options << "\n" << out;
+  }
+}
+
+TEST_F(CLI, EmptyAndDegenerateInputsGiveOneNamedMessage)
+{
+  std::ofstream(this->dir / "comments.obj") << "# nothing here\n";
+  std::ofstream(this->dir / "points.obj") << "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+  std::ofstream(this->dir / "degenerate.obj") << "v 0 0 0\nv 1 0 0\nf 1 1 2\nf 1 2\n";
+  std::ofstream(this->dir / "zeros.ply", std::ios::binary) << std::string(84, '\0');
+  const struct
+  {
+    std::string file, message;
+  } cases[] = {
+    { "comments.obj", ": nothing to simplify: the input has no valid triangle\n" },
+    { "points.obj", ": nothing to simplify: the input has no valid triangle\n" },
+    { "degenerate.obj",
+      ": nothing to simplify: the input has no valid triangle (2 degenerate faces were dropped)\n" },
+    { "zeros.ply", ": file is not a mesh file (unknown format: its first 84 bytes are all zero; "
+                   "expected PLY, STL or OBJ), at byte 0\n" },
+  };
+  for (const auto& c : cases)
+  {
+    for (const std::string algorithm : { "cluster", "decimate", "two-stage" })
+    {
+      Result r = RunCli("simplify " + P(c.file) + " " + P("out.ply") + " --quiet --algorithm " + algorithm);
+      EXPECT_EQ(r.status, 1) << c.file << " " << algorithm << "\n" << r.out;
+      EXPECT_EQ(r.out, "sipmss: error: " + P(c.file) + c.message) << c.file << " " << algorithm;
+      EXPECT_FALSE(fs::exists(this->dir / "out.ply"));
+    }
+    // info describes a valid file and warns in the same words; an unreadable one is the same error.
+    Result i = RunCli("info " + P(c.file));
+    if (c.file == "zeros.ply")
+    {
+      EXPECT_EQ(i.status, 1) << i.out;
+      EXPECT_EQ(i.out, "sipmss: error: " + P(c.file) + c.message);
+    }
+    else
+    {
+      EXPECT_EQ(i.status, 0) << i.out;
+      EXPECT_NE(i.out.find("sipmss: warning: " + P(c.file) + c.message), std::string::npos) << i.out;
+    }
+  }
+}
+
+TEST_F(CLI, AFifoInputOnAFullTemporaryDiskIsANamedError)
+{
+  // The copy of a FIFO input goes to $TMPDIR: a full one is an error naming the input and the
+  // directory, and leaves nothing there.
+  const fs::path mnt = this->dir / "full";
+  fs::create_directory(mnt);
+  if (std::system(("mount -t tmpfs -o size=64k tmpfs " + mnt.string() + " 2>/dev/null").c_str()) != 0)
+  {
+    GTEST_SKIP() << "cannot mount a tmpfs here (needs root): skipping the full-disk test";
+  }
+  WriteGrid(P("grid.ply"), 100); // 120 KiB
+  ASSERT_EQ(::mkfifo(P("in.ply").c_str(), 0600), 0);
+  const std::string out = RunShell("cat " + P("grid.ply") + " > " + P("in.ply") + " 2>/dev/null & TMPDIR=" +
+    mnt.string() + " timeout -s KILL 20 " + SIPMSS_CLI + " simplify " + P("in.ply") + " " +
+    P("out.ply") + " --quiet; echo status=$?; wait");
+  const bool empty = fs::is_empty(mnt);
+  EXPECT_EQ(std::system(("umount " + mnt.string()).c_str()), 0);
+  EXPECT_NE(out.find("status=1\n"), std::string::npos) << out;
+  EXPECT_NE(out.find("sipmss: error: " + P("in.ply") +
+              ": file cannot be copied (a pipe or device can be read only once) to a temporary file in " +
+              mnt.string() + ": No space left on device"),
+    std::string::npos)
+    << out;
+  EXPECT_TRUE(empty);
+  EXPECT_FALSE(fs::exists(this->dir / "out.ply"));
 }

@@ -3,9 +3,15 @@
 // shared real scans.
 #include "IOTestUtil.h"
 
+#include <chrono>
 #include <cmath>
 #include <random>
+#include <thread>
 #include <tuple>
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 namespace sipmss::io::test
 {
@@ -866,6 +872,196 @@ INSTANTIATE_TEST_SUITE_P(IO, IOSharedData,
     std::string n = info.param.file;
     return n.substr(0, n.find_first_of('.'));
   });
+
+// ---------------------------------------------------------------------------------------------
+// Issue 20 item 4: an abort reaches the reader inside a chunk, however long a line, a run of
+// skipped records or of dropped faces is (before, only a chunk flush asked, so none of these
+// inputs, which never fill a chunk, could be stopped).
+class AbortAlways : public MeshSink
+{
+public:
+  void Begin(const MeshHeader&) override {}
+  void Vertices(const VertexChunk&) override {}
+  void Triangles(const std::uint32_t*, std::size_t) override {}
+  void End(const ReadStats&) override { ended = true; }
+  bool AbortRequested() override
+  {
+    // not at the first ask (format detection's first buffer): inside the long loop
+    return ++asked >= 3;
+  }
+  bool ended = false;
+  std::uint64_t asked = 0;
+};
+
+TEST(IOAbort, InsideLongLinesSkippedRecordsAndDroppedFaces)
+{
+  const std::size_t big = std::size_t(6) << 20; // several buffer refills
+  std::string comment = "# " + std::string(big, 'x') + "\nv 0 0 0\n";
+  std::string emptyFaces = "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                           "property float y\nproperty float z\nelement face " +
+    std::to_string(big / 2) + "\nproperty list uchar int vertex_indices\nend_header\n";
+  for (std::size_t i = 0; i < big / 2; ++i)
+    emptyFaces += "0\n";
+  std::string skipped = "ply\nformat ascii 1.0\nelement junk " + std::to_string(big / 4) +
+    "\nproperty int a\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\n"
+    "end_header\n";
+  for (std::size_t i = 0; i < big / 4; ++i)
+    skipped += "123\n";
+  std::string stlLine = "solid " + std::string(big, 'n') + "\nendsolid\n";
+  const std::pair<const char*, std::string*> cases[] = { { "comment.obj", &comment },
+    { "emptyfaces.ply", &emptyFaces }, { "skipped.ply", &skipped }, { "name.stl", &stlLine } };
+  TempDir dir;
+  for (const auto& [name, bytes] : cases)
+    for (const bool gz : { false, true })
+    {
+      const std::string path = dir.File(std::string(name) + (gz ? ".gz" : ""));
+      if (gz)
+        WriteGzip(path, *bytes);
+      else
+        WriteFile(path, *bytes);
+      AbortAlways sink;
+      try
+      {
+        ReadMesh(path, sink);
+        ADD_FAILURE() << path << ": read to the end despite the abort";
+      }
+      catch (const ReadAbortedError& e)
+      {
+        EXPECT_NE(std::string(e.what()).find(path + ": "), std::string::npos) << e.what();
+        EXPECT_NE(std::string(e.what()).find("read aborted"), std::string::npos) << e.what();
+      }
+      EXPECT_FALSE(sink.ended) << path;
+      EXPECT_EQ(sink.asked, 3u) << path;
+    }
+}
+
+TEST(IOAbort, PollsCostNothingPerByte)
+{
+  // One poll per buffer refill: a 6 MiB read asks a handful of times, not per line or byte.
+  class Counting : public AbortAlways
+  {
+  public:
+    bool AbortRequested() override
+    {
+      ++asked;
+      return false;
+    }
+  };
+  std::string obj;
+  for (int i = 0; i < 200000; ++i)
+    obj += "v " + std::to_string(i) + " 1 2\n# a comment line\n";
+  TempDir dir;
+  WriteFile(dir.File("m.obj"), obj);
+  Counting sink;
+  ReadMesh(dir.File("m.obj"), sink);
+  EXPECT_TRUE(sink.ended);
+  EXPECT_GE(sink.asked, obj.size() >> 20); // at least one per MiB
+  EXPECT_LE(sink.asked, (obj.size() >> 20) + 20 + 200000 / (1 << 14) * 2);
+}
+
+// Issue 20 item 5: a FIFO (or /dev/stdin) opens without blocking, stops on an abort while no
+// writer comes, and MeshInputFile copies it once (unlinked) so it can be read several times.
+TEST(IOFifo, OpenWithoutWriterAbortsInsteadOfBlocking)
+{
+  TempDir dir;
+  const std::string fifo = dir.File("in.obj");
+  ASSERT_EQ(::mkfifo(fifo.c_str(), 0600), 0);
+  // Rescue for a reader that blocks in open(2) (the old behaviour): a writer comes after 5 s and
+  // leaves at once, so the test fails instead of hanging.
+  std::thread rescue([&] {
+    std::this_thread::sleep_for(std::chrono::seconds(5));
+    const int fd = ::open(fifo.c_str(), O_RDWR | O_NONBLOCK);
+    if (fd >= 0)
+      ::close(fd);
+  });
+  class AbortLater : public AbortAlways
+  {
+  public:
+    std::chrono::steady_clock::time_point at = std::chrono::steady_clock::now() +
+      std::chrono::milliseconds(300);
+    bool AbortRequested() override { return std::chrono::steady_clock::now() >= at; }
+  };
+  AbortLater sink;
+  const auto t0 = std::chrono::steady_clock::now();
+  std::string error;
+  bool aborted = false;
+  try
+  {
+    ReadMesh(fifo, sink);
+  }
+  catch (const ReadAbortedError& e)
+  {
+    aborted = true;
+    error = e.what();
+  }
+  catch (const MeshIOError& e)
+  {
+    error = e.what();
+  }
+  const double seconds =
+    std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  rescue.join();
+  EXPECT_TRUE(aborted) << error;
+  EXPECT_LT(seconds, 2.0);
+}
+
+TEST(IOFifo, MeshInputFileCopiesAFifoOnceAndReplaysIt)
+{
+  TempDir dir, spool;
+  std::string obj = "# fifo\n";
+  for (int i = 0; i < 30000; ++i)
+    obj += "v " + std::to_string(i % 97) + " " + std::to_string(i / 97) + " " +
+      std::to_string(i % 13) + "\n";
+  for (int i = 0; i + 2 < 30000; i += 3)
+    obj += "f " + std::to_string(i + 1) + " " + std::to_string(i + 2) + " " +
+      std::to_string(i + 3) + "\n";
+  WriteFile(dir.File("ref.obj"), obj);
+  WriteGzip(dir.File("ref.obj.gz"), obj);
+  const CollectSink ref = ReadAll(dir.File("ref.obj"));
+  for (const char* source : { "ref.obj", "ref.obj.gz" })
+  {
+    const std::string fifo = dir.File("fifo");
+    std::filesystem::remove(fifo);
+    ASSERT_EQ(::mkfifo(fifo.c_str(), 0600), 0);
+    const std::string bytes = ReadFileBytes(dir.File(source));
+    std::thread writer([&] {
+      const int fd = ::open(fifo.c_str(), O_WRONLY);
+      std::size_t off = 0;
+      while (fd >= 0 && off < bytes.size())
+      {
+        const ssize_t w = ::write(fd, bytes.data() + off, std::min<std::size_t>(bytes.size() - off, 4096));
+        if (w <= 0)
+          break;
+        off += std::size_t(w);
+      }
+      if (fd >= 0)
+        ::close(fd);
+    });
+    {
+      MeshInputFile input(fifo, spool.Path());
+      ReadOptions verticesOnly;
+      verticesOnly.verticesOnly = true;
+      CollectSink first, second, third;
+      input.Read(first, verticesOnly); // the first pass stops early; the rest is still copied
+      writer.join();
+      input.Read(second);
+      input.Read(third);
+      EXPECT_TRUE(input.Spooled());
+      EXPECT_EQ(first.xyz, ref.xyz) << source;
+      EXPECT_EQ(second.xyz, ref.xyz) << source;
+      EXPECT_EQ(second.tris, ref.tris) << source;
+      EXPECT_EQ(third.tris, ref.tris) << source;
+      // The copy is unlinked from the start: nothing in the spool directory, even now.
+      EXPECT_TRUE(std::filesystem::is_empty(spool.Path())) << source;
+    }
+  }
+  // A regular file is read in place, never copied.
+  MeshInputFile regular(dir.File("ref.obj"), spool.Path());
+  CollectSink s;
+  regular.Read(s);
+  EXPECT_FALSE(regular.Spooled());
+  EXPECT_EQ(s.tris, ref.tris);
+}
 
 } // namespace
 } // namespace sipmss::io::test

@@ -53,6 +53,17 @@ extern "C" void OnInterrupt(int sig)
   std::signal(sig, SIG_DFL);
 }
 
+// info and compare write nothing and hold nothing to clean up (their inputs are read in place):
+// the first SIGINT/SIGTERM ends them at once, wherever they are (a read blocked on a FIFO, a
+// long sampling loop), with simplify's message and status. Only async-signal-safe calls.
+extern "C" void OnInterruptReadOnly(int sig)
+{
+  static const char message[] = "sipmss: interrupted; nothing was written\n";
+  const ssize_t ignored = ::write(STDERR_FILENO, message, sizeof(message) - 1);
+  (void)ignored;
+  ::_exit(128 + sig);
+}
+
 // A progress bar on a terminal: the phase, percent, elapsed time and an estimate of the time left
 // (from the run's progress so far); silent otherwise. Aborted() on SIGINT/SIGTERM.
 class TerminalProgress final : public algorithms::Progress
@@ -448,7 +459,8 @@ int RunSimplify(const SimplifyArgs& a)
   storage::Profile profile;
   profile.memoryBudget = static_cast<std::uint64_t>(a.memoryMB * 1024.0 * 1024.0);
   profile.directories = a.tmpdirs;
-  const algorithms::MeshSource source = algorithms::FileSource(a.input);
+  const algorithms::MeshSource source =
+    algorithms::FileSource(a.input, a.tmpdirs.empty() ? std::string() : a.tmpdirs.front());
   // Block directories left by runs that were killed (kill -9) are removed first.
   {
     std::vector<std::string> dirs = a.tmpdirs;
@@ -602,6 +614,14 @@ int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t sa
   io::VectorSink sa(a.points, a.triangles), sb(b.points, b.triangles);
   io::ReadMesh(ref, sa);
   io::ReadMesh(cand, sb);
+  for (const auto& [path, mesh] : { std::pair<const std::string&, const algorithms::TriangleMesh&>(
+                                      ref, a), { cand, b } })
+  {
+    if (mesh.NumberOfTriangles() == 0)
+    {
+      throw io::MeshIOError(path + ": nothing to compare: the input has no valid triangle");
+    }
+  }
   algorithms::CompareOptions o;
   o.samples = samples;
   const algorithms::CompareResult r = algorithms::CompareMeshes(a, b, o);
@@ -618,6 +638,15 @@ int RunInfo(const std::string& path)
 {
   InfoSink s;
   io::ReadMesh(path, s);
+  if (s.stats.triangles == 0)
+  {
+    // the file is valid and described below, but simplify would refuse it: say so in its words
+    std::fprintf(stderr, "sipmss: warning: %s: nothing to simplify: the input has no valid triangle%s\n",
+      path.c_str(),
+      s.stats.droppedFaces
+        ? (" (" + std::to_string(s.stats.droppedFaces) + " degenerate faces were dropped)").c_str()
+        : "");
+  }
   nlohmann::json j = { { "file", path }, { "format", io::ToString(s.header.format) },
     { "vertices", s.stats.vertices }, { "faces", s.stats.polygons },
     { "triangles", s.stats.triangles }, { "dropped_faces", s.stats.droppedFaces },
@@ -720,8 +749,9 @@ int main(int argc, char** argv)
     return rc == 0 ? 0 : 2;
   }
 
-  std::signal(SIGINT, OnInterrupt);
-  std::signal(SIGTERM, OnInterrupt);
+  const bool readOnly = !*simplify;
+  std::signal(SIGINT, readOnly ? OnInterruptReadOnly : OnInterrupt);
+  std::signal(SIGTERM, readOnly ? OnInterruptReadOnly : OnInterrupt);
   try
   {
     if (*simplify)

@@ -131,7 +131,8 @@ public:
 using MeshSource = std::function<io::ReadStats(io::MeshSink& sink, const io::ReadOptions& options)>;
 
 // A source that streams a file through the IO readers.
-MeshSource FileSource(const std::string& path);
+// tmpdir: where a FIFO or device input is copied as it is first read (empty: $TMPDIR or /tmp).
+MeshSource FileSource(const std::string& path, const std::string& tmpdir = {});
 
 // One timed phase of a run, for --stats-json and the filters' statistics.
 struct PhaseStat

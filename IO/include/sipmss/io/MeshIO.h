@@ -37,6 +37,14 @@ public:
   }
 };
 
+// Thrown by a reader when the sink's AbortRequested() returned true ("FILE: ELEMENT read
+// aborted, at ...").
+class ReadAbortedError : public MeshIOError
+{
+public:
+  using MeshIOError::MeshIOError;
+};
+
 // Which per-vertex attributes a file carries (as delivered to the sink).
 struct VertexLayout
 {
@@ -87,7 +95,9 @@ public:
   // reader when the vertex count is known first, as for PLY, else at End()).
   virtual void Triangles(const std::uint32_t* indices, std::size_t count) = 0;
   virtual void End(const ReadStats& stats) = 0;
-  // Called between chunks; returning true stops the read with MeshIOError("aborted").
+  // Called between chunks and on every refill of the reader's input buffer (at least once per
+  // MiB of input, whatever the content: a long line, skipped records, dropped faces), and every
+  // 0.1 s while a FIFO has no data; returning true stops the read with ReadAbortedError.
   virtual bool AbortRequested() { return false; }
 };
 
@@ -99,9 +109,20 @@ struct ReadOptions
 };
 
 // Behaviour details (see also MeshIOInternal.h for reading from memory):
-// - Detection is by content: PLY magic; binary STL when 84 + 50 * n equals the file size (a header
-//   starting with "solid" does not matter), ASCII STL when text starts with "solid", OBJ when the
-//   first statement is an OBJ keyword. Non-text content named *.stl[.gz] is read as binary STL.
+// - Detection is by content: PLY magic; binary STL when 84 + 50 * n equals the file size with
+//   n > 0 (a header starting with "solid" does not matter), ASCII STL when text starts with
+//   "solid", OBJ when the first statement is an OBJ keyword. Non-text content named *.stl[.gz], or
+//   of unknown size (gzip, a pipe) announcing n > 0 facets, is read as binary STL. A header count
+//   of 0 alone is no evidence: 84 zero bytes or /dev/zero are "not a mesh file (... all zero)"
+//   unless named *.stl (then an empty STL). An empty file, gzip inside gzip ("compressed twice")
+//   and gzip from a pipe or device (only regular files are decompressed; MeshInputFile copies
+//   them first) are errors saying so.
+// - Binary STL: a facet count that disagrees with the data (more facets than the file holds, or
+//   bytes after the announced facets) is an error at byte 80.
+// - ASCII PLY: an integer outside its declared type's range (uchar 300, uchar -5, short 40000,
+//   also list counts and indices) is an error naming the element, the property and the line.
+// - Aborts: see MeshSink::AbortRequested; reads never block in open(2) (a FIFO without a writer)
+//   and wait for a pipe's data in poll(2), so an abort is seen within 0.1 s.
 // - PLY: vertex x y z required; nx ny nz -> normals, red green blue [alpha] (or diffuse_*) -> rgba
 //   (float colours 0..1 are scaled), u v / s t / texture_u texture_v -> texcoords, every other
 //   scalar -> layout.scalars (in file order); vertex list properties and unknown elements are
@@ -110,9 +131,35 @@ struct ReadOptions
 //   fan triangle with a repeated index (so one polygon may count more than once).
 // - STL: facet normals are not delivered (empty layout). OBJ: `v x y z [anything]`, `f` with
 //   i, i/t, i//n, i/t/n and negative indices; everything else ignored; no '\' line continuations.
+//   A verticesOnly pass skips faces, except those before the first vertex (an error there).
 // - Begin() gets the announced counts only for uncompressed PLY; 0 otherwise (see MeshHeader).
 Format DetectFormat(const std::string& path); // by content (and .gz transparently)
 ReadStats ReadMesh(const std::string& path, MeshSink& sink, const ReadOptions& options = {});
+// A mesh input read any number of times (a bounds pass, then the real read). A regular file is
+// re-read from its path. Anything else (a FIFO, /dev/stdin, a character device) can be read only
+// once: the first Read copies its bytes, as it reads them, to a temporary file in `tmpdir`
+// (empty: $TMPDIR, else /tmp), reads on to the end of the input, and every later Read replays
+// that copy. The copy is unlinked as soon as it is created, so it disappears with this object or
+// the process, however it ends (error, Ctrl-C, kill -9). Content that is not a mesh (/dev/zero)
+// fails at once, before anything is copied; gzip from a pipe is copied whole, then decompressed.
+// Not thread-safe: one Read at a time.
+class MeshInputFile
+{
+public:
+  explicit MeshInputFile(std::string path, std::string tmpdir = {});
+  ~MeshInputFile();
+  MeshInputFile(const MeshInputFile&) = delete;
+  MeshInputFile& operator=(const MeshInputFile&) = delete;
+  ReadStats Read(MeshSink& sink, const ReadOptions& options = {});
+  const std::string& Path() const { return path_; }
+  bool Spooled() const { return spoolFd_ >= 0 && spoolComplete_; } // replaying a copy
+
+private:
+  std::string path_, tmpdir_;
+  int spoolFd_ = -1;
+  bool spoolComplete_ = false;
+};
+
 // cheap: header only (PLY), else a scan. Uncompressed PLY: the header's counts (checked against
 // the file size; faceCount = faces as announced, not triangles). Binary STL whose size matches:
 // from its header. gzip PLY, ASCII STL, OBJ (and mismatched binary STL): a full validating read
