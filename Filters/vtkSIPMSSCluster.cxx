@@ -8,6 +8,8 @@
 #include "vtkObjectFactory.h"
 #include "vtkPolyData.h"
 
+#include <string>
+
 vtkStandardNewMacro(vtkSIPMSSCluster);
 
 vtkSIPMSSCluster::vtkSIPMSSCluster() = default;
@@ -38,6 +40,16 @@ int vtkSIPMSSCluster::RequestData(
       }
       return sipmss::algorithms::Cluster(source, sink, options, progress);
     });
+}
+
+std::string vtkSIPMSSCluster::ParameterProblem()
+{
+  std::string problem = FiniteProblem("BoundaryWeight", this->BoundaryWeight);
+  for (int k = 0; k < 6 && problem.empty() && this->UseBounds; ++k)
+  {
+    problem = FiniteProblem("Bounds", this->Bounds[k]);
+  }
+  return problem;
 }
 
 void vtkSIPMSSCluster::PrintSelf(ostream& os, vtkIndent indent)

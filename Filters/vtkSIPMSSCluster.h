@@ -57,6 +57,9 @@ protected:
   ~vtkSIPMSSCluster() override = default;
 
   int RequestData(vtkInformation*, vtkInformationVector**, vtkInformationVector*) override;
+#ifndef __VTK_WRAP__
+  std::string ParameterProblem() override;
+#endif
 
   int MaximumGridDimension = 50;
   double BoundaryWeight = 0.0;

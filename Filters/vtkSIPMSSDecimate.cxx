@@ -72,6 +72,22 @@ int vtkSIPMSSDecimate::RequestData(
     });
 }
 
+std::string vtkSIPMSSDecimate::ParameterProblem()
+{
+  const std::pair<const char*, double> values[] = { { "TargetReduction", this->TargetReduction },
+    { "BoundaryWeight", this->BoundaryWeight }, { "WeldDistance", this->WeldDistance } };
+  for (const auto& [name, value] : values)
+  {
+    std::string problem = FiniteProblem(name, value);
+    if (!problem.empty())
+    {
+      return problem;
+    }
+  }
+  // MaximumError may be infinite (no bound), but not NaN
+  return std::isnan(this->MaximumError) ? "MaximumError must be a number, not nan" : std::string();
+}
+
 void vtkSIPMSSDecimate::PrintSelf(ostream& os, vtkIndent indent)
 {
   this->Superclass::PrintSelf(os, indent);

@@ -95,6 +95,9 @@ protected:
 
   int FillOutputPortInformation(int port, vtkInformation* info) override;
   int RequestData(vtkInformation*, vtkInformationVector**, vtkInformationVector*) override;
+#ifndef __VTK_WRAP__
+  std::string ParameterProblem() override;
+#endif
 
   vtkIdType TargetNumberOfTriangles = 0;
   double TargetReduction = 0.9;

@@ -40,6 +40,23 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->BytesRead = this->BytesWritten = this->Reconfigurations = 0;
   this->ElapsedSeconds = 0;
 
+  // The same rules as the CLI's: NaN, infinities and meaningless values are errors.
+  std::string problem = sipmss::algorithms::MemoryBudgetProblem(this->MemoryBudgetMB);
+  if (!problem.empty())
+  {
+    problem = "MemoryBudgetMB " + problem;
+  }
+  else
+  {
+    problem = this->ParameterProblem();
+  }
+  if (!problem.empty())
+  {
+    vtkErrorMacro(<< problem << ".");
+    output->Initialize();
+    return 0;
+  }
+
   sipmss::algorithms::MeshSource source;
   bool haveBounds = false;
   std::array<double, 6> bounds{};
@@ -104,12 +121,6 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     what = "the input";
   }
 
-  if (!std::isfinite(this->MemoryBudgetMB))
-  {
-    vtkErrorMacro("MemoryBudgetMB must be a finite number of MiB (0 = unbounded), not "
-      << this->MemoryBudgetMB << ".");
-    return 0;
-  }
   // the input's point data for the output sinks (cleared when the run ends)
   struct ClearInputPointData
   {
@@ -156,6 +167,12 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   }
   this->UpdateProgress(1.0);
   return 1;
+}
+
+std::string vtkSIPMSSFilterBase::FiniteProblem(const char* name, double value)
+{
+  return std::isfinite(value) ? std::string()
+                              : std::string(name) + " must be a finite number, not " + std::to_string(value);
 }
 
 void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)

@@ -20,6 +20,7 @@ class vtkPolyData;
 
 #include <array>      // for std::array
 #include <functional> // for std::function
+#include <string>     // for std::string
 
 #ifndef __VTK_WRAP__
 namespace sipmss
@@ -128,6 +129,11 @@ protected:
     const std::array<double, 6>& bounds, sipmss::io::MeshSink& output,
     const sipmss::storage::Profile& profile, sipmss::algorithms::Progress& progress)>;
   int Simplify(vtkInformationVector** inputVector, vtkPolyData* output, const CoreRun& run);
+  // What is wrong with the subclass's parameters (checked by Simplify before any work, after
+  // MemoryBudgetMB), or an empty string. The rules are the CLI's.
+  virtual std::string ParameterProblem() { return {}; }
+  // "NAME must be a finite number, not VALUE" for NaN and infinities, else empty.
+  static std::string FiniteProblem(const char* name, double value);
 #endif
 
 #ifndef __VTK_WRAP__

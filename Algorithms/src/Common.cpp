@@ -1,5 +1,7 @@
 #include "sipmss/algorithms/Common.h"
 
+#include <sstream>
+
 namespace sipmss::algorithms
 {
 
@@ -29,6 +31,18 @@ void Progress::Finish()
   this->begin_ = this->end_ = this->position_ = 1.0;
   this->last_ = std::chrono::steady_clock::now();
   this->Report(1.0, this->phase_);
+}
+
+std::string MemoryBudgetProblem(double megabytes)
+{
+  if (megabytes == 0 || (megabytes >= kMinimumMemoryBudgetMB && megabytes <= 1e9))
+  {
+    return {};
+  }
+  std::ostringstream m;
+  m << "must be 0 (unbounded) or between " << kMinimumMemoryBudgetMB
+    << " (64 KiB) and 1e9 MiB, not " << megabytes;
+  return m.str();
 }
 
 // Every pass reads the same input (io::MeshInputFile: a FIFO or /dev/stdin is copied once to an

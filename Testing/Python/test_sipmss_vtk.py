@@ -286,16 +286,34 @@ class SIPMSSPythonTest(unittest.TestCase):
             self.assertTrue(any("Dropped 2 degenerate faces of the input" in w for w in msgs.warnings),
                             msgs.warnings)
 
-    def test_memory_budget_nan_is_an_error(self):
+    def test_meaningless_parameters_are_errors(self):
+        """The CLI's rules: NaN, infinities and budgets that round to nothing are errors."""
+        src = sphere(20)  # alive while the filters use its port
+        nan, inf = float("nan"), float("inf")
+        cases = [(vtkSIPMSSDecimate, "SetMemoryBudgetMB", nan, "MemoryBudgetMB must be 0 (unbounded) or"),
+                 (vtkSIPMSSDecimate, "SetMemoryBudgetMB", inf, "MemoryBudgetMB must be 0 (unbounded) or"),
+                 (vtkSIPMSSCluster, "SetMemoryBudgetMB", 1e-7, "MemoryBudgetMB must be 0 (unbounded) or"),
+                 (vtkSIPMSSDecimate, "SetTargetReduction", nan, "TargetReduction must be a finite number"),
+                 (vtkSIPMSSDecimate, "SetBoundaryWeight", nan, "BoundaryWeight must be a finite number"),
+                 (vtkSIPMSSDecimate, "SetWeldDistance", inf, "WeldDistance must be a finite number"),
+                 (vtkSIPMSSDecimate, "SetMaximumError", nan, "MaximumError must be a number"),
+                 (vtkSIPMSSCluster, "SetBoundaryWeight", nan, "BoundaryWeight must be a finite number")]
+        for cls, setter, value, says in cases:
+            f = cls()
+            msgs = Messages(f)
+            f.SetInputConnection(src.GetOutputPort())
+            getattr(f, setter)(value)
+            f.Update()
+            self.assertEqual(f.GetOutput().GetNumberOfPolys(), 0, setter)
+            self.assertEqual(len(msgs.errors), 1, (setter, msgs.errors))
+            self.assertIn(says, msgs.errors[0])
+        # still fine: an infinite MaximumError (no bound) and the smallest budget
         f = vtkSIPMSSDecimate()
-        msgs = Messages(f)
-        src = sphere(20)  # alive while the filter uses its port
         f.SetInputConnection(src.GetOutputPort())
-        f.SetMemoryBudgetMB(float("nan"))
+        f.SetMaximumError(inf)
+        f.SetMemoryBudgetMB(0.0625)
         f.Update()
-        self.assertEqual(f.GetOutput().GetNumberOfPolys(), 0)
-        self.assertEqual(len(msgs.errors), 1)
-        self.assertIn("MemoryBudgetMB must be a finite number", msgs.errors[0])
+        self.assertGreater(f.GetOutput().GetNumberOfPolys(), 0)
 
 
 if __name__ == "__main__":

@@ -377,11 +377,12 @@ const CLI::Validator Finite(
 const CLI::Validator MemoryBudget(
   [](std::string& value) {
     double v = 0;
-    if (!CLI::detail::lexical_cast(value, v) || !(v == 0 || (v >= 0.0625 && v <= 1e9)))
+    if (!CLI::detail::lexical_cast(value, v))
     {
-      return std::string("must be 0 (unbounded) or between 0.0625 (64 KiB) and 1e9 MiB, not ") + value;
+      return std::string("must be a number, not ") + value;
     }
-    return std::string();
+    const std::string problem = algorithms::MemoryBudgetProblem(v);
+    return problem.empty() ? problem : problem.substr(0, problem.rfind(", not ")) + ", not " + value;
   },
   "0 or [0.0625 - 1e9]");
 

@@ -130,6 +130,12 @@ public:
 // Algorithms may call it more than once (e.g. a bounds pass with verticesOnly).
 using MeshSource = std::function<io::ReadStats(io::MeshSink& sink, const io::ReadOptions& options)>;
 
+// The memory budget rule of every front end (CLI --memory-mb, the filters' MemoryBudgetMB): 0 is
+// unbounded, else at least kMinimumMemoryBudgetMB (a smaller budget would round to nothing) and
+// finite. Returns what is wrong with `megabytes`, or an empty string.
+constexpr double kMinimumMemoryBudgetMB = 0.0625; // 64 KiB
+std::string MemoryBudgetProblem(double megabytes);
+
 // A source that streams a file through the IO readers.
 // tmpdir: where a FIFO or device input is copied as it is first read (empty: $TMPDIR or /tmp).
 MeshSource FileSource(const std::string& path, const std::string& tmpdir = {});
