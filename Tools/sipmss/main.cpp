@@ -128,58 +128,50 @@ private:
   std::chrono::steady_clock::time_point start_;
 };
 
-// Writes a streamed mesh to a temporary name next to OUTPUT; Commit() renames it into place.
-// If the run fails or is abandoned, the temporary file is removed and OUTPUT is untouched.
-// A run killed outright (SIGKILL, power loss) cannot remove its temporary: the next run to the
-// same OUTPUT removes those of processes that no longer exist (like the DML's stale block
-// directories; same caveat: pids mean something on this host only).
-class FileSink final : public io::MeshSink
+// A hidden temporary name beside `target` (same directory, so the rename is atomic; the
+// extension stays last so a writer picks the format from it): .sipmss-<pid>-<target's name>.
+// Commit() renames it onto target; otherwise the temporary is removed. A run killed outright
+// (SIGKILL, power loss) cannot remove its temporary: the next run to the same target removes those
+// of processes that no longer exist (like the DML's stale block directories; same caveat: pids
+// mean something on this host only).
+class TemporaryBeside
 {
 public:
-  explicit FileSink(fs::path output)
-    : output_(std::move(output))
+  explicit TemporaryBeside(fs::path target)
+    : target_(std::move(target))
   {
-    // a hidden name in the same directory (so rename is atomic); the extension stays last so
-    // the writer picks the format from it
-    this->temp_ = this->output_.parent_path() /
-      (".sipmss-" + std::to_string(::getpid()) + "-" + this->output_.filename().string());
+    this->temp_ = this->target_.parent_path() /
+      (".sipmss-" + std::to_string(::getpid()) + "-" + this->target_.filename().string());
     this->RemoveStaleTemporaries();
   }
-  ~FileSink() override
+  TemporaryBeside(const TemporaryBeside&) = delete;
+  TemporaryBeside& operator=(const TemporaryBeside&) = delete;
+  ~TemporaryBeside()
   {
-    this->writer_.reset();
     if (!this->committed_)
     {
       std::error_code ec;
       fs::remove(this->temp_, ec);
     }
   }
-  void Begin(const io::MeshHeader& h) override
-  {
-    this->writer_ = io::MeshWriter::Create(this->temp_.string(), false);
-    this->writer_->Begin(h.vertexCount, h.faceCount, h.layout);
-  }
-  void Vertices(const io::VertexChunk& c) override { this->writer_->Vertices(c); }
-  void Triangles(const std::uint32_t* i, std::size_t n) override { this->writer_->Triangles(i, n); }
-  void End(const io::ReadStats&) override { this->writer_->End(); }
+  const fs::path& Temp() const { return this->temp_; }
   void Commit()
   {
-    this->writer_.reset();
     std::error_code ec;
-    fs::rename(this->temp_, this->output_, ec);
+    fs::rename(this->temp_, this->target_, ec);
     if (ec)
     {
-      throw io::MeshIOError(this->output_.string() + ": cannot write: " + ec.message());
+      throw io::MeshIOError(this->target_.string() + ": cannot write: " + ec.message());
     }
     this->committed_ = true;
   }
 
 private:
-  // Regular files .sipmss-<pid>-<OUTPUT's name> beside OUTPUT whose pid has no process.
+  // Regular files .sipmss-<pid>-<target's name> beside target whose pid has no process.
   void RemoveStaleTemporaries() const
   {
-    const std::string suffix = "-" + this->output_.filename().string();
-    const fs::path dir = this->output_.parent_path().empty() ? fs::path(".") : this->output_.parent_path();
+    const std::string suffix = "-" + this->target_.filename().string();
+    const fs::path dir = this->target_.parent_path().empty() ? fs::path(".") : this->target_.parent_path();
     std::error_code ec;
     for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec))
     {
@@ -205,9 +197,36 @@ private:
     }
   }
 
-  fs::path output_, temp_;
-  std::unique_ptr<io::MeshWriter> writer_;
+  fs::path target_, temp_;
   bool committed_ = false;
+};
+
+// Writes a streamed mesh to a temporary name beside OUTPUT; Commit() renames it into place. If
+// the run fails or is abandoned, the temporary file is removed and OUTPUT is untouched.
+class FileSink final : public io::MeshSink
+{
+public:
+  explicit FileSink(fs::path output)
+    : file_(std::move(output))
+  {
+  }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->writer_ = io::MeshWriter::Create(this->file_.Temp().string(), false);
+    this->writer_->Begin(h.vertexCount, h.faceCount, h.layout);
+  }
+  void Vertices(const io::VertexChunk& c) override { this->writer_->Vertices(c); }
+  void Triangles(const std::uint32_t* i, std::size_t n) override { this->writer_->Triangles(i, n); }
+  void End(const io::ReadStats&) override { this->writer_->End(); }
+  void Commit()
+  {
+    this->writer_.reset();
+    this->file_.Commit();
+  }
+
+private:
+  TemporaryBeside file_; // declared first: the writer closes before the temporary is removed
+  std::unique_ptr<io::MeshWriter> writer_;
 };
 
 // Where writing `path` lands: the file a symlink points to (the link stays a link, its target
@@ -226,7 +245,7 @@ fs::path WriteTarget(const fs::path& path)
   return path;
 }
 
-// A small file written whole to a hidden temporary name beside its target (through a symlink, the
+// A small file written whole to a temporary name beside its target (through a symlink, the
 // link's target): any write failure is an error naming the user's path, and the temporary is
 // removed. Commit() renames it into place.
 class PendingFile
@@ -234,11 +253,9 @@ class PendingFile
 public:
   PendingFile(const std::string& path, const std::string& content)
     : path_(path)
-    , target_(WriteTarget(path))
+    , file_(WriteTarget(path))
   {
-    this->temp_ = this->target_.parent_path() /
-      (".sipmss-" + std::to_string(::getpid()) + "-" + this->target_.filename().string());
-    const int fd = ::open(this->temp_.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0666);
+    const int fd = ::open(this->file_.Temp().c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0666);
     if (fd < 0)
     {
       this->Fail(errno);
@@ -264,37 +281,15 @@ public:
       this->Fail(errno);
     }
   }
-  PendingFile(const PendingFile&) = delete;
-  PendingFile& operator=(const PendingFile&) = delete;
-  ~PendingFile()
-  {
-    if (!this->committed_)
-    {
-      std::error_code ec;
-      fs::remove(this->temp_, ec);
-    }
-  }
-  void Commit()
-  {
-    std::error_code ec;
-    fs::rename(this->temp_, this->target_, ec);
-    if (ec)
-    {
-      throw io::MeshIOError(this->path_ + ": cannot write: " + ec.message());
-    }
-    this->committed_ = true;
-  }
+  void Commit() { this->file_.Commit(); }
 
 private:
-  [[noreturn]] void Fail(int err)
+  [[noreturn]] void Fail(int err) const
   {
-    std::error_code ec;
-    fs::remove(this->temp_, ec);
     throw io::MeshIOError(this->path_ + ": cannot write the statistics: " + std::strerror(err));
   }
   std::string path_;
-  fs::path target_, temp_;
-  bool committed_ = false;
+  TemporaryBeside file_;
 };
 
 // Gathers the header, counts and bounds (for info).
@@ -530,12 +525,6 @@ int RunSimplify(const SimplifyArgs& a)
   else
   {
     throw CLI::ValidationError("--algorithm", "unknown algorithm " + a.algorithm);
-  }
-  if (stats.inputTriangles == 0)
-  {
-    throw io::MeshIOError(a.input + ": nothing to simplify: the input has no valid triangle" +
-      (stats.droppedInputFaces ? " (" + std::to_string(stats.droppedInputFaces) +
-            " degenerate faces were dropped)" : std::string()));
   }
   progress.Clear();
   const double seconds =
