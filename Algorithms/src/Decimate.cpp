@@ -1625,12 +1625,17 @@ void Decimator::BuildRings()
   };
   // The faces with another live face on the same vertex set (rare): found on all cores in core
   // (on two out of core, the upper half of the faces through a forked DML that writes nothing),
-  // then settled one at a time in face order.
+  // then settled one at a time in face order. The mode is taken again here, not from T: opening
+  // the ring face list above may have moved every block out of core, and out of core a DML
+  // serves one thread only (a second one goes through a fork).
+  const int Tin = (nf >= kParallelRingsMin && F.Ptr(0) && RO.Ptr(0) && RF.Ptr(0))
+    ? this->threads_
+    : 1;
   Views forkViews;
   std::unique_ptr<DML> fork =
-    T == 1 ? this->ForkHelper(nf, nf / 2, {}, forkViews) : nullptr;
+    Tin == 1 ? this->ForkHelper(nf, nf / 2, {}, forkViews) : nullptr;
   ForkGuard joinOnExit{ *this, fork };
-  const int T3 = fork ? 2 : T;
+  const int T3 = fork ? 2 : Tin;
   std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T3));
   auto pass3 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
     const bool helper = fork && th == 1;

@@ -1470,4 +1470,63 @@ TEST(AlgorithmsDecimate, SphereQuality)
   EXPECT_LT(rms, 2e-3);
 }
 
+
+TEST(AlgorithmsDecimate, RingsSwitchingOutOfCoreOnTwoThreadsDoNotShareTheDML)
+{
+  // Regression: the input fits the budget (the run is in core when the rings start), the ring
+  // face list does not, so opening it moves every block out of core in the middle of the rings
+  // phase. The duplicate face search after it (pass 3) then ran on two threads over the one
+  // out-of-core DML, whose page cache serves one thread only: garbage reads, crashes about
+  // every other run. It must take the mode again (two threads only through a fork) and give
+  // the output of one thread, every time.
+  Mesh s = BumpySphere(7); // 163,842 vertices, 327,680 faces, no point data
+  ASSERT_GE(s.Triangles(), 65536u); // the rings run on all cores from here in core
+  const std::uint64_t nv = s.Vertices(), nf = s.Triangles();
+  // Positions (3 doubles), faces (3 indices) and ring offsets fit; the 3 nf ring faces only
+  // half: the budget lies halfway between.
+  const std::uint64_t input = nv * 3 * sizeof(double) + nf * 3 * sizeof(std::uint32_t) +
+    (nv + 1) * sizeof(std::uint32_t);
+  alg::DecimateOptions o;
+  o.targetTriangles = 4000;
+  o.threads = 1;
+  namespace fs = std::filesystem;
+  const fs::path dir =
+    fs::temp_directory_path() / ("sipmss_decimate_rings_switch_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  o.storage.directories = { dir.string() };
+  o.storage.memoryBudget = input + nf * 3 * sizeof(std::uint32_t) / 2;
+  Outcome one = Simplify(MemorySource(s), o);
+  ExpectValid(one.out);
+  // The path: the input phase ends in core, the rings out of core.
+  auto modeAfter = [](const alg::RunStats& st, const std::string& phase) {
+    for (const auto& p : st.phases)
+    {
+      if (p.name == phase)
+      {
+        return p.mode;
+      }
+    }
+    ADD_FAILURE() << "no phase " << phase << ": " << PhaseSummary(st);
+    return st::Mode::InCore;
+  };
+  ASSERT_FALSE(one.stats.phases.empty());
+  EXPECT_EQ(one.stats.phases.front().mode, st::Mode::InCore) << PhaseSummary(one.stats);
+  EXPECT_EQ(modeAfter(one.stats, "rings"), st::Mode::OutOfCore) << PhaseSummary(one.stats);
+  o.threads = 2;
+  for (int run = 0; run < 10; ++run)
+  {
+    Outcome two = Simplify(MemorySource(s), o);
+    EXPECT_EQ(modeAfter(two.stats, "rings"), st::Mode::OutOfCore) << PhaseSummary(two.stats);
+    EXPECT_GT(two.stats.storage.forks, 0u); // the helper thread works through forks
+    EXPECT_LE(two.stats.storage.peakBytes, o.storage.memoryBudget);
+    ExpectSameOutput(one, two, "2 threads, run " + std::to_string(run));
+    if (::testing::Test::HasFailure())
+    {
+      break;
+    }
+  }
+  EXPECT_TRUE(fs::is_empty(dir)); // no file left behind
+  fs::remove_all(dir);
+}
+
 } // namespace
