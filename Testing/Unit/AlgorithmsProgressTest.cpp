@@ -365,14 +365,20 @@ TEST_F(ProgressTest, DecimateInCore)
 
 TEST_F(ProgressTest, DecimateAt8MB)
 {
-  const Config c{ Algorithm::Decimate, 8, 1 };
-  this->CheckAbort(c, this->CheckRun(c));
+  for (int threads : { 1, 2 })
+  {
+    const Config c{ Algorithm::Decimate, 8, threads };
+    this->CheckAbort(c, this->CheckRun(c));
+  }
 }
 
 TEST_F(ProgressTest, DecimateAt64MB)
 {
-  const Config c{ Algorithm::Decimate, 64, 1 };
-  this->CheckAbort(c, this->CheckRun(c));
+  for (int threads : { 1, 2 })
+  {
+    const Config c{ Algorithm::Decimate, 64, threads };
+    this->CheckAbort(c, this->CheckRun(c));
+  }
 }
 
 TEST_F(ProgressTest, DecimateLargeAt8MB)
