@@ -3952,9 +3952,13 @@ void Decimator::Emit(io::MeshSink& sink)
   h.layout = this->layout_;
   sink.Begin(h);
   this->BindViews();
-  const std::size_t chunk = 1 << 14;
   const std::size_t rec = this->recSize_;
   const std::size_t ns = this->layout_.scalars.size();
+  // Chunks of at most 16K vertices and about 1 MiB of buffers, whatever the number of vertex
+  // properties (the output's size does not depend on the chunking).
+  const std::size_t perVertex = sizeof(Vec3) + 12 + (this->layout_.normals ? 12 : 0) +
+    (this->layout_.texcoords ? 8 : 0) + 4 * ns + rec + (this->layout_.colors ? 4 : 0);
+  const std::size_t chunk = std::clamp<std::size_t>((std::size_t(1) << 20) / perVertex, 1, 1 << 14);
   std::vector<Vec3> p(chunk);
   std::vector<float> xyz(3 * chunk), normals, tex, scalars;
   std::vector<std::uint8_t> raw, rgba;

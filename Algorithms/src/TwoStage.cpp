@@ -97,9 +97,13 @@ public:
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options)
   {
     sink.Begin(this->header_);
-    const std::size_t chunk = options.chunkElements ? options.chunkElements : 16384;
     const io::VertexLayout& L = this->header_.layout;
     const std::size_t ns = L.scalars.size();
+    // at most about 1 MiB of buffers per chunk, whatever the number of vertex properties
+    const std::size_t perVertex = 12 + (L.normals ? 12 : 0) + (L.texcoords ? 8 : 0) + 8 * ns +
+      (L.colors ? 8 : 0);
+    const std::size_t chunk = std::clamp<std::size_t>((std::size_t(1) << 20) / perVertex, 1,
+      options.chunkElements ? options.chunkElements : 16384);
     std::vector<float> xyz, normals, tex, scalars;
     std::vector<std::uint8_t> rgba;
     std::vector<std::uint32_t> rec;
