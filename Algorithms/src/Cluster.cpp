@@ -362,7 +362,7 @@ public:
   {
   }
   std::uint64_t Faces() const { return this->faces_; }
-  std::uint64_t seen() const { return this->seen_; }
+  std::uint64_t VerticesSeen() const { return this->seen_; }
   void Begin(const io::MeshHeader& h) override
   {
     this->expected_ = h.vertexCount;
@@ -569,6 +569,8 @@ public:
 
   void FinishTriangles() { this->triangles_.Finish(this->cells_, this->numCells_, this->progress_); }
   void FinishBoundaries() { this->AddBoundaryQuadrics(); }
+  // The bounds pass's estimate of vertices + faces, for inputs whose header has no sizes.
+  void ExpectSizes(std::uint64_t verticesAndFaces) { this->expectedHint_ = verticesAndFaces; }
   std::uint64_t Cells() const { return this->numCells_; }
   std::uint64_t Candidates() const { return this->triangles_.Candidates(); }
   std::uint64_t OutputTriangles() const { return this->triangles_.Size(); }
@@ -1100,10 +1102,7 @@ private:
   std::uint32_t numCells_ = 0;
   std::uint64_t verticesSeen_ = 0;
   std::uint64_t expected_ = 0, done_ = 0;
-
-public:
-  // The bounds pass's estimate of vertices + faces, for inputs whose header has no sizes.
-  std::uint64_t expectedHint_ = 0;
+  std::uint64_t expectedHint_ = 0; // see ExpectSizes
 };
 
 } // namespace
@@ -1192,7 +1191,7 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
     ro.verticesOnly = true;
     input(bs, ro);
     bounds = bs.b;
-    V = bs.seen();
+    V = bs.VerticesSeen();
     F = bs.Faces();
     if (F == 0)
     {
@@ -1202,7 +1201,7 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
 
   ClusterSink sink(dml, grid, options, own.has_value(), progress);
-  sink.expectedHint_ = V + F;
+  sink.ExpectSizes(V + F);
   {
     // (re-planned by the sink when the header announces the sizes)
     progress.BeginPhase("cluster", kWork::kCluster * double(V + F),

@@ -863,6 +863,8 @@ private:
   std::vector<std::uint64_t> Levels(std::uint64_t F0) const;
   // Progress planning: estimated work of the passes from `faces` live faces at `level` (the
   // pass schedule of Run simulated, vertices per face as now), and of writing the result.
+  // The face count a pass from T faces aims at, for the level's target (the pass schedule).
+  std::uint64_t PassGoal(std::uint64_t T, std::uint64_t level) const;
   double PassesWork(std::uint64_t faces, std::size_t level, const std::vector<std::uint64_t>& levels) const;
   double VerticesPerFace() const
   {
@@ -4076,11 +4078,21 @@ std::vector<std::uint64_t> Decimator::Levels(std::uint64_t F0) const
 
 // Run's pass loop, on counts only: each pass removes its planned share (a pass that removes
 // fewer makes the next estimates larger: the progress then moves more slowly, never back).
-double Decimator::PassesWork(
-  std::uint64_t T, std::size_t level, const std::vector<std::uint64_t>& levels) const
+std::uint64_t Decimator::PassGoal(std::uint64_t T, std::uint64_t level) const
 {
   const double fraction = std::min(0.9, std::max(0.01, this->opt_.passFraction));
   const double farFraction = std::min(0.9, std::max(fraction, this->opt_.farPassFraction));
+  // Far from the level, the cheapest collapses cost orders of magnitude less than the level's
+  // error and their exact order matters less: larger passes (fewer sweeps).
+  const bool far = double(T) > this->opt_.farRatio * double(std::max<std::uint64_t>(level, 1));
+  const std::uint64_t step =
+    std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
+  return std::max(level, T > step ? T - step : 0);
+}
+
+double Decimator::PassesWork(
+  std::uint64_t T, std::size_t level, const std::vector<std::uint64_t>& levels) const
+{
   const double vpf = this->VerticesPerFace();
   double work = 0;
   double nf = double(T), nv = vpf * double(T);
@@ -4095,11 +4107,7 @@ double Decimator::PassesWork(
       ++level;
       continue;
     }
-    const bool far =
-      double(T) > this->opt_.farRatio * double(std::max<std::uint64_t>(levels[level], 1));
-    const std::uint64_t step =
-      std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
-    const std::uint64_t goal = std::max(levels[level], T > step ? T - step : 0);
+    const std::uint64_t goal = this->PassGoal(T, levels[level]);
     work += (kWork::kSweep + kWork::kOrder) * nv + kWork::kStep * double(2 * (T - goal) + 16) +
       kWork::kCompact * (nf + nv);
     T = goal;
@@ -4151,8 +4159,6 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
   const std::uint64_t F0 = this->liveFaces_;
   const std::vector<std::uint64_t> levels = this->Levels(F0);
   const int K = int(levels.size());
-  const double fraction = std::min(0.9, std::max(0.01, this->opt_.passFraction));
-  const double farFraction = std::min(0.9, std::max(fraction, this->opt_.farPassFraction));
   auto emitLevel = [&](int level) {
     if (onLevel)
     {
@@ -4179,13 +4185,7 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
         ++level;
         continue;
       }
-      const std::uint64_t T = this->liveFaces_;
-      // Far from the level, the cheapest collapses cost orders of magnitude less than the
-      // level's error and their exact order matters less: larger passes (fewer sweeps).
-      const bool far = double(T) > this->opt_.farRatio * double(std::max<std::uint64_t>(levels[level], 1));
-      const std::uint64_t step =
-        std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
-      const std::uint64_t goal = std::max(levels[level], T > step ? T - step : 0);
+      const std::uint64_t goal = this->PassGoal(this->liveFaces_, levels[level]);
       if (!this->Pass(goal, goal == levels[level], this->PassesWork(goal, std::size_t(level), levels)))
       {
         // No legal collapse under maximumError remains: this is the final level.
