@@ -151,7 +151,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     if (stats.droppedInputFaces)
     {
       vtkWarningMacro("Dropped " << stats.droppedInputFaces << " degenerate faces of " << what
-        << " (fewer than 3 vertices or a repeated vertex).");
+        << " (fewer than 3 distinct vertices, zero area, or the same vertices as another face).");
     }
   }
   catch (const sipmss::algorithms::AbortedError&)

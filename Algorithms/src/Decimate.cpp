@@ -104,6 +104,11 @@ constexpr std::uint64_t kStepTail = 4096;
 // LegalFaces compares every vertex of one ring with every face of the other: above this product
 // of the two rings' face counts (vertices of very high valence), Legal's sorted tables instead.
 constexpr std::size_t kLegalFacesMax = 1024;
+// A collapse whose two vertices have more faces than this in their rings (the lists built at
+// the start of the pass) is not made: legality reads both rings, and a vertex of valence
+// 200,000 (a fan) would cost that much on each of its neighbours' attempts. Its neighbours'
+// collapses bring its valence down until it can collapse too. Scans have rings of 4 to 20.
+constexpr std::uint32_t kMaxCollapseRing = 4096;
 // The face split of the collapse rounds (FaceSplit) is used when at most 1 face in this many is
 // on the wrong side of it.
 constexpr std::uint64_t kSplitWrongShare = 256;
@@ -486,9 +491,72 @@ struct Deferred
 };
 
 // One thread's scratch for the candidate sweep (and the main thread's for the collapses).
+// Scratch vectors keep their capacity from one vertex to the next, except after a ring of a
+// vertex of very high valence: then they are released, so that its memory is not held on.
+template <typename T>
+void ReleaseIfLarge(std::vector<T>& v)
+{
+  if (v.capacity() > 65536)
+  {
+    std::vector<T>().swap(v);
+  }
+}
+
+// Where a vertex's neighbours occur in its ring's next and prev corner lists (the vertex after
+// and before it in each face), answered in log n. The linear scans that small rings use are
+// quadratic for a vertex of high valence (a fan of 200,000 faces); the answers are the same.
+class LinkTally
+{
+public:
+  // Rings with more entries than this use the tally.
+  static constexpr std::size_t kMinEntries = 32;
+
+  void Build(const std::uint32_t* next, const std::uint32_t* prev, std::size_t n)
+  {
+    Fill(this->next_, next, n);
+    Fill(this->prev_, prev, n);
+  }
+  // How many entries of next (inNext) or prev are a.
+  std::size_t Count(bool inNext, std::uint32_t a) const
+  {
+    const std::vector<std::uint64_t>& keys = inNext ? this->next_ : this->prev_;
+    const std::uint64_t lo = std::uint64_t(a) << 32;
+    return std::size_t(std::upper_bound(keys.begin(), keys.end(), lo | 0xffffffffu) -
+      std::lower_bound(keys.begin(), keys.end(), lo));
+  }
+  // Whether entry i of next (inNext) or prev is the first occurrence of its value a there.
+  bool First(bool inNext, std::uint32_t a, std::size_t i) const
+  {
+    const std::vector<std::uint64_t>& keys = inNext ? this->next_ : this->prev_;
+    const std::uint64_t lo = std::uint64_t(a) << 32;
+    const auto it = std::lower_bound(keys.begin(), keys.end(), lo);
+    return it != keys.end() && (*it >> 32) == a && (*it & 0xffffffffu) == i;
+  }
+  void Release()
+  {
+    ReleaseIfLarge(this->next_);
+    ReleaseIfLarge(this->prev_);
+  }
+
+private:
+  static void Fill(std::vector<std::uint64_t>& keys, const std::uint32_t* a, std::size_t n)
+  {
+    keys.resize(n);
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      keys[i] = (std::uint64_t(a[i]) << 32) | i; // (value, index): ascending indices per value
+    }
+    std::sort(keys.begin(), keys.end());
+  }
+
+  std::vector<std::uint64_t> next_, prev_;
+};
+
 struct Scratch
 {
   Ring ru, rv;
+  LinkTally tally; // Evaluate's, for rings of more than LinkTally::kMinEntries
+  bool tallyOn = false;
   std::vector<EdgeCand> edges;
   std::vector<std::uint32_t> ids, next = std::vector<std::uint32_t>(64),
                                   prev = std::vector<std::uint32_t>(64);
@@ -561,16 +629,22 @@ private:
 
 // Runs work(0) on the calling thread and work(1..T-1) on new ones, and joins them. A thread that
 // cannot be started ends the list: onShort(started) runs before work(0), so that the caller can
-// release those that did start. Returns how many ran.
-int RunOnThreads(int T, const std::function<void(int)>& work, const std::function<void(int)>& onShort)
+// release those that did start. Returns how many ran. With whileWaiting (which must not throw),
+// the calling thread runs it every 2 ms once work(0) is done and others are still running.
+int RunOnThreads(int T, const std::function<void(int)>& work, const std::function<void(int)>& onShort,
+  const std::function<void()>& whileWaiting = nullptr)
 {
   std::vector<std::thread> workers;
+  std::atomic<int> finished{ 0 };
   int started = 1;
   for (; started < T; ++started)
   {
     try
     {
-      workers.emplace_back(work, started);
+      workers.emplace_back([&work, &finished](int t) {
+        work(t);
+        finished.fetch_add(1);
+      }, started);
     }
     catch (const std::system_error&)
     {
@@ -582,6 +656,14 @@ int RunOnThreads(int T, const std::function<void(int)>& work, const std::functio
     }
   }
   work(0);
+  if (whileWaiting)
+  {
+    while (finished.load() < int(workers.size()))
+    {
+      std::this_thread::sleep_for(std::chrono::milliseconds(2));
+      whileWaiting();
+    }
+  }
   for (std::thread& w : workers)
   {
     w.join();
@@ -603,11 +685,14 @@ void RethrowFirst(const std::vector<std::exception_ptr>& errors)
 // Runs body(t, begin, end, stop) on [0, n) cut into T ranges, range t on thread t (0: the
 // calling one); the ranges of threads that could not be started run on the calling thread
 // afterwards. The bodies must be independent of each other (each writes only its own range's
-// records) and should return early once `stop` is set (another one threw, e.g. an abort).
+// records) and should return early once `stop` is set (another one threw, e.g. an abort). With
+// poll (e.g. Progress::Poll), the calling thread polls while it waits for the others: a range
+// with one costly element (a vertex of valence 2,000,000) is then still stopped by an abort, if
+// the body also checks `stop` inside that element.
 using RangeBody =
   std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
 void ForRanges(int T, std::uint64_t n, const RangeBody& body,
-  const std::function<void()>& beforeFallback = nullptr)
+  const std::function<void()>& beforeFallback = nullptr, const std::function<void()>& poll = nullptr)
 {
   auto begin = [n, T](int t) { return n * std::uint64_t(t) / std::uint64_t(T); };
   std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
@@ -625,7 +710,23 @@ void ForRanges(int T, std::uint64_t n, const RangeBody& body,
         stop = true;
       }
     },
-    nullptr);
+    nullptr,
+    poll ? std::function<void()>([&]() {
+      if (stop.load())
+      {
+        return;
+      }
+      try
+      {
+        poll();
+      }
+      catch (...)
+      {
+        errors[0] = std::current_exception();
+        stop = true;
+      }
+    })
+         : std::function<void()>());
   RethrowFirst(errors);
   if (started < T)
   {
@@ -742,6 +843,11 @@ private:
   void BindViews();
   void BindViews(Views& w, DML& dml) const;
   void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
+  // The length of x's face list (its live faces and those that died in this pass).
+  static std::uint32_t RingLength(const Views& w, std::uint32_t x)
+  {
+    return w.RO.Get(x + 1) - w.RO.Get(x);
+  }
   void LoadFaces(Views& w, std::uint32_t x, Ring& r);
   void BuildNeighbours(Views& w, Ring& r, bool positions);
   // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
@@ -1597,7 +1703,7 @@ void Decimator::BuildRings()
   // opposite orientations cancel (a zero-volume double-sided pair: keeping one of them would
   // leave three faces on each of its edges). A group is settled by its first live member; the
   // net orientation decides what survives: nothing, or its first member of that orientation.
-  std::vector<std::uint32_t> ids, ring;
+  std::vector<std::uint32_t> ring;
   auto sameSet = [](const Tri& a, const std::uint32_t s[3]) {
     std::uint32_t r[3] = { a.v[0], a.v[1], a.v[2] };
     SmallSort(r, 3);
@@ -1614,54 +1720,45 @@ void Decimator::BuildRings()
     }
     return 1;
   };
-  // t's vertex set sorted into s, and the faces of its lowest vertex into list (where any face
-  // on the same set is).
-  auto setAndRing = [&](const Tri& t, std::uint32_t s[3], std::vector<std::uint32_t>& list) {
-    s[0] = t.v[0];
-    s[1] = t.v[1];
-    s[2] = t.v[2];
-    SmallSort(s, 3);
-    const std::uint32_t b = RO.Get(s[0]), e = RO.Get(s[0] + 1);
-    list.resize(e - b);
-    RF.GetRange(b, e - b, list.data());
-  };
-  // The faces with another live face on the same vertex set (rare): found on all cores in core
-  // (on two out of core, the upper half of the faces through a forked DML that writes nothing),
-  // then settled one at a time in face order. The mode is taken again here, not from T: opening
-  // the ring face list above may have moved every block out of core, and out of core a DML
-  // serves one thread only (a second one goes through a fork).
+  // The groups of live faces on one vertex set (rare), found per vertex: a face belongs to its
+  // lowest vertex x, and x's faces are sorted by their other two vertices, so each face is read
+  // once and a ring of any size costs n log n (a fan of 200,000 faces around one vertex too).
+  // On all cores in core; on two out of core, the upper half of the vertices through a forked
+  // DML that writes nothing. The mode is taken again here, not from T: opening the ring face
+  // list above may have moved every block out of core, and out of core a DML serves one thread
+  // only (a second one goes through a fork). A group is stored as its size, then its members in
+  // increasing order.
   const int Tin = (nf >= kParallelRingsMin && F.Ptr(0) && RO.Ptr(0) && RF.Ptr(0))
     ? this->threads_
     : 1;
   Views forkViews;
   std::unique_ptr<DML> fork =
-    Tin == 1 ? this->ForkHelper(nf, nf / 2, {}, forkViews) : nullptr;
+    Tin == 1 ? this->ForkHelper(nv, nv / 2, {}, forkViews) : nullptr;
   ForkGuard joinOnExit{ *this, fork };
   const int T3 = fork ? 2 : Tin;
   std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T3));
-  auto pass3 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+  auto pass3 = [&](int th, std::uint64_t vb, std::uint64_t ve, const std::atomic<bool>& stop) {
     const bool helper = fork && th == 1;
     const View<Tri>& Fv = helper ? forkViews.F : F;
     const View<std::uint32_t>& ROv = helper ? forkViews.RO : RO;
     const View<std::uint32_t>& RFv = helper ? forkViews.RF : RF;
     std::vector<std::uint32_t> list;
-    for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
+    std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed; // (other two vertices, face)
+    std::uint64_t work = 0; // ring entries since the last poll
+    for (std::uint64_t x = vb; x < ve && !stop.load(std::memory_order_relaxed); ++x)
     {
-      if (th == 0 && ((f - fb) & 1023) == 0)
+      if (th == 0 && work >= 4096)
       {
-        this->progress_.Tick(double(3 * nf + (f - fb) * T3) / double(4 * nf));
+        work = 0;
+        this->progress_.Tick(double(3 * nf) / double(4 * nf) +
+          double((x - vb) * std::uint64_t(T3)) / double(4 * std::max<std::uint64_t>(nv, 1)));
       }
-      const Tri t = Fv.Get(f);
-      if (!Alive(t))
+      const std::uint32_t b = ROv.Get(x), e = ROv.Get(x + 1);
+      work += 1 + (e - b);
+      if (e - b < 2)
       {
         continue;
       }
-      // Another face on t's set is in the list of t's lowest vertex and has the other two (live
-      // faces have three distinct vertices). No early exit: most faces have no such twin.
-      const std::uint32_t x = std::min(t.v[0], std::min(t.v[1], t.v[2]));
-      const std::uint32_t a = x == t.v[0] ? t.v[1] : t.v[0];
-      const std::uint32_t c = x == t.v[2] ? t.v[1] : t.v[2];
-      const std::uint32_t b = ROv.Get(x), e = ROv.Get(x + 1);
       const std::uint32_t* faceIds = RFv.Ptr(b); // in core: the list itself
       if (!faceIds)
       {
@@ -1669,58 +1766,96 @@ void Decimator::BuildRings()
         RFv.GetRange(b, e - b, list.data());
         faceIds = list.data();
       }
-      bool twin = false;
+      keyed.clear();
       for (std::uint32_t k = 0; k < e - b; ++k)
       {
-        const Tri g = Fv.Get(faceIds[k]);
-        twin |= (faceIds[k] != f) & Alive(g) & Has(g, a) & Has(g, c);
+        if ((k & 4095) == 4095)
+        {
+          if (th == 0)
+          {
+            this->progress_.Poll(); // (a vertex of very high valence)
+          }
+          else if (stop.load(std::memory_order_relaxed))
+          {
+            return;
+          }
+        }
+        const Tri t = Fv.Get(faceIds[k]);
+        if (!Alive(t) || std::min(t.v[0], std::min(t.v[1], t.v[2])) != x)
+        {
+          continue;
+        }
+        std::uint32_t a = t.v[0] == x ? t.v[1] : t.v[0];
+        std::uint32_t c = t.v[2] == x ? t.v[1] : t.v[2];
+        if (c < a)
+        {
+          std::swap(a, c);
+        }
+        keyed.push_back({ (std::uint64_t(a) << 32) | c, faceIds[k] });
       }
-      if (twin)
+      if (keyed.size() < 2)
       {
-        found[std::size_t(th)].push_back(f);
+        continue;
       }
+      SmallSort(keyed.data(), keyed.size());
+      for (std::size_t i = 0; i < keyed.size();)
+      {
+        std::size_t j = i + 1;
+        while (j < keyed.size() && keyed[j].first == keyed[i].first)
+        {
+          ++j;
+        }
+        if (j - i > 1)
+        {
+          std::vector<std::uint64_t>& out = found[std::size_t(th)];
+          out.push_back(j - i);
+          for (std::size_t k = i; k < j; ++k)
+          {
+            out.push_back(keyed[k].second);
+          }
+        }
+        i = j;
+      }
+      ReleaseIfLarge(keyed);
+      ReleaseIfLarge(list);
     }
   };
-  ForRanges(T3, nf, pass3, [&]() { this->JoinHelper(fork); });
+  ForRanges(T3, nv, pass3, [&]() { this->JoinHelper(fork); }, [this]() { this->progress_.Poll(); });
   this->JoinHelper(fork);
-  std::vector<std::uint64_t> dups; // ascending (the ranges are in order)
+  // The groups in the order of their first members (face order, as a sweep over the faces
+  // would settle them).
+  std::vector<std::pair<std::uint64_t, std::size_t>> groups; // (first member, where)
+  std::vector<std::uint64_t> members;
   for (const std::vector<std::uint64_t>& list : found)
   {
-    dups.insert(dups.end(), list.begin(), list.end());
+    for (std::size_t i = 0; i < list.size(); i += 1 + list[i])
+    {
+      groups.push_back({ list[i + 1], members.size() });
+      members.insert(members.end(), list.begin() + std::ptrdiff_t(i),
+        list.begin() + std::ptrdiff_t(i + 1 + list[i]));
+    }
   }
-  for (std::uint64_t f : dups)
+  found.clear();
+  std::sort(groups.begin(), groups.end());
+  std::uint64_t work = 0; // faces read since the last poll
+  for (const auto& group : groups)
   {
+    if (work >= 4096)
+    {
+      work = 0;
+      this->progress_.Tick(1.0);
+    }
+    const std::uint64_t* ids = members.data() + group.second + 1;
+    const std::uint64_t count = ids[-1];
+    const std::uint64_t f = ids[0];
+    work += count;
     const Tri t = F.Get(f);
-    if (!Alive(t))
-    {
-      continue;
-    }
-    std::uint32_t s[3];
-    setAndRing(t, s, ids);
-    bool first = true, others = false;
+    std::uint32_t s[3] = { t.v[0], t.v[1], t.v[2] };
+    SmallSort(s, 3);
     int net = 1;
-    for (std::uint32_t g : ids)
+    for (std::uint64_t k = 1; k < count; ++k)
     {
-      if (g == f)
-      {
-        continue;
-      }
-      const Tri u = F.Get(g);
-      if (!Alive(u) || !sameSet(u, s))
-      {
-        continue;
-      }
-      if (g < f)
-      {
-        first = false;
-        break;
-      }
-      others = true;
-      net += orientation(u, t);
-    }
-    if (!first || !others)
-    {
-      continue;
+      net += orientation(F.Get(ids[k]), t);
     }
     // Keep at most one face: the first member whose orientation has the sign of net.
     // Net zero (a double-sided pair): cancelling it suits edges that other faces already make
@@ -1733,14 +1868,19 @@ void Decimator::BuildRings()
       for (int k = 0; k < 3; ++k)
       {
         const std::uint32_t a = t.v[k], c = t.v[(k + 1) % 3];
-        const std::uint32_t rb = RO.Get(a), re = RO.Get(a + 1);
+        // The edge's faces are in both rings: the shorter one is read.
+        const std::uint32_t ab = RO.Get(a), ae = RO.Get(a + 1);
+        const std::uint32_t cb = RO.Get(c), ce = RO.Get(c + 1);
+        const std::uint32_t rb = ae - ab <= ce - cb ? ab : cb;
+        const std::uint32_t re = ae - ab <= ce - cb ? ae : ce;
+        work += re - rb;
         ring.resize(re - rb);
         RF.GetRange(rb, re - rb, ring.data());
         int others = 0, dir = 0;
         for (std::uint32_t g : ring)
         {
           const Tri u = F.Get(g);
-          if (!Alive(u) || !Has(u, c) || sameSet(u, s))
+          if (!Alive(u) || !Has(u, a) || !Has(u, c) || sameSet(u, s))
           {
             continue;
           }
@@ -1769,17 +1909,10 @@ void Decimator::BuildRings()
       ++this->dropped_;
       --live;
     }
-    for (std::uint32_t g : ids)
+    for (std::uint64_t k = 1; k < count; ++k)
     {
-      if (g <= f)
-      {
-        continue;
-      }
+      const std::uint64_t g = ids[k];
       const Tri u = F.Get(g);
-      if (!Alive(u) || !sameSet(u, s))
-      {
-        continue;
-      }
       if (!kept && net < 0 && orientation(u, t) < 0)
       {
         kept = true;
@@ -1929,7 +2062,21 @@ void Decimator::BuildQuadrics()
   // among threads (not with initialQuadric, a caller's callback).
   const double bw = this->opt_.boundaryWeight;
   auto vertex = [this, bw](Views& w, std::uint32_t u, std::vector<Tri>& tris,
-                  std::vector<std::uint32_t>& next, std::vector<std::uint32_t>& prev) {
+                  std::vector<std::uint32_t>& next, std::vector<std::uint32_t>& prev,
+                  LinkTally& tally, const std::atomic<bool>& stop, bool caller) {
+    // A vertex of very high valence takes long: the calling thread polls inside it (an abort
+    // throws), another thread stops early when the run is being stopped.
+    auto stopped = [this, &stop, caller](std::size_t i) {
+      if ((i & 4095) != 4095)
+      {
+        return false;
+      }
+      if (caller)
+      {
+        this->progress_.Poll();
+      }
+      return stop.load(std::memory_order_relaxed);
+    };
     State flags = kRecompute;
     const std::uint32_t b = w.RO.Get(u), e = w.RO.Get(u + 1);
     tris.clear();
@@ -1938,6 +2085,10 @@ void Decimator::BuildQuadrics()
     Quadric Q = { { 0, 0, 0, 0, 0, 0, 0, 0, 0, 0 } };
     for (std::uint32_t k = b; k < e; ++k)
     {
+      if (stopped(k - b))
+      {
+        return;
+      }
       const Tri t = w.F.Get(w.RF.Get(k));
       if (!Alive(t))
       {
@@ -1957,13 +2108,32 @@ void Decimator::BuildQuadrics()
       }
     }
     const std::size_t n = tris.size();
-    auto count = [](const std::vector<std::uint32_t>& list, std::uint32_t x) {
+    const bool useTally = n > LinkTally::kMinEntries;
+    if (useTally)
+    {
+      tally.Build(next.data(), prev.data(), n);
+    }
+    auto countIn = [&](bool inNext, std::uint32_t x) {
+      if (useTally)
+      {
+        return tally.Count(inNext, x);
+      }
       std::size_t m = 0;
-      for (std::uint32_t y : list)
+      for (std::uint32_t y : inNext ? next : prev)
       {
         m += y == x;
       }
       return m;
+    };
+    // Whether entry i of next (inNext) or prev is the first x there.
+    auto first = [&](bool inNext, std::uint32_t x, std::size_t i) {
+      if (useTally)
+      {
+        return tally.First(inNext, x, i);
+      }
+      const std::vector<std::uint32_t>& list = inNext ? next : prev;
+      return std::find(list.begin(), list.begin() + std::ptrdiff_t(i), x) ==
+        list.begin() + std::ptrdiff_t(i);
     };
     int boundaryEdges = 0;
     auto boundaryPlane = [&](std::uint32_t a, std::size_t face) {
@@ -1987,12 +2157,16 @@ void Decimator::BuildQuadrics()
     };
     for (std::size_t i = 0; i < n; ++i)
     {
+      if (stopped(i))
+      {
+        return;
+      }
       const std::uint32_t a = next[i];
-      if (std::find(next.begin(), next.begin() + i, a) != next.begin() + i)
+      if (!first(true, a, i))
       {
         continue;
       }
-      const std::size_t m = count(next, a) + count(prev, a);
+      const std::size_t m = countIn(true, a) + countIn(false, a);
       if (m > 2)
       {
         flags |= kComplex; // a non-manifold edge: its face count is checked before collapses
@@ -2004,12 +2178,16 @@ void Decimator::BuildQuadrics()
     }
     for (std::size_t i = 0; i < n; ++i)
     {
+      if (stopped(i))
+      {
+        return;
+      }
       const std::uint32_t a = prev[i];
-      if (count(next, a) > 0 || std::find(prev.begin(), prev.begin() + i, a) != prev.begin() + i)
+      if (countIn(true, a) > 0 || !first(false, a, i))
       {
         continue;
       }
-      const std::size_t m = count(prev, a);
+      const std::size_t m = countIn(false, a);
       if (m > 2)
       {
         flags |= kComplex;
@@ -2054,6 +2232,13 @@ void Decimator::BuildQuadrics()
     w.Q.Set(u, Q);
     w.S.Set(u, flags);
     w.C.Set(u, this->none_);
+    if (useTally)
+    {
+      tally.Release();
+      ReleaseIfLarge(tris);
+      ReleaseIfLarge(next);
+      ReleaseIfLarge(prev);
+    }
   };
   int T = (this->AllInCore() && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
   // Out of core: the upper half of the vertices on a helper thread through a forked DML.
@@ -2073,6 +2258,7 @@ void Decimator::BuildQuadrics()
       Views& w = (fork && t == 1) ? forkViews : this->v_;
       std::vector<Tri> tris;
       std::vector<std::uint32_t> next, prev;
+      LinkTally tally;
       // In core: the faces of the vertices 8 ahead, the corner positions of those 4 ahead.
       const std::uint32_t* ROp = w.RO.Ptr(0);
       const std::uint32_t* RFp = w.RF.Ptr(0);
@@ -2099,10 +2285,10 @@ void Decimator::BuildQuadrics()
             }
           }
         }
-        vertex(w, std::uint32_t(u), tris, next, prev);
+        vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0);
       }
     },
-    [&]() { this->JoinHelper(fork); });
+    [&]() { this->JoinHelper(fork); }, [this]() { this->progress_.Poll(); });
   this->JoinHelper(fork);
 }
 
@@ -2609,9 +2795,15 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
   }
   std::uint32_t* next = s.next.data();
   std::uint32_t* prev = s.prev.data();
+  // A vertex of very high valence takes long: the calling thread polls inside it.
+  const bool poll = e - b > 65536 && &s == &this->scratch_[0];
   std::size_t n = 0;
   for (std::uint32_t k = 0; k < e - b; ++k)
   {
+    if (poll && (k & 4095) == 4095)
+    {
+      this->progress_.Poll();
+    }
     const Tri t = w.F.Get(ids[k]);
     if (!Alive(t))
     {
@@ -2656,6 +2848,41 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     }
     return found;
   };
+  s.tallyOn = n > LinkTally::kMinEntries;
+  if (s.tallyOn)
+  {
+    s.tally.Build(next, prev, n);
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      if (poll && (i & 4095) == 4095)
+      {
+        this->progress_.Poll();
+      }
+      if (s.tally.First(true, next[i], i))
+      {
+        this->EvaluateEdge(u, su, Qu, pu, next[i], next, prev, n, s);
+      }
+    }
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      const std::uint32_t a = prev[i];
+      if (s.tally.Count(true, a) == 0 && s.tally.First(false, a, i))
+      {
+        this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, s);
+      }
+    }
+    s.tallyOn = false;
+    s.tally.Release();
+    ReleaseIfLarge(s.ids);
+    if (n > 65536)
+    {
+      s.next.assign(64, 0);
+      s.next.shrink_to_fit();
+      s.prev.assign(64, 0);
+      s.prev.shrink_to_fit();
+    }
+    return;
+  }
   for (std::size_t i = 0; i < n; ++i)
   {
     const std::uint32_t a = next[i];
@@ -2699,9 +2926,16 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   if (bothBoundary || ((su | sv) & kComplex))
   {
     std::size_t count = 0;
-    for (std::size_t i = 0; i < n; ++i)
+    if (s.tallyOn)
     {
-      count += (next[i] == v) + (prev[i] == v);
+      count = s.tally.Count(true, v) + s.tally.Count(false, v);
+    }
+    else
+    {
+      for (std::size_t i = 0; i < n; ++i)
+      {
+        count += (next[i] == v) + (prev[i] == v);
+      }
     }
     if (bothBoundary && count != 1)
     {
@@ -2828,6 +3062,11 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
 {
   Views& w = this->W(s);
   w.C.Set(u, this->none_);
+  const std::uint32_t lengthU = this->RingLength(w, u);
+  if (lengthU > kMaxCollapseRing)
+  {
+    return; // (no collapse of u is made in this pass: kMaxCollapseRing)
+  }
   Ring& ru = s.ru;
   this->LoadRing(w, u, ru, true);
   if (ru.faces.empty())
@@ -2851,6 +3090,10 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
       continue;
     }
     if ((su & kFixed) && (sv & kFixed))
+    {
+      continue;
+    }
+    if (lengthU + this->RingLength(w, nb.v) > kMaxCollapseRing)
     {
       continue;
     }
@@ -3044,6 +3287,16 @@ Decimator::Try Decimator::TryCollapse(
     }
     return out;
   };
+  if (this->RingLength(w, u) + this->RingLength(w, v) > kMaxCollapseRing)
+  {
+    // Not made (kMaxCollapseRing). In a chunk, deferred: the verdict is the sequential one.
+    if (chunked)
+    {
+      return Try::Defer;
+    }
+    w.S.Set(u, State(su | kNeedsLegal));
+    return Try::Illegal;
+  }
   // The faces only: the edge's faces and their third vertices come from u's.
   this->LoadFaces(w, u, s.ru);
   if (chunked && outside(s.ru))

@@ -832,3 +832,100 @@ TEST_F(CLI, ManyVertexPropertiesStayWithinTheBudget)
     EXPECT_NE(info.out.find("\"s39999\""), std::string::npos) << run; // the properties are kept
   }
 }
+
+namespace
+{
+// A fan of n triangles around vertex 0 (a disk with its center raised), binary PLY.
+void WriteFan(const std::string& path, int n)
+{
+  std::ofstream f(path, std::ios::binary);
+  f << "ply\nformat binary_little_endian 1.0\nelement vertex " << n + 1
+    << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << n - 1
+    << "\nproperty list uchar int vertex_indices\nend_header\n";
+  std::vector<float> xyz(3 * std::size_t(n + 1), 0.0f);
+  xyz[2] = 0.1f;
+  for (int i = 0; i < n; ++i)
+  {
+    const double a = 6.283185307179586 * i / n;
+    xyz[3 * std::size_t(i + 1)] = float(std::cos(a));
+    xyz[3 * std::size_t(i + 1) + 1] = float(std::sin(a));
+  }
+  f.write(reinterpret_cast<const char*>(xyz.data()), std::streamsize(xyz.size() * 4));
+  std::vector<char> faces(13 * std::size_t(n - 1));
+  char* p = faces.data();
+  for (int i = 1; i < n; ++i)
+  {
+    const int t[3] = { 0, i, i + 1 };
+    *p++ = 3;
+    std::memcpy(p, t, 12);
+    p += 12;
+  }
+  f.write(faces.data(), std::streamsize(faces.size()));
+}
+} // namespace
+
+TEST_F(CLI, AVertexOfHighValenceDecimatesAndStopsOnCtrlC)
+{
+  // One vertex in 200,000 triangles (a fan, or an OBJ polygon with 200,000 corners): the
+  // duplicate search, the quadrics and the sweep took time quadratic in its valence (more than
+  // 7 minutes, deaf to Ctrl-C), and out of core the duplicate search crashed. A hang guard of
+  // 60 s; the run takes about a second.
+  WriteFan(P("fan.ply"), 200000);
+  {
+    std::ofstream f(P("polygon.obj"));
+    for (int i = 0; i < 200000; ++i)
+    {
+      const double a = 6.283185307179586 * i / 200000;
+      f << "v " << std::cos(a) << " " << std::sin(a) << " " << 0.01 * std::sin(7 * a) << "\n";
+    }
+    f << "f";
+    for (int i = 1; i <= 200000; ++i)
+    {
+      f << " " << i;
+    }
+    f << "\n";
+  }
+  for (const std::string input : { "fan.ply", "polygon.obj" })
+  {
+    std::string reference;
+    for (const std::string options : { "--algorithm decimate --memory-mb 8 --threads 1",
+           "--algorithm decimate --memory-mb 8 --threads 2", "--algorithm decimate --threads 2",
+           "--algorithm two-stage --memory-mb 8" })
+    {
+      const Result r = RunCommand("timeout -s KILL 60 " + std::string(SIPMSS_CLI) + " simplify " +
+        P(input) + " " + P("out.ply") + " --quiet --target 100 --tmpdir " + this->dir.string() +
+        " " + options);
+      ASSERT_EQ(r.status, 0) << input << " " << options << "\n" << r.out;
+      const Result info = RunCli("info " + P("out.ply"));
+      const auto at = info.out.find("\"triangles\": ");
+      ASSERT_NE(at, std::string::npos) << info.out;
+      const long triangles = std::atol(info.out.c_str() + at + 13);
+      EXPECT_GT(triangles, 0) << input << " " << options;
+      EXPECT_LE(triangles, 100) << input << " " << options;
+      if (options.find("two-stage") == std::string::npos)
+      {
+        // The same result on one thread or two, in core or out of core.
+        const std::string out = ReadAll(this->dir / "out.ply");
+        if (reference.empty())
+        {
+          reference = out;
+        }
+        EXPECT_EQ(out, reference) << input << " " << options;
+      }
+    }
+  }
+  // Ctrl-C: a fan of 1,000,000 triangles runs for seconds; the first Ctrl-C ends it at once.
+  WriteFan(P("big.ply"), 1000000);
+  for (const std::string options : { "--memory-mb 8", "--memory-mb 8 --threads 1", "" })
+  {
+    for (const double delay : { 0.4, 1.2 })
+    {
+      const std::string out = InterruptAfter("simplify " + P("big.ply") + " " + P("never.ply") +
+          " --quiet --algorithm decimate --target 100 --tmpdir " + this->dir.string() + " " + options,
+        delay);
+      EXPECT_NE(out.find("status=130"), std::string::npos) << options << "\n" << out;
+      EXPECT_LT(SecondsOf(out), 0.5) << options << " after " << delay << " s\n" << out;
+      EXPECT_FALSE(fs::exists(this->dir / "never.ply"));
+    }
+  }
+}

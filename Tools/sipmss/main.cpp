@@ -575,8 +575,8 @@ int RunSimplify(const SimplifyArgs& a)
   {
     // a repair of the input is reported even with --quiet
     std::fprintf(stderr,
-      "sipmss: warning: %s: dropped %llu degenerate faces (fewer than 3 vertices or a repeated "
-      "vertex) while reading\n",
+      "sipmss: warning: %s: dropped %llu degenerate faces (fewer than 3 distinct vertices, zero "
+      "area, or the same vertices as another face)\n",
       a.input.c_str(), (unsigned long long)stats.droppedInputFaces);
   }
   if (!a.quiet)
