@@ -36,7 +36,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
 {
   namespace bridge = vtkSIPMSSPolyDataBridge;
   this->UsedInCore = this->UsedOutOfCore = false;
-  this->PeakStorageBytes = this->PageHits = this->PageMisses = 0;
+  this->PeakStorageBytes = this->PeakTemporaryFileBytes = this->PageHits = this->PageMisses = 0;
   this->BytesRead = this->BytesWritten = this->Reconfigurations = 0;
   this->ElapsedSeconds = 0;
 
@@ -143,6 +143,11 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     this->UsedInCore = stats.storage.usedInCore;
     this->UsedOutOfCore = stats.storage.usedOutOfCore;
     this->PeakStorageBytes = stats.storage.peakBytes;
+    this->PeakTemporaryFileBytes = stats.storage.peakFileBytes;
+    for (const std::string& note : stats.storage.notes)
+    {
+      vtkWarningMacro(<< note); // e.g. a full temporary directory and where the files went
+    }
     this->PageHits = stats.storage.hits;
     this->PageMisses = stats.storage.misses;
     this->BytesRead = stats.storage.bytesRead;
@@ -187,6 +192,7 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "UsedInCore: " << this->UsedInCore << "\n";
   os << indent << "UsedOutOfCore: " << this->UsedOutOfCore << "\n";
   os << indent << "PeakStorageBytes: " << this->PeakStorageBytes << "\n";
+  os << indent << "PeakTemporaryFileBytes: " << this->PeakTemporaryFileBytes << "\n";
   os << indent << "PageHits: " << this->PageHits << "\n";
   os << indent << "PageMisses: " << this->PageMisses << "\n";
 }

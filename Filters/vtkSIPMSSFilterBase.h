@@ -107,6 +107,8 @@ public:
   vtkGetMacro(UsedInCore, bool);
   vtkGetMacro(UsedOutOfCore, bool);
   vtkGetMacro(PeakStorageBytes, vtkTypeUInt64);
+  // The largest size the temporary block files reached together (disk).
+  vtkGetMacro(PeakTemporaryFileBytes, vtkTypeUInt64);
   vtkGetMacro(PageHits, vtkTypeUInt64);
   vtkGetMacro(PageMisses, vtkTypeUInt64);
   vtkGetMacro(BytesRead, vtkTypeUInt64);
@@ -151,6 +153,7 @@ protected:
   bool UsedInCore = false;
   bool UsedOutOfCore = false;
   vtkTypeUInt64 PeakStorageBytes = 0;
+  vtkTypeUInt64 PeakTemporaryFileBytes = 0;
   vtkTypeUInt64 PageHits = 0;
   vtkTypeUInt64 PageMisses = 0;
   vtkTypeUInt64 BytesRead = 0;

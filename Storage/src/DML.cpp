@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <exception>
@@ -396,9 +397,100 @@ void DML::Impl::BackendWrite(const Block& b, const void* src, std::uint64_t n, s
   }
   catch (const StorageError& e)
   {
-    this->Rethrow(e, b);
+    // A full file system (another process took the room): the file moves to a directory that
+    // has room for all of it, and the write is made there.
+    const std::string why = detail::ErrnoText(e.OsError());
+    if ((e.OsError() != ENOSPC && e.OsError() != EDQUOT) ||
+      !this->Relocate(const_cast<Block&>(b), b.Bytes(), why))
+    {
+      this->Rethrow(e, b);
+    }
+    try
+    {
+      this->backend->WriteAt(b.fd, src, n, off);
+    }
+    catch (const StorageError& again)
+    {
+      this->Rethrow(again, b);
+    }
   }
   this->stats.bytesWritten += n;
+}
+
+// Moves b's file to another directory with room for `bytes` (b's data is copied; the holes of
+// a sparse file stay holes); false when there is none, or while forked (a child reads the
+// file through the same handle).
+bool DML::Impl::Relocate(Block& b, std::uint64_t bytes, const std::string& why)
+{
+  if (this->forkParent || this->children > 0 || b.fd < 0 || b.dir < 0)
+  {
+    return false;
+  }
+  std::vector<std::string> candidates = this->profile.directories;
+  if (candidates.empty())
+  {
+    candidates.push_back(detail::DefaultDirectory());
+  }
+  const std::size_t from = std::size_t(b.dir);
+  const std::string fromParent(this->dirs[from].parent.data(), this->dirs[from].parent.size());
+  for (const std::string& parent : candidates)
+  {
+    const std::size_t di = this->DirIndex(parent);
+    if (di == from || !this->EnsureDirectory(di) ||
+      (this->dirs[di].device == this->dirs[from].device) || !this->HasRoom(di, bytes, nullptr))
+    {
+      continue;
+    }
+    Block moved = b; // (a copy of the bookkeeping: the old file stays b's until the copy is done)
+    moved.dir = static_cast<std::int32_t>(di);
+    moved.fileSeq = this->nextFileSeq++;
+    const std::string path = this->FilePath(moved);
+    int fd = -1;
+    try
+    {
+      fd = this->backend->Create(path);
+      this->backend->Truncate(fd, b.Bytes());
+      std::vector<unsigned char> buf(1 << 16);
+      for (std::uint64_t off = 0; off < b.Bytes(); off += buf.size())
+      {
+        const std::size_t n = std::size_t(std::min<std::uint64_t>(buf.size(), b.Bytes() - off));
+        this->backend->ReadAt(b.fd, buf.data(), n, off);
+        if (!AllZero(buf.data(), n))
+        {
+          this->backend->WriteAt(fd, buf.data(), n, off);
+        }
+      }
+    }
+    catch (const StorageError&)
+    {
+      if (fd >= 0)
+      {
+        this->backend->Close(fd);
+        try
+        {
+          this->backend->Remove(path);
+        }
+        catch (const StorageError&)
+        {
+        }
+      }
+      continue;
+    }
+    this->backend->Close(b.fd);
+    try
+    {
+      this->backend->Remove(this->FilePath(b));
+    }
+    catch (const StorageError&)
+    {
+    }
+    b.fd = fd;
+    b.dir = moved.dir;
+    b.fileSeq = moved.fileSeq;
+    this->Note("temporary directory " + fromParent + ": " + why + ": block files go to " + parent);
+    return true;
+  }
+  return false;
 }
 
 void DML::Impl::BackendTruncate(const Block& b, std::uint64_t n)
@@ -413,12 +505,33 @@ void DML::Impl::BackendTruncate(const Block& b, std::uint64_t n)
   }
 }
 
-// Creates the block's file (size count * elementSize, sparse) in the next directory.
-void DML::Impl::CreateFile(BlockId id)
+namespace
 {
-  std::string parent = this->profile.directories.empty()
-    ? detail::DefaultDirectory()
-    : this->profile.directories[this->nextDir++ % this->profile.directories.size()];
+std::string MiB(std::uint64_t bytes)
+{
+  char text[32];
+  std::snprintf(text, sizeof(text), "%.1f MiB", double(bytes) / (1024.0 * 1024.0));
+  return text;
+}
+} // namespace
+
+void DML::Impl::Note(const std::string& text)
+{
+  auto& notes = this->stats.notes;
+  if (std::find(notes.begin(), notes.end(), text) == notes.end() && notes.size() < 64)
+  {
+    notes.push_back(text);
+  }
+}
+
+void DML::Impl::NoteFileBytes(std::uint64_t removed, std::uint64_t added)
+{
+  this->stats.fileBytes = this->stats.fileBytes - std::min(removed, this->stats.fileBytes) + added;
+  this->stats.peakFileBytes = std::max(this->stats.peakFileBytes, this->stats.fileBytes);
+}
+
+std::size_t DML::Impl::DirIndex(const std::string& parent)
+{
   std::size_t di = 0;
   while (di < this->dirs.size() &&
     std::string_view(this->dirs[di].parent.data(), this->dirs[di].parent.size()) != parent)
@@ -438,37 +551,153 @@ void DML::Impl::CreateFile(BlockId id)
       throw;
     }
   }
-  if (this->dirs[di].path.empty())
+  return di;
+}
+
+// Makes the private directory under dirs[di] if needed; false (and the reason kept) when the
+// directory cannot be used.
+bool DML::Impl::EnsureDirectory(std::size_t di)
+{
+  detail::PrivateDir& d = this->dirs[di];
+  if (!d.reason.empty())
   {
-    const std::string path = detail::MakePrivateDirectory(parent);
-    try
-    {
-      this->dirs[di].path.assign(path.data(), path.size());
-    }
-    catch (...)
-    {
-      ::rmdir(path.c_str());
-      throw;
-    }
+    return false;
   }
-  Block& b = this->blocks[static_cast<std::size_t>(id)];
-  b.dir = static_cast<std::int32_t>(di);
-  b.fileSeq = this->nextFileSeq++;
-  const std::string path = this->FilePath(b);
-  int fd = -1;
+  if (!d.path.empty())
+  {
+    return true;
+  }
+  const std::string parent(d.parent.data(), d.parent.size());
+  std::string path;
   try
   {
-    fd = this->backend->Create(path);
+    path = detail::MakePrivateDirectory(parent);
   }
   catch (const StorageError& e)
   {
-    if (!e.Path().empty())
+    const std::string why = e.OsError() ? detail::ErrnoText(e.OsError()) : std::string(e.what());
+    d.reason.assign(why.data(), why.size());
+    d.osError = e.OsError();
+    return false;
+  }
+  try
+  {
+    d.path.assign(path.data(), path.size());
+    struct stat st;
+    d.device = ::stat(path.c_str(), &st) == 0 ? std::uint64_t(st.st_dev) : 0;
+  }
+  catch (...)
+  {
+    ::rmdir(path.c_str());
+    throw;
+  }
+  return true;
+}
+
+// The bytes the block files on dirs[di]'s file system may still take there: their sizes less
+// what they hold (sparse files fill as pages are written back).
+std::uint64_t DML::Impl::PendingBytes(std::size_t di) const
+{
+  std::uint64_t pending = 0;
+  for (const Block& b : this->blocks)
+  {
+    if (b.fd >= 0 && b.dir >= 0 &&
+      this->dirs[static_cast<std::size_t>(b.dir)].device == this->dirs[di].device)
     {
-      throw;
+      const std::uint64_t size = b.Bytes(), held = this->backend->AllocatedBytes(b.fd);
+      pending += size > held ? size - held : 0;
     }
-    throw StorageError(e.what(), path, e.OsError());
+  }
+  return pending;
+}
+
+// Whether `bytes` more of block files fit on dirs[di]'s file system (with what its block files
+// may still take); else why not, in `why`.
+bool DML::Impl::HasRoom(std::size_t di, std::uint64_t bytes, std::string* why) const
+{
+  const detail::PrivateDir& d = this->dirs[di];
+  const std::uint64_t free = this->backend->FreeBytes(std::string(d.path.data(), d.path.size()));
+  if (free == ~std::uint64_t(0))
+  {
+    return true;
+  }
+  const std::uint64_t pending = this->PendingBytes(di);
+  if (free >= pending && free - pending >= bytes)
+  {
+    return true;
+  }
+  if (why)
+  {
+    *why = MiB(free) + " free" + (pending ? " (" + MiB(pending) + " of it promised to block files)" : "") +
+      ", " + MiB(bytes) + " needed";
+  }
+  return false;
+}
+
+// Creates the block's file (size count * elementSize, sparse) in the next directory that can
+// be used and has room for it; the others are skipped, and the user is told (notes).
+void DML::Impl::CreateFile(BlockId id)
+{
+  std::vector<std::string> candidates = this->profile.directories;
+  if (candidates.empty())
+  {
+    candidates.push_back(detail::DefaultDirectory());
+  }
+  const std::size_t start = std::size_t(this->nextDir++ % candidates.size());
+  Block& b = this->blocks[static_cast<std::size_t>(id)];
+  std::string problems;
+  int osError = 0; // the first problem's
+  int fd = -1;
+  for (std::size_t k = 0; k < candidates.size() && fd < 0; ++k)
+  {
+    const std::string& parent = candidates[(start + k) % candidates.size()];
+    const std::size_t di = this->DirIndex(parent);
+    std::string why;
+    int error = ENOSPC;
+    if (!this->EnsureDirectory(di))
+    {
+      why = std::string(this->dirs[di].reason.data(), this->dirs[di].reason.size());
+      error = this->dirs[di].osError;
+    }
+    else if (this->HasRoom(di, b.Bytes(), &why))
+    {
+      b.dir = static_cast<std::int32_t>(di);
+      b.fileSeq = this->nextFileSeq++;
+      const std::string path = this->FilePath(b);
+      try
+      {
+        fd = this->backend->Create(path);
+      }
+      catch (const StorageError& e)
+      {
+        why = e.OsError() ? detail::ErrnoText(e.OsError()) : std::string(e.what());
+        error = e.OsError();
+        if (e.OsError() != ENOSPC && e.OsError() != EDQUOT)
+        {
+          this->dirs[di].reason.assign(why.data(), why.size());
+          this->dirs[di].osError = e.OsError();
+        }
+        b.dir = -1;
+      }
+    }
+    if (fd < 0)
+    {
+      problems += (problems.empty() ? "" : "; ") + parent + ": " + why;
+      osError = osError ? osError : error;
+    }
+    else if (!problems.empty())
+    {
+      this->Note("temporary directory " + problems + ": block files go to " + parent);
+    }
+  }
+  if (fd < 0)
+  {
+    throw StorageError("no temporary directory can take a block file of " + MiB(b.Bytes()) +
+        " (" + problems + "); free some space or give a directory on a larger disk (--tmpdir)",
+      candidates[start], osError);
   }
   b.fd = fd;
+  this->NoteFileBytes(0, b.Bytes());
   try
   {
     this->BackendTruncate(b, b.Bytes());
@@ -506,6 +735,7 @@ void DML::Impl::RemoveFile(Block& b)
   }
   this->backend->Close(b.fd);
   b.fd = -1;
+  this->NoteFileBytes(b.Bytes(), 0);
   const std::string path = this->FilePath(b);
   this->backend->Remove(path);
 }
@@ -623,9 +853,25 @@ void DML::Impl::ResizeRaw(BlockId id, std::uint64_t count)
     }
     b = &this->blocks[static_cast<std::size_t>(id)];
   }
-  // On file: truncate first (a failure changes nothing), then drop or clear cached pages
-  // beyond the new end so regrown elements read as zeros.
+  // On file: room first (else the file moves to a directory that has it), truncate (a failure
+  // changes nothing), then drop or clear cached pages beyond the new end so regrown elements
+  // read as zeros.
+  const std::uint64_t oldBytes = b->Bytes();
+  std::string why;
+  if (newBytes > oldBytes && b->dir >= 0 &&
+    !this->HasRoom(std::size_t(b->dir), newBytes - oldBytes, &why) &&
+    !this->Relocate(*b, newBytes, why))
+  {
+    throw StorageError("temporary directory " +
+        std::string(this->dirs[std::size_t(b->dir)].parent.data(),
+          this->dirs[std::size_t(b->dir)].parent.size()) +
+        ": no room to grow a block file to " + MiB(newBytes) + " (" + why +
+        ") and no other directory has it; free some space or give a directory on a larger disk "
+        "(--tmpdir)",
+      this->FilePath(*b), ENOSPC);
+  }
   this->BackendTruncate(*b, newBytes);
+  this->NoteFileBytes(oldBytes, newBytes);
   if (count < b->count && this->cache.built)
   {
     const std::uint64_t per = b->perPage;
@@ -1235,6 +1481,11 @@ public:
     this->b_.WriteAt(handle, src, bytes, offset);
   }
   void Truncate(int, std::uint64_t) override { throw std::logic_error("sipmss::storage: Truncate on a child DML"); }
+  std::uint64_t AllocatedBytes(int handle) override { return this->b_.AllocatedBytes(handle); }
+  std::uint64_t FreeBytes(const std::string& directory) override
+  {
+    return this->b_.FreeBytes(directory);
+  }
 
 private:
   FileBackend& b_;

@@ -252,8 +252,16 @@ struct Cache
 struct PrivateDir
 {
   CString parent;
-  CString path; // empty until created
-  explicit PrivateDir(Accountant* a) : parent(Counted<char>(a)), path(Counted<char>(a)) {}
+  CString path;   // empty until created
+  CString reason; // not empty: unusable (why, e.g. a read-only file system)
+  int osError = 0;          // with reason: the errno
+  std::uint64_t device = 0; // st_dev of the parent: block files on one file system share its room
+  explicit PrivateDir(Accountant* a)
+    : parent(Counted<char>(a))
+    , path(Counted<char>(a))
+    , reason(Counted<char>(a))
+  {
+  }
 };
 
 } // namespace detail
@@ -315,6 +323,15 @@ struct DML::Impl
   void BackendRead(const detail::Block& b, void* dst, std::uint64_t n, std::uint64_t off);
   void BackendWrite(const detail::Block& b, const void* src, std::uint64_t n, std::uint64_t off);
   void BackendTruncate(const detail::Block& b, std::uint64_t n);
+  // Temporary directories: where a block file of `bytes` can go (fallback over the profile's
+  // directories when one is unusable or has no room), and moving a block's file elsewhere.
+  std::size_t DirIndex(const std::string& parent);
+  bool EnsureDirectory(std::size_t di);
+  std::uint64_t PendingBytes(std::size_t di) const;
+  bool HasRoom(std::size_t di, std::uint64_t bytes, std::string* why) const;
+  bool Relocate(detail::Block& b, std::uint64_t bytes, const std::string& why);
+  void NoteFileBytes(std::uint64_t removed, std::uint64_t added);
+  void Note(const std::string& text);
   // Copies bytes [off, off + n) of a block from/to buf in either mode.
   void Transfer(BlockId id, detail::Block& b, std::uint64_t off, std::uint64_t n,
     unsigned char* buf, bool write);

@@ -13,6 +13,7 @@
 #include <fcntl.h>
 #include <sys/random.h>
 #include <sys/stat.h>
+#include <sys/statvfs.h>
 #include <unistd.h>
 
 namespace sipmss::storage
@@ -149,6 +150,20 @@ public:
         throw StorageError("cannot resize block file", "", errno);
       }
     }
+  }
+  std::uint64_t AllocatedBytes(int handle) override
+  {
+    struct stat st;
+    return ::fstat(handle, &st) == 0 ? std::uint64_t(st.st_blocks) * 512 : 0;
+  }
+  std::uint64_t FreeBytes(const std::string& directory) override
+  {
+    struct statvfs v;
+    if (::statvfs(directory.c_str(), &v) != 0)
+    {
+      return ~std::uint64_t(0);
+    }
+    return std::uint64_t(v.f_bavail) * std::uint64_t(v.f_frsize);
   }
 };
 

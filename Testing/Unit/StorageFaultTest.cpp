@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
 #include <fstream>
@@ -196,16 +197,42 @@ TEST(StorageFault, RealENOSPCOnTinyTmpfs)
     GTEST_SKIP() << "cannot mount a 1 MiB tmpfs here: " << std::strerror(errno);
   }
   {
+    // 8 MiB of data on a 1 MiB file system: refused when the block is opened, before the disk
+    // fills, naming the directory, its room and the option.
     DML dml;
     dml.Config(OutOfCore(mnt));
-    Array<std::uint64_t> a(dml, 1 << 20); // 8 MiB of data on a 1 MiB file system
     bool thrown = false;
     try
     {
-      for (std::uint64_t i = 0; i < (1 << 20); ++i)
-      {
-        a.Set(i, i | 1);
-      }
+      Array<std::uint64_t> a(dml, 1 << 20);
+      ADD_FAILURE() << "no error";
+    }
+    catch (const StorageError& e)
+    {
+      thrown = true;
+      ExpectMentions(e, mnt, ENOSPC);
+      EXPECT_NE(std::string(e.what()).find("1.0 MiB free, 8.0 MiB needed"), std::string::npos)
+        << e.what();
+      EXPECT_NE(std::string(e.what()).find("--tmpdir"), std::string::npos) << e.what();
+    }
+    EXPECT_TRUE(thrown);
+    EXPECT_EQ(dml.GetStats().fileBytes, 0u);
+  }
+  {
+    // Another process takes the room after the block was opened: the write fails with ENOSPC,
+    // and with no other directory that is the error.
+    DML dml;
+    dml.Config(OutOfCore(mnt));
+    Array<std::uint64_t> a(dml, 96 * 1024); // 768 KiB
+    {
+      std::ofstream fill(mnt + "/other", std::ios::binary);
+      fill << std::string(900 * 1024, 'x');
+    }
+    bool thrown = false;
+    try
+    {
+      const std::vector<std::uint64_t> data(a.Size(), 7); // whole pages go straight to the file
+      a.Write(0, data.size(), data.data());
     }
     catch (const StorageError& e)
     {
@@ -213,6 +240,7 @@ TEST(StorageFault, RealENOSPCOnTinyTmpfs)
       ExpectMentions(e, mnt, ENOSPC);
     }
     EXPECT_TRUE(thrown);
+    ::unlink((mnt + "/other").c_str());
   }
   EXPECT_TRUE(ListDir(mnt).empty());
   ::umount2(mnt.c_str(), MNT_DETACH);
@@ -403,3 +431,128 @@ TEST(StorageFault, ChildProcessGetsItsOwnDirectory)
 }
 
 } // namespace
+
+// Issue 20 items 12 and 13: several temporary directories fall back when one cannot be used or
+// has no room, and say so; the block files' size is counted.
+TEST(StorageFault, SeveralDirectoriesFallBackAndSaySo)
+{
+  TempDir tmp;
+  const std::string good = tmp.Path() + "/good", missing = tmp.Path() + "/missing";
+  ASSERT_EQ(::mkdir(good.c_str(), 0700), 0);
+  {
+    Profile p = OutOfCore(missing);
+    p.directories.push_back(good);
+    DML dml;
+    dml.Config(p);
+    Array<std::uint32_t> a(dml, 1000);
+    a.Set(999, 5);
+    EXPECT_EQ(a.Get(999), 5u);
+    const std::vector<std::string> notes = dml.GetStats().notes;
+    ASSERT_EQ(notes.size(), 1u);
+    EXPECT_NE(notes[0].find(missing + ": No such file or directory"), std::string::npos) << notes[0];
+    EXPECT_NE(notes[0].find("block files go to " + good), std::string::npos) << notes[0];
+    EXPECT_EQ(ListDir(good).size(), 1u); // its private directory
+  }
+  EXPECT_TRUE(ListDir(good).empty());
+
+  const std::string mnt = tmp.Path() + "/mnt";
+  ASSERT_EQ(::mkdir(mnt.c_str(), 0700), 0);
+  if (::mount("tmpfs", mnt.c_str(), "tmpfs", 0, "size=1m") != 0)
+  {
+    GTEST_SKIP() << "cannot mount a 1 MiB tmpfs here: " << std::strerror(errno);
+  }
+  {
+    // No room for an 8 MiB block on the 1 MiB file system: it goes to the next directory.
+    Profile p = OutOfCore(mnt);
+    p.directories.push_back(good);
+    DML dml;
+    dml.Config(p);
+    Array<std::uint64_t> a(dml, 1 << 20);
+    const std::vector<std::uint64_t> data(a.Size(), 3);
+    a.Write(0, data.size(), data.data());
+    EXPECT_EQ(a.Get(12345), 3u);
+    const Stats s = dml.GetStats();
+    ASSERT_EQ(s.notes.size(), 1u);
+    EXPECT_NE(s.notes[0].find(mnt + ": 1.0 MiB free"), std::string::npos) << s.notes[0];
+    EXPECT_EQ(s.fileBytes, 8u << 20);
+    EXPECT_EQ(s.peakFileBytes, 8u << 20);
+  }
+  {
+    // Room when the block is opened, taken by another process before it is written: the file
+    // moves to the next directory with its data, and the write is made there.
+    Profile p = OutOfCore(mnt);
+    p.directories.push_back(good);
+    DML dml;
+    dml.Config(p);
+    Array<std::uint64_t> a(dml, 64 * 1024); // 512 KiB, on the tmpfs
+    std::vector<std::uint64_t> data(a.Size());
+    for (std::size_t i = 0; i < data.size(); ++i)
+    {
+      data[i] = i * 7 + 1;
+    }
+    a.Write(0, data.size() / 2, data.data());
+    {
+      std::ofstream fill(mnt + "/other", std::ios::binary);
+      fill << std::string(600 * 1024, 'x');
+    }
+    a.Write(data.size() / 2, data.size() - data.size() / 2, data.data() + data.size() / 2);
+    std::vector<std::uint64_t> back(data.size());
+    a.Read(0, back.size(), back.data());
+    EXPECT_EQ(back, data);
+    const Stats s = dml.GetStats();
+    ASSERT_EQ(s.notes.size(), 1u);
+    EXPECT_NE(s.notes[0].find(mnt + ": No space left on device: block files go to " + good),
+      std::string::npos)
+      << s.notes[0];
+    // Nothing of ours is left on the full file system.
+    std::vector<std::string> left = ListDir(mnt);
+    left.erase(std::remove(left.begin(), left.end(), "other"), left.end());
+    for (const std::string& d : left)
+    {
+      EXPECT_TRUE(ListDir(mnt + "/" + d).empty()) << d;
+    }
+    ::unlink((mnt + "/other").c_str());
+  }
+  {
+    // Every directory full: one error naming each, before anything is written.
+    const std::string mnt2 = tmp.Path() + "/mnt2";
+    ASSERT_EQ(::mkdir(mnt2.c_str(), 0700), 0);
+    ASSERT_EQ(::mount("tmpfs", mnt2.c_str(), "tmpfs", 0, "size=1m"), 0);
+    Profile p = OutOfCore(mnt);
+    p.directories.push_back(mnt2);
+    DML dml;
+    dml.Config(p);
+    try
+    {
+      Array<std::uint64_t> a(dml, 1 << 20);
+      ADD_FAILURE() << "no error";
+    }
+    catch (const StorageError& e)
+    {
+      const std::string what = e.what();
+      EXPECT_NE(what.find(mnt + ": 1.0 MiB free, 8.0 MiB needed"), std::string::npos) << what;
+      EXPECT_NE(what.find(mnt2 + ": 1.0 MiB free, 8.0 MiB needed"), std::string::npos) << what;
+      EXPECT_EQ(e.OsError(), ENOSPC);
+    }
+    ::umount2(mnt2.c_str(), MNT_DETACH);
+  }
+  ::umount2(mnt.c_str(), MNT_DETACH);
+}
+
+TEST(StorageFault, BlockFileBytesAreCounted)
+{
+  TempDir tmp;
+  DML dml;
+  dml.Config(OutOfCore(tmp.Path()));
+  {
+    Array<std::uint32_t> a(dml, 1000);
+    Array<std::uint64_t> b(dml, 500);
+    EXPECT_EQ(dml.GetStats().fileBytes, 8000u);
+    b.Resize(1000);
+    EXPECT_EQ(dml.GetStats().fileBytes, 12000u);
+    b.Resize(100);
+    EXPECT_EQ(dml.GetStats().fileBytes, 4800u);
+  }
+  EXPECT_EQ(dml.GetStats().fileBytes, 0u);
+  EXPECT_EQ(dml.GetStats().peakFileBytes, 12000u);
+}

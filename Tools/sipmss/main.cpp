@@ -558,7 +558,8 @@ int RunSimplify(const SimplifyArgs& a)
     j["storage"] = { { "mode", storage::ToString(s.mode) }, { "used_in_core", s.usedInCore },
       { "used_out_of_core", s.usedOutOfCore }, { "peak_bytes", s.peakBytes }, { "hits", s.hits },
       { "misses", s.misses }, { "bytes_read", s.bytesRead }, { "bytes_written", s.bytesWritten },
-      { "reconfigurations", s.reconfigurations }, { "forks", s.forks } };
+      { "reconfigurations", s.reconfigurations }, { "forks", s.forks },
+      { "peak_file_bytes", s.peakFileBytes }, { "notes", s.notes } };
     statsFile.emplace(a.statsJson, j.dump(2) + "\n");
   }
   sink.Commit();
@@ -571,6 +572,11 @@ int RunSimplify(const SimplifyArgs& a)
     statsFile->Commit();
   }
 
+  for (const std::string& note : stats.storage.notes)
+  {
+    // e.g. a full temporary directory and where the block files went: even with --quiet
+    std::fprintf(stderr, "sipmss: warning: %s\n", note.c_str());
+  }
   if (stats.droppedInputFaces)
   {
     // a repair of the input is reported even with --quiet
@@ -581,13 +587,20 @@ int RunSimplify(const SimplifyArgs& a)
   }
   if (!a.quiet)
   {
+    char disk[64] = "";
+    if (stats.storage.usedOutOfCore)
+    {
+      std::snprintf(disk, sizeof(disk), " (temporary files: %.1f MB at most)",
+        double(stats.storage.peakFileBytes) / 1e6);
+    }
     std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices) in %.2f s, peak RSS %.1f MB, "
-                "%s\n",
+                "%s%s\n",
       a.algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
       (unsigned long long)stats.outputTriangles, (unsigned long long)stats.outputVertices, seconds,
       PeakRssMB(),
       stats.storage.usedOutOfCore ? (stats.storage.usedInCore ? "out of core then in core" : "out of core")
-                                  : "in core");
+                                  : "in core",
+      disk);
     std::printf("sipmss: wrote %s\n", a.output.c_str());
     if (a.lods > 1 && !lodSinks.empty())
     {

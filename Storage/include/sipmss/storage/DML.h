@@ -79,6 +79,11 @@ struct Stats
   std::uint64_t bytesWritten = 0; // to files
   std::uint64_t reconfigurations = 0; // mode switches after Config
   std::uint64_t forks = 0;            // forked children joined (their counts are included)
+  std::uint64_t fileBytes = 0;        // size of the block files now (temporary disk)
+  std::uint64_t peakFileBytes = 0;    // maximum of fileBytes since Config
+  // What the layer did that the user should hear of: a temporary directory it could not use
+  // (read-only, missing, full) and where the block files went instead.
+  std::vector<std::string> notes;
 };
 
 // Typed error for every storage failure: the path involved and the OS error (errno) if any.
@@ -113,6 +118,15 @@ public:
   virtual void ReadAt(int handle, void* dst, std::size_t bytes, std::uint64_t offset) = 0;
   virtual void WriteAt(int handle, const void* src, std::size_t bytes, std::uint64_t offset) = 0;
   virtual void Truncate(int handle, std::uint64_t bytes) = 0;
+  // The bytes of disk the file holds now (a sparse file fills as it is written); 0: unknown.
+  virtual std::uint64_t AllocatedBytes(int handle) { (void)handle; return 0; }
+  // The bytes an unprivileged user may still write in the file system of `directory`;
+  // UINT64_MAX: unknown (no limit is assumed).
+  virtual std::uint64_t FreeBytes(const std::string& directory)
+  {
+    (void)directory;
+    return ~std::uint64_t(0);
+  }
   static std::unique_ptr<FileBackend> CreatePosix();
 };
 
