@@ -647,6 +647,7 @@ void DML::Impl::CreateFile(BlockId id)
   Block& b = this->blocks[static_cast<std::size_t>(id)];
   std::string problems;
   int osError = 0; // the first problem's
+  bool tell = false; // a directory the user was not told about yet was skipped
   int fd = -1;
   for (std::size_t k = 0; k < candidates.size() && fd < 0; ++k)
   {
@@ -684,8 +685,10 @@ void DML::Impl::CreateFile(BlockId id)
     {
       problems += (problems.empty() ? "" : "; ") + parent + ": " + why;
       osError = osError ? osError : error;
+      tell |= !this->dirs[di].noted;
+      this->dirs[di].noted = true;
     }
-    else if (!problems.empty())
+    else if (tell)
     {
       this->Note("temporary directory " + problems + ": block files go to " + parent);
     }

@@ -255,6 +255,7 @@ struct PrivateDir
   CString path;   // empty until created
   CString reason; // not empty: unusable (why, e.g. a read-only file system)
   int osError = 0;          // with reason: the errno
+  bool noted = false;       // the user was told that block files went elsewhere
   std::uint64_t device = 0; // st_dev of the parent: block files on one file system share its room
   explicit PrivateDir(Accountant* a)
     : parent(Counted<char>(a))

@@ -929,3 +929,39 @@ TEST_F(CLI, AVertexOfHighValenceDecimatesAndStopsOnCtrlC)
     }
   }
 }
+
+TEST_F(CLI, SeveralTemporaryDirectoriesFallBackWhenOneIsFull)
+{
+  // Two --tmpdir, the first a full 1 MiB tmpfs: the run goes on in the second, says so, and
+  // writes the same mesh; with the full one alone it fails at once, naming it and its room.
+  WriteGrid(P("grid.ply"), 200); // 80,000 triangles: about 4 MB of block files at 64 KiB
+  const fs::path mnt = this->dir / "small", other = this->dir / "other";
+  fs::create_directory(mnt);
+  fs::create_directory(other);
+  if (std::system(("mount -t tmpfs -o size=1m tmpfs " + mnt.string() + " 2>/dev/null").c_str()) != 0)
+  {
+    GTEST_SKIP() << "cannot mount a tmpfs here (needs root): skipping the full-directory test";
+  }
+  const std::string run = "simplify " + P("grid.ply") + " " + P("out.ply") +
+    " --algorithm decimate --target 1000 --memory-mb 0.0625 --quiet";
+  Result ref = RunCli(run + " --tmpdir " + other.string());
+  ASSERT_EQ(ref.status, 0) << ref.out;
+  const std::string reference = ReadAll(this->dir / "out.ply");
+  fs::remove(this->dir / "out.ply");
+  Result r = RunCli(run + " --tmpdir " + mnt.string() + " --tmpdir " + other.string() +
+    " --stats-json " + P("s.json"));
+  Result alone = RunCli(run + " --tmpdir " + mnt.string());
+  const bool mntEmpty = fs::is_empty(mnt);
+  EXPECT_EQ(std::system(("umount " + mnt.string()).c_str()), 0);
+  EXPECT_EQ(r.status, 0) << r.out;
+  EXPECT_NE(r.out.find("sipmss: warning: temporary directory " + mnt.string() + ": "),
+    std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("block files go to " + other.string()), std::string::npos) << r.out;
+  EXPECT_EQ(ReadAll(this->dir / "out.ply"), reference);
+  EXPECT_NE(ReadAll(this->dir / "s.json").find("\"notes\": ["), std::string::npos);
+  EXPECT_EQ(alone.status, 1) << alone.out;
+  EXPECT_NE(alone.out.find(mnt.string() + ": 1.0 MiB free"), std::string::npos) << alone.out;
+  EXPECT_NE(alone.out.find("--tmpdir"), std::string::npos) << alone.out;
+  EXPECT_TRUE(mntEmpty);
+  EXPECT_TRUE(fs::is_empty(other));
+}
