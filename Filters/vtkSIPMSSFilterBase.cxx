@@ -6,7 +6,9 @@
 #include "vtkInformation.h"
 #include "vtkInformationVector.h"
 #include "vtkObjectFactory.h"
+#include "vtkPointData.h"
 #include "vtkPolyData.h"
+#include "vtkSmartPointer.h"
 
 #include <cmath>
 #include <string>
@@ -58,6 +60,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   }
 
   sipmss::algorithms::MeshSource source;
+  vtkSmartPointer<vtkPolyData> repaired; // the input without the point arrays that cannot be read
   bool haveBounds = false;
   std::array<double, 6> bounds{};
   std::string what;
@@ -79,6 +82,40 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       vtkWarningMacro("The input has no polygons: the output is empty.");
       output->Initialize();
       return 1;
+    }
+    // A point array whose tuple count is not the number of points cannot be read per point:
+    // the run goes on without it (a shallow copy; the input keeps it).
+    std::vector<std::string> wrongLength;
+    for (int i = 0; i < input->GetPointData()->GetNumberOfArrays(); ++i)
+    {
+      vtkAbstractArray* a = input->GetPointData()->GetAbstractArray(i);
+      if (a && a->GetNumberOfTuples() != input->GetNumberOfPoints())
+      {
+        wrongLength.emplace_back(std::string(a->GetName() ? a->GetName() : "(unnamed)") + " (" +
+          std::to_string(a->GetNumberOfTuples()) + " tuples)");
+      }
+    }
+    if (!wrongLength.empty())
+    {
+      repaired = vtkSmartPointer<vtkPolyData>::New();
+      repaired->ShallowCopy(input);
+      vtkPointData* pd = repaired->GetPointData();
+      for (int i = pd->GetNumberOfArrays() - 1; i >= 0; --i)
+      {
+        vtkAbstractArray* a = pd->GetAbstractArray(i);
+        if (a && a->GetNumberOfTuples() != input->GetNumberOfPoints())
+        {
+          pd->RemoveArray(i);
+        }
+      }
+      input = repaired;
+      std::string names;
+      for (const auto& n : wrongLength)
+      {
+        names += (names.empty() ? "" : ", ") + n;
+      }
+      vtkWarningMacro("Point arrays whose tuple count is not the number of points ("
+        << input->GetNumberOfPoints() << ") are not carried: dropping " << names << ".");
     }
     vtkIdType skipped = 0;
     source = bridge::PolyDataSource(input, &skipped);

@@ -1152,9 +1152,10 @@ std::uint64_t ClusterGrid::Key(double x, double y, double z) const
   std::uint64_t idx[3];
   for (int d = 0; d < 3; ++d)
   {
-    double f = (p[d] - this->origin[d]) / this->cellSize;
-    std::int64_t i = f > 0 ? static_cast<std::int64_t>(f) : 0;
-    idx[d] = static_cast<std::uint64_t>(std::min<std::int64_t>(i, this->dims[d] - 1));
+    // (compared before the conversion: a cell size that underflows makes f infinite)
+    const double f = (p[d] - this->origin[d]) / this->cellSize;
+    const std::uint32_t last = this->dims[d] - 1;
+    idx[d] = f > 0 ? (f < double(last) ? static_cast<std::uint64_t>(f) : last) : 0;
   }
   return (idx[0] * this->dims[1] + idx[1]) * this->dims[2] + idx[2];
 }

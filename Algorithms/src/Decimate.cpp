@@ -1328,12 +1328,18 @@ void Decimator::Weld()
   View<Vec3> P(this->dml_, this->pos_);
   const double inv = d > 0 ? 1.0 / d : 0.0;
   const double d2 = d * d;
+  // (clamped to +-2^62 before the conversion: a tiny distance makes the quotients huge, and
+  // the neighbour cells c +- 1 must not overflow either)
+  auto cellIndex = [](double q) {
+    constexpr double kLimit = 4611686018427387904.0; // 2^62
+    return q == q ? std::int64_t(std::clamp(std::floor(q), -kLimit, kLimit)) : 0; // (0 * inf)
+  };
   auto cellOf = [&](const Vec3& p, std::int64_t c[3]) {
     if (d > 0)
     {
-      c[0] = std::int64_t(std::floor(p.x * inv));
-      c[1] = std::int64_t(std::floor(p.y * inv));
-      c[2] = std::int64_t(std::floor(p.z * inv));
+      c[0] = cellIndex(p.x * inv);
+      c[1] = cellIndex(p.y * inv);
+      c[2] = cellIndex(p.z * inv);
     }
     else
     {

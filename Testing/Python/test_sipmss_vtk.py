@@ -275,6 +275,27 @@ class SIPMSSPythonTest(unittest.TestCase):
             self.assertEqual(len(msgs.errors), 1, msgs.errors)
             self.assertIn("references point id 4294967298, but the input has 4 points", msgs.errors[0])
 
+    def test_point_arrays_of_the_wrong_length_are_dropped(self):
+        # found by the VTK bridge fuzzer: an array shorter than the points was read past its end
+        pd = vtkPolyData()
+        pd.DeepCopy(attributed_sphere())
+        short = vtkFloatArray()
+        short.SetName("Short")
+        short.SetNumberOfTuples(pd.GetNumberOfPoints() - 5)
+        short.Fill(1.0)
+        pd.GetPointData().AddArray(short)
+        for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
+            msgs = Messages(f)
+            f.SetInputData(pd)
+            f.Update()
+            self.assertEqual(msgs.errors, [])
+            self.assertGreater(f.GetOutput().GetNumberOfPolys(), 0)
+            self.assertIsNone(f.GetOutput().GetPointData().GetArray("Short"))
+            self.assertIsNotNone(f.GetOutput().GetPointData().GetArray("Label"))
+            self.assertTrue(any("Short (%d tuples)" % (pd.GetNumberOfPoints() - 5) in w
+                                for w in msgs.warnings), msgs.warnings)
+            self.assertIsNotNone(pd.GetPointData().GetArray("Short"))  # the input keeps it
+
     def test_dropped_faces_are_reported(self):
         # two good triangles, one with a repeated vertex, one with two vertices
         pd = unit_square_with([(0, 1, 3), (0, 3, 2), (1, 1, 2), (1, 2)])
