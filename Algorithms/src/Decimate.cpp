@@ -1113,7 +1113,7 @@ void Decimator::BeginInput(const io::MeshHeader& header)
   add("decimate.positions", sizeof(Vec3), V);
   add("decimate.attributes", this->recSize_, V);
   add("decimate.quadrics", sizeof(Quadric), V);
-  add("decimate.vertexState", 1, V);
+  add("decimate.vertexState", sizeof(State), V);
   add("decimate.faces", sizeof(Tri), F);
   add("decimate.ringOffsets", sizeof(std::uint32_t), V + 1);
   add("decimate.ringFaces", sizeof(std::uint32_t), 3 * F);

@@ -1134,9 +1134,11 @@ Mode DML::Config(const Profile& profile)
       c -= HeapCost(b.capacityBytes);
     }
   }
+  I.stats.declaredBytes = 0;
   for (const auto& s : profile.structures)
   {
     c += HeapCost(CheckedBytes(s.maxCount, std::max<std::size_t>(s.elementSize, 1)));
+    I.stats.declaredBytes += CheckedBytes(s.maxCount, s.elementSize);
   }
   c = std::max(c, I.CostInCore());
   const std::uint64_t B = profile.memoryBudget;

@@ -965,3 +965,25 @@ TEST_F(CLI, SeveralTemporaryDirectoriesFallBackWhenOneIsFull)
   EXPECT_TRUE(mntEmpty);
   EXPECT_TRUE(fs::is_empty(other));
 }
+
+TEST_F(CLI, TemporaryDiskStaysWithinTheDeclaredStructures)
+{
+  // The block files' peak (storage.peak_file_bytes) stays within the structures the run
+  // declares from the header's counts (storage.declared_bytes, the paper's C), out of core.
+  WriteGrid(P("grid.ply"), 150);
+  for (const std::string run : { "--algorithm decimate --target 1000", "--algorithm cluster --grid 40" })
+  {
+    Result r = RunCli("simplify " + P("grid.ply") + " " + P("out.ply") + " --quiet --memory-mb 0.0625 " +
+      run + " --tmpdir " + this->dir.string() + " --stats-json " + P("s.json"));
+    ASSERT_EQ(r.status, 0) << run << "\n" << r.out;
+    const std::string json = ReadAll(this->dir / "s.json");
+    auto number = [&](const std::string& key) {
+      const auto at = json.find("\"" + key + "\": ");
+      return at == std::string::npos ? 0.0 : std::atof(json.c_str() + at + key.size() + 4);
+    };
+    const double peak = number("peak_file_bytes"), declared = number("declared_bytes");
+    EXPECT_GT(peak, 0) << run << "\n" << json;
+    EXPECT_GT(declared, 0) << run << "\n" << json;
+    EXPECT_LE(peak, declared) << run;
+  }
+}

@@ -559,7 +559,8 @@ int RunSimplify(const SimplifyArgs& a)
       { "used_out_of_core", s.usedOutOfCore }, { "peak_bytes", s.peakBytes }, { "hits", s.hits },
       { "misses", s.misses }, { "bytes_read", s.bytesRead }, { "bytes_written", s.bytesWritten },
       { "reconfigurations", s.reconfigurations }, { "forks", s.forks },
-      { "peak_file_bytes", s.peakFileBytes }, { "notes", s.notes } };
+      { "peak_file_bytes", s.peakFileBytes }, { "declared_bytes", s.declaredBytes },
+      { "notes", s.notes } };
     statsFile.emplace(a.statsJson, j.dump(2) + "\n");
   }
   sink.Commit();

@@ -81,6 +81,7 @@ struct Stats
   std::uint64_t forks = 0;            // forked children joined (their counts are included)
   std::uint64_t fileBytes = 0;        // size of the block files now (temporary disk)
   std::uint64_t peakFileBytes = 0;    // maximum of fileBytes since Config
+  std::uint64_t declaredBytes = 0;    // the profile's structures: sum(elementSize * maxCount)
   // What the layer did that the user should hear of: a temporary directory it could not use
   // (read-only, missing, full) and where the block files went instead.
   std::vector<std::string> notes;
