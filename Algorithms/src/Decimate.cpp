@@ -556,7 +556,6 @@ struct Scratch
 {
   Ring ru, rv;
   LinkTally tally; // Evaluate's, for rings of more than LinkTally::kMinEntries
-  bool tallyOn = false;
   std::vector<EdgeCand> edges;
   std::vector<std::uint32_t> ids, next = std::vector<std::uint32_t>(64),
                                   prev = std::vector<std::uint32_t>(64);
@@ -919,9 +918,10 @@ private:
     // too, for every corner of the ring's faces, cost more than it saved.)
   }
   void Evaluate(std::uint32_t u, Scratch& s);
+  // (tally: next and prev's LinkTally for a large ring, else nullptr: they are scanned)
   void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
     std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
-    Scratch& s);
+    const LinkTally* tally, Scratch& s);
   void FlushEdges(Scratch& s);
   void OfferEdge(std::uint32_t u, std::uint32_t v, const Placement& pl, double trace, bool offerV,
     Scratch& s);
@@ -1830,15 +1830,15 @@ void Decimator::BuildRings()
   this->JoinHelper(fork);
   // The groups in the order of their first members (face order, as a sweep over the faces
   // would settle them).
+  std::vector<std::uint64_t> members; // the threads' lists, one after the other
   std::vector<std::pair<std::uint64_t, std::size_t>> groups; // (first member, where)
-  std::vector<std::uint64_t> members;
   for (const std::vector<std::uint64_t>& list : found)
   {
+    const std::size_t base = members.size();
+    members.insert(members.end(), list.begin(), list.end());
     for (std::size_t i = 0; i < list.size(); i += 1 + list[i])
     {
-      groups.push_back({ list[i + 1], members.size() });
-      members.insert(members.end(), list.begin() + std::ptrdiff_t(i),
-        list.begin() + std::ptrdiff_t(i + 1 + list[i]));
+      groups.push_back({ list[i + 1], base + i });
     }
   }
   found.clear();
@@ -2854,9 +2854,9 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     }
     return found;
   };
-  s.tallyOn = n > LinkTally::kMinEntries;
-  if (s.tallyOn)
+  if (n > LinkTally::kMinEntries)
   {
+    const LinkTally& tally = s.tally;
     s.tally.Build(next, prev, n);
     for (std::size_t i = 0; i < n; ++i)
     {
@@ -2864,20 +2864,23 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
       {
         this->progress_.Poll();
       }
-      if (s.tally.First(true, next[i], i))
+      if (tally.First(true, next[i], i))
       {
-        this->EvaluateEdge(u, su, Qu, pu, next[i], next, prev, n, s);
+        this->EvaluateEdge(u, su, Qu, pu, next[i], next, prev, n, &tally, s);
       }
     }
     for (std::size_t i = 0; i < n; ++i)
     {
-      const std::uint32_t a = prev[i];
-      if (s.tally.Count(true, a) == 0 && s.tally.First(false, a, i))
+      if (poll && (i & 4095) == 4095)
       {
-        this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, s);
+        this->progress_.Poll();
+      }
+      const std::uint32_t a = prev[i];
+      if (tally.Count(true, a) == 0 && tally.First(false, a, i))
+      {
+        this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, &tally, s);
       }
     }
-    s.tallyOn = false;
     s.tally.Release();
     ReleaseIfLarge(s.ids);
     if (n > 65536)
@@ -2894,7 +2897,7 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     const std::uint32_t a = next[i];
     if (!in(next, i, a))
     {
-      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, s);
+      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, nullptr, s);
     }
   }
   for (std::size_t i = 0; i < n; ++i)
@@ -2902,13 +2905,14 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     const std::uint32_t a = prev[i];
     if (!in(next, n, a) && !in(prev, i, a))
     {
-      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, s);
+      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, nullptr, s);
     }
   }
 }
 
 void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
-  std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n, Scratch& s)
+  std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
+  const LinkTally* tally, Scratch& s)
 {
   Views& w = this->W(s);
   const State sv = w.S.Get(v);
@@ -2932,9 +2936,9 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   if (bothBoundary || ((su | sv) & kComplex))
   {
     std::size_t count = 0;
-    if (s.tallyOn)
+    if (tally)
     {
-      count = s.tally.Count(true, v) + s.tally.Count(false, v);
+      count = tally->Count(true, v) + tally->Count(false, v);
     }
     else
     {

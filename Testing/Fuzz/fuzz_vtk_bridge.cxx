@@ -4,6 +4,7 @@
 // the two-stage path, in core and out of core. A run may end in a VTK error, never in a crash or a
 // sanitizer report; an output must be a valid triangle mesh whose point arrays are input arrays
 // with the same name, type and components.
+#include "FuzzCommon.h" // SIPMSS_FUZZ_CHECK
 #include "vtkSIPMSSCluster.h"
 #include "vtkSIPMSSDecimate.h"
 
@@ -28,13 +29,6 @@
 #include <cstring>
 #include <limits>
 #include <string>
-
-#define SIPMSS_FUZZ_CHECK(cond)                                                                    \
-  do                                                                                               \
-  {                                                                                                \
-    if (!(cond))                                                                                   \
-      __builtin_trap();                                                                            \
-  } while (0)
 
 namespace
 {
