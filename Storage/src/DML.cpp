@@ -426,11 +426,7 @@ bool DML::Impl::Relocate(Block& b, std::uint64_t bytes, const std::string& why)
   {
     return false;
   }
-  std::vector<std::string> candidates = this->profile.directories;
-  if (candidates.empty())
-  {
-    candidates.push_back(detail::DefaultDirectory());
-  }
+  const std::vector<std::string> candidates = this->Directories();
   const std::size_t from = std::size_t(b.dir);
   const std::string fromParent(this->dirs[from].parent.data(), this->dirs[from].parent.size());
   for (const std::string& parent : candidates)
@@ -528,6 +524,13 @@ void DML::Impl::NoteFileBytes(std::uint64_t removed, std::uint64_t added)
 {
   this->stats.fileBytes = this->stats.fileBytes - std::min(removed, this->stats.fileBytes) + added;
   this->stats.peakFileBytes = std::max(this->stats.peakFileBytes, this->stats.fileBytes);
+}
+
+// The profile's temporary directories, or the default one.
+std::vector<std::string> DML::Impl::Directories() const
+{
+  return this->profile.directories.empty() ? std::vector<std::string>{ detail::DefaultDirectory() }
+                                           : this->profile.directories;
 }
 
 std::size_t DML::Impl::DirIndex(const std::string& parent)
@@ -638,11 +641,7 @@ bool DML::Impl::HasRoom(std::size_t di, std::uint64_t bytes, std::string* why) c
 // be used and has room for it; the others are skipped, and the user is told (notes).
 void DML::Impl::CreateFile(BlockId id)
 {
-  std::vector<std::string> candidates = this->profile.directories;
-  if (candidates.empty())
-  {
-    candidates.push_back(detail::DefaultDirectory());
-  }
+  const std::vector<std::string> candidates = this->Directories();
   const std::size_t start = std::size_t(this->nextDir++ % candidates.size());
   Block& b = this->blocks[static_cast<std::size_t>(id)];
   std::string problems;

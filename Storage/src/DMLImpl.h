@@ -326,6 +326,7 @@ struct DML::Impl
   void BackendTruncate(const detail::Block& b, std::uint64_t n);
   // Temporary directories: where a block file of `bytes` can go (fallback over the profile's
   // directories when one is unusable or has no room), and moving a block's file elsewhere.
+  std::vector<std::string> Directories() const;
   std::size_t DirIndex(const std::string& parent);
   bool EnsureDirectory(std::size_t di);
   std::uint64_t PendingBytes(std::size_t di) const;
