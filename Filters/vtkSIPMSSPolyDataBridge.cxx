@@ -16,6 +16,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <string>
 #include <cstring>
 #include <sstream>
@@ -167,6 +168,14 @@ std::array<double, 6> Bounds(vtkPolyData* input)
       std::ostringstream m;
       m << "point " << i << " has a non-finite coordinate (" << p[0] << ", " << p[1] << ", "
         << p[2] << ")";
+      throw io::MeshIOError(m.str());
+    }
+    const double largest = std::max({ std::abs(p[0]), std::abs(p[1]), std::abs(p[2]) });
+    if (largest > double(std::numeric_limits<float>::max()))
+    {
+      std::ostringstream m;
+      m << "point " << i << " has a coordinate beyond single precision (" << p[0] << ", " << p[1]
+        << ", " << p[2] << "): SIPMSS stores points as 32-bit floats";
       throw io::MeshIOError(m.str());
     }
     for (int k = 0; k < 3; ++k)

@@ -265,6 +265,23 @@ class SIPMSSPythonTest(unittest.TestCase):
                 self.assertEqual(len(msgs.errors), 1, msgs.errors)
                 self.assertIn("point 7 has a non-finite coordinate", msgs.errors[0])
 
+    def test_points_beyond_single_precision_are_an_error(self):
+        # found by the VTK bridge fuzzer: a double beyond FLT_MAX came out as an infinite point
+        pd = vtkPolyData()
+        pd.DeepCopy(sphere(20).GetOutput())
+        points = vtkPoints()
+        points.SetDataTypeToDouble()
+        points.DeepCopy(pd.GetPoints())
+        points.SetPoint(3, 1e39, 0.0, 0.0)
+        pd.SetPoints(points)
+        for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
+            msgs = Messages(f)
+            f.SetInputData(pd)
+            f.Update()
+            self.assertEqual(f.GetOutput().GetNumberOfPoints(), 0)
+            self.assertEqual(len(msgs.errors), 1, msgs.errors)
+            self.assertIn("point 3 has a coordinate beyond single precision", msgs.errors[0])
+
     def test_point_ids_are_checked_in_64_bits(self):
         pd = unit_square_with([(0, 1, 3), (0, 1, 2 ** 32 + 2)])  # must not wrap to (0, 1, 2)
         for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
