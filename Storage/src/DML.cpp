@@ -1235,6 +1235,60 @@ Stats DML::GetStats() const
   return s;
 }
 
+void DML::ChargeMemory(std::uint64_t bytes)
+{
+  Impl& I = *this->impl_;
+  if (I.mode == Mode::OutOfCore)
+  {
+    I.EnsureCache(); // sized before the charge: the frames' table keeps its slots afterwards
+  }
+  I.acc.Charge(HeapCost(bytes));
+}
+
+void DML::ReleaseMemory(std::uint64_t bytes) noexcept
+{
+  this->impl_->acc.Release(HeapCost(bytes));
+}
+
+std::uint64_t DML::SpareMemory(std::uint32_t keepPages)
+{
+  Impl& I = *this->impl_;
+  if (I.acc.budget == 0)
+  {
+    // Unbounded: in core anything; forced out of core, the unbounded page pool's size.
+    return I.mode == Mode::OutOfCore ? detail::kUnboundedPool : std::uint64_t(1) << 62;
+  }
+  std::uint64_t spare = I.acc.Room();
+  if (I.mode == Mode::OutOfCore)
+  {
+    I.EnsureCache();
+    const detail::Cache& C = I.cache;
+    const std::uint64_t keep = std::uint64_t(keepPages) + C.pinnedFrames;
+    if (C.withData > keep)
+    {
+      spare += (C.withData - keep) * HeapCost(C.pageSize);
+    }
+    else
+    {
+      const std::uint64_t missing = (keep - C.withData) * HeapCost(C.pageSize);
+      spare = spare > missing ? spare - missing : 0;
+    }
+  }
+  // What ChargeMemory adds to a request (the allocator's overhead) stays out of the answer.
+  return spare > 4096 + 32 ? spare - 4096 - 32 : 0;
+}
+
+std::size_t DML::PageBytes()
+{
+  Impl& I = *this->impl_;
+  if (I.mode != Mode::OutOfCore)
+  {
+    return 0;
+  }
+  I.EnsureCache();
+  return I.cache.pageSize;
+}
+
 const Profile& DML::GetProfile() const
 {
   return this->impl_->profile;

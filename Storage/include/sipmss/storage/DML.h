@@ -15,6 +15,7 @@
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 // Element access sits in the innermost loops of the algorithms, whose functions are large enough
@@ -190,6 +191,17 @@ public:
   void ReadRange(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
   void WriteRange(BlockId id, std::uint64_t first, std::uint64_t count, const void* src);
   void Fill(BlockId id, const void* element); // every element := *element
+
+  // --- memory outside the blocks, counted against the budget (the public counted allocator)
+  // ChargeMemory counts `bytes` of the caller's heap (and its allocator's overhead) against B:
+  // out of core the page cache gives up pages for them; BudgetError when they cannot fit.
+  // ReleaseMemory gives the same number back. SpareMemory is what ChargeMemory can take now
+  // while the page cache keeps `keepPages` pages and every pinned one (unbounded: 1 << 62).
+  void ChargeMemory(std::uint64_t bytes);
+  void ReleaseMemory(std::uint64_t bytes) noexcept;
+  std::uint64_t SpareMemory(std::uint32_t keepPages = 4);
+  // The cache's page size in bytes (out of core; 0 in core).
+  std::size_t PageBytes();
 
   // --- zero-copy access for hot loops
   // In core: the block's memory (valid until the next Config/Reconfigure/Resize/OpenBlock that
@@ -436,9 +448,56 @@ public:
     }
   }
 
+  // Exchanges the blocks of two arrays of the same DML.
+  void Swap(Array& o) noexcept
+  {
+    std::swap(this->dml_, o.dml_);
+    std::swap(this->id_, o.id_);
+  }
+
 private:
   DML* dml_ = nullptr;
   BlockId id_ = -1;
+};
+
+// A heap buffer of n elements counted against a DML's budget (ChargeMemory) for its lifetime:
+// the working memory of a phase that is not a block (a sort's runs, a merge's heads).
+template <class T>
+class CountedBuffer
+{
+public:
+  CountedBuffer(DML& dml, std::size_t n)
+    : dml_(&dml)
+    , bytes_(static_cast<std::uint64_t>(n) * sizeof(T))
+  {
+    dml.ChargeMemory(this->bytes_);
+    try
+    {
+      this->data_.reset(new T[n]);
+    }
+    catch (...)
+    {
+      dml.ReleaseMemory(this->bytes_);
+      throw;
+    }
+    this->size_ = n;
+  }
+  ~CountedBuffer()
+  {
+    this->data_.reset();
+    this->dml_->ReleaseMemory(this->bytes_);
+  }
+  CountedBuffer(const CountedBuffer&) = delete;
+  CountedBuffer& operator=(const CountedBuffer&) = delete;
+  T* Data() { return this->data_.get(); }
+  std::size_t Size() const { return this->size_; }
+  T& operator[](std::size_t i) { return this->data_[i]; }
+
+private:
+  DML* dml_;
+  std::uint64_t bytes_;
+  std::unique_ptr<T[]> data_;
+  std::size_t size_ = 0;
 };
 
 } // namespace sipmss::storage

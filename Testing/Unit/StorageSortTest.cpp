@@ -1,0 +1,328 @@
+// storage::Sort against std::sort: in core and out of core at budgets from 64 KiB up, on random
+// and adversarial keys (duplicates, sorted, reversed, organ pipe, all equal, a median-of-three
+// killer), with the I/O it does, the memory it holds and an abort in the middle.
+#include "StorageTestUtil.h"
+
+#include "sipmss/storage/DML.h"
+#include "sipmss/storage/Sort.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cstring>
+#include <numeric>
+#include <random>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace
+{
+using namespace sipmss::storage;
+using sipmss::storage::testing::TempDir;
+
+std::vector<std::uint64_t> Keys(const std::string& kind, std::uint64_t n, std::uint64_t seed)
+{
+  std::mt19937_64 rng(seed);
+  std::vector<std::uint64_t> v(n);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    if (kind == "random")
+    {
+      v[i] = rng();
+    }
+    else if (kind == "duplicates")
+    {
+      v[i] = rng() % 7;
+    }
+    else if (kind == "sorted")
+    {
+      v[i] = i * 3;
+    }
+    else if (kind == "reversed")
+    {
+      v[i] = (n - i) * 3;
+    }
+    else if (kind == "organpipe")
+    {
+      v[i] = i < n / 2 ? i : n - i;
+    }
+    else if (kind == "equal")
+    {
+      v[i] = 42;
+    }
+    else if (kind == "sawtooth")
+    {
+      v[i] = i % 1000;
+    }
+    else if (kind == "killer")
+    {
+      v[i] = 0; // below
+    }
+    else
+    {
+      throw std::invalid_argument(kind);
+    }
+  }
+  if (kind == "killer")
+  {
+    // Musser's median-of-three killer sequence for the first/middle/last pivot choice.
+    const std::uint64_t k = n / 2;
+    for (std::uint64_t i = 1; i <= k; ++i)
+    {
+      if (i % 2 == 1)
+      {
+        v[i - 1] = i;
+        v[i] = k + i;
+      }
+      v[k + i - 1] = 2 * i;
+    }
+  }
+  return v;
+}
+
+struct SortRun
+{
+  std::vector<std::uint64_t> out;
+  Stats stats;
+  std::uint64_t fileBytesBefore = 0;
+  std::uint64_t blockBytes = 0;
+};
+
+SortRun SortWithBudget(const std::vector<std::uint64_t>& in, std::uint64_t budget,
+  const std::string& dir, ModePolicy policy = ModePolicy::Automatic)
+{
+  Profile p;
+  p.directories = { dir };
+  p.memoryBudget = budget;
+  p.policy = policy;
+  p.structures = { { "keys", sizeof(std::uint64_t), in.size(), 0.0 } };
+  DML dml;
+  dml.Config(p);
+  Array<std::uint64_t> a(dml, in.size());
+  a.Write(0, in.size(), in.data());
+  SortRun r;
+  r.fileBytesBefore = dml.GetStats().fileBytes;
+  r.blockBytes = in.size() * sizeof(std::uint64_t);
+  const Stats before = dml.GetStats();
+  Sort(dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; });
+  r.stats = dml.GetStats();
+  r.stats.bytesRead -= before.bytesRead;
+  r.stats.bytesWritten -= before.bytesWritten;
+  r.out.resize(in.size());
+  a.Read(0, in.size(), r.out.data());
+  return r;
+}
+
+TEST(StorageSort, InCoreEqualsStdSort)
+{
+  TempDir tmp;
+  for (const char* kind :
+    { "random", "duplicates", "sorted", "reversed", "organpipe", "equal", "sawtooth", "killer" })
+  {
+    const auto in = Keys(kind, 300000, 1);
+    auto expect = in;
+    std::sort(expect.begin(), expect.end());
+    const SortRun r = SortWithBudget(in, 0, tmp.Path());
+    EXPECT_EQ(r.stats.mode, Mode::InCore) << kind;
+    EXPECT_TRUE(r.out == expect) << kind;
+  }
+}
+
+TEST(StorageSort, OutOfCoreEqualsStdSortAtEveryBudget)
+{
+  TempDir tmp;
+  for (std::uint64_t budget : { 64ull << 10, 256ull << 10, 1ull << 20, 8ull << 20 })
+  {
+    for (const char* kind :
+      { "random", "duplicates", "sorted", "reversed", "organpipe", "equal", "sawtooth", "killer" })
+    {
+      for (std::uint64_t n : { std::uint64_t(2), std::uint64_t(1000), std::uint64_t(250000) })
+      {
+        const auto in = Keys(kind, n, budget + n);
+        auto expect = in;
+        std::sort(expect.begin(), expect.end());
+        const SortRun r = SortWithBudget(in, budget, tmp.Path(), ModePolicy::OutOfCore);
+        const std::string what = std::string(kind) + " n=" + std::to_string(n) +
+          " budget=" + std::to_string(budget);
+        EXPECT_EQ(r.stats.mode, Mode::OutOfCore) << what;
+        EXPECT_TRUE(r.out == expect) << what;
+        EXPECT_LE(r.stats.peakBytes, budget) << what;
+        // The merge's second block is closed again.
+        EXPECT_EQ(r.stats.fileBytes, r.fileBytesBefore) << what;
+      }
+    }
+  }
+}
+
+// sort(N) I/Os: at 64 KiB a 4 MB array needs runs and two merge passes or more; the bytes moved
+// are a few times the data, never per element.
+TEST(StorageSort, OutOfCoreIOIsAFewPassesOverTheData)
+{
+  TempDir tmp;
+  const std::uint64_t n = 500000; // 4 MB
+  const auto in = Keys("random", n, 7);
+  auto expect = in;
+  std::sort(expect.begin(), expect.end());
+  const SortRun r = SortWithBudget(in, 64 << 10, tmp.Path());
+  ASSERT_EQ(r.stats.mode, Mode::OutOfCore);
+  EXPECT_TRUE(r.out == expect);
+  const double written = static_cast<double>(r.stats.bytesWritten) / r.blockBytes;
+  const double read = static_cast<double>(r.stats.bytesRead) / r.blockBytes;
+  // Runs of about 48 KB: about 85 runs; pages of 4 KB or less: a fan-in of 10 or less, so at
+  // least two merge passes besides the runs.
+  EXPECT_GE(written, 2.5) << "fewer passes than expected";
+  EXPECT_LE(written, 8.0);
+  EXPECT_LE(read, 10.0);
+}
+
+// A total order gives the same bytes in core and out of core.
+struct Face
+{
+  std::uint32_t a, b, c;
+};
+bool FaceLess(const Face& x, const Face& y)
+{
+  if (x.a != y.a)
+  {
+    return x.a < y.a;
+  }
+  if (x.b != y.b)
+  {
+    return x.b < y.b;
+  }
+  return x.c < y.c;
+}
+
+TEST(StorageSort, SameBytesInCoreAndOutOfCore)
+{
+  TempDir tmp;
+  const std::uint64_t n = 200000;
+  std::mt19937 rng(11);
+  std::vector<Face> in(n);
+  for (auto& f : in)
+  {
+    f = { static_cast<std::uint32_t>(rng() % 5000), static_cast<std::uint32_t>(rng() % 3),
+      static_cast<std::uint32_t>(rng()) };
+  }
+  std::vector<std::vector<Face>> outs;
+  for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(96) << 10, std::uint64_t(2) << 20 })
+  {
+    Profile p;
+    p.directories = { tmp.Path() };
+    p.memoryBudget = budget;
+    p.policy = budget ? ModePolicy::OutOfCore : ModePolicy::Automatic;
+    DML dml;
+    dml.Config(p);
+    Array<Face> a(dml, n);
+    a.Write(0, n, in.data());
+    Sort(dml, a, FaceLess);
+    std::vector<Face> out(n);
+    a.Read(0, n, out.data());
+    outs.push_back(std::move(out));
+  }
+  auto expect = in;
+  std::sort(expect.begin(), expect.end(), FaceLess);
+  for (const auto& out : outs)
+  {
+    ASSERT_EQ(out.size(), expect.size());
+    EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0);
+  }
+}
+
+// An abort (the poll throws) leaves a permutation, no working memory and no extra block.
+TEST(StorageSort, AbortLeavesAPermutationAndNothingHeld)
+{
+  TempDir tmp;
+  for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(128) << 10 })
+  {
+    for (int stopAt : { 1, 3, 6 })
+    {
+      const std::uint64_t n = 300000;
+      const auto in = Keys("random", n, 3);
+      Profile p;
+      p.directories = { tmp.Path() };
+      p.memoryBudget = budget;
+      DML dml;
+      dml.Config(p);
+      Array<std::uint64_t> a(dml, n);
+      a.Write(0, n, in.data());
+      const Stats before = dml.GetStats();
+      const std::uint64_t spareBefore = dml.SpareMemory(4);
+      int calls = 0;
+      double last = 0;
+      bool monotone = true;
+      EXPECT_THROW(Sort(dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+                     [&](double f) {
+                       monotone = monotone && f >= last && f <= 1.0;
+                       last = f;
+                       if (++calls == stopAt)
+                       {
+                         throw std::runtime_error("stop");
+                       }
+                     }),
+        std::runtime_error);
+      EXPECT_TRUE(monotone);
+      const Stats after = dml.GetStats();
+      EXPECT_EQ(after.fileBytes, before.fileBytes);
+      EXPECT_EQ(dml.SpareMemory(4), spareBefore) << "working memory still held";
+      std::vector<std::uint64_t> out(n);
+      a.Read(0, n, out.data());
+      auto x = in;
+      std::sort(x.begin(), x.end());
+      std::sort(out.begin(), out.end());
+      EXPECT_TRUE(out == x) << "budget " << budget << " stop " << stopAt;
+    }
+  }
+}
+
+TEST(StorageSort, ProgressReachesOne)
+{
+  TempDir tmp;
+  for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(64) << 10 })
+  {
+    const std::uint64_t n = 400000;
+    const auto in = Keys("random", n, 5);
+    Profile p;
+    p.directories = { tmp.Path() };
+    p.memoryBudget = budget;
+    DML dml;
+    dml.Config(p);
+    Array<std::uint64_t> a(dml, n);
+    a.Write(0, n, in.data());
+    double last = 0;
+    int calls = 0;
+    Sort(dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; }, [&](double f) {
+      EXPECT_GE(f, last);
+      last = f;
+      ++calls;
+    });
+    EXPECT_GT(calls, 3);
+    EXPECT_NEAR(last, 1.0, 1e-9) << budget;
+  }
+}
+
+TEST(StorageSort, TooSmallABudgetIsAClearError)
+{
+  TempDir tmp;
+  Profile p;
+  p.directories = { tmp.Path() };
+  p.memoryBudget = 16 << 10;
+  p.policy = ModePolicy::OutOfCore;
+  p.pageSize = 4096;
+  DML dml;
+  dml.Config(p);
+  Array<std::uint64_t> a(dml, 100000);
+  try
+  {
+    Sort(dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; });
+    FAIL() << "a 16 KiB budget cannot hold the cache's pages and a sort's windows";
+  }
+  catch (const BudgetError& e)
+  {
+    EXPECT_NE(std::string(e.what()).find("too few to sort"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(dml.GetStats().fileBytes, 100000u * 8) << "the merge's block is closed again";
+}
+
+} // namespace
