@@ -39,6 +39,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   namespace bridge = vtkSIPMSSPolyDataBridge;
   this->UsedInCore = this->UsedOutOfCore = false;
   this->PeakStorageBytes = this->PeakTemporaryFileBytes = this->PageHits = this->PageMisses = 0;
+  this->MemoryBudgetBytes = 0;
   this->BytesRead = this->BytesWritten = this->Reconfigurations = 0;
   this->ElapsedSeconds = 0;
 
@@ -173,8 +174,10 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       bounds = bridge::Bounds(vtkPolyData::GetData(inputVector[0], 0));
     }
     const auto start = std::chrono::steady_clock::now();
-    sipmss::algorithms::RunStats stats =
-      run(source, haveBounds, bounds, sink, bridge::MakeProfile(this), progress);
+    const sipmss::storage::Profile profile = bridge::MakeProfile(this);
+    this->MemoryBudgetBytes = profile.memoryBudget;
+    sipmss::algorithms::RunStats stats = sipmss::algorithms::TranslateOutOfMemory(progress,
+      profile, [&] { return run(source, haveBounds, bounds, sink, profile, progress); });
     this->ElapsedSeconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     this->UsedInCore = stats.storage.usedInCore;

@@ -66,10 +66,12 @@ public:
 
   ///@{
   /**
-   * Memory budget of the data management layer in MiB. 0 (default) means unbounded (always in
-   * core).
+   * Memory budget of the data management layer in MiB (at least 0.0625). 0 (default) is
+   * automatic: half of what this process may use (the lowest of the cgroup memory limit,
+   * ulimit -v/-d and MemAvailable, read when the filter runs). -1 is unbounded (always in core).
+   * The CLI's --memory-mb takes the same values (also as "auto" and "unbounded").
    */
-  vtkSetClampMacro(MemoryBudgetMB, double, 0.0, VTK_DOUBLE_MAX);
+  vtkSetClampMacro(MemoryBudgetMB, double, -1.0, VTK_DOUBLE_MAX);
   vtkGetMacro(MemoryBudgetMB, double);
   ///@}
 
@@ -105,6 +107,8 @@ public:
    * Statistics of the last run.
    */
   vtkGetMacro(UsedInCore, bool);
+  // The budget the run had in bytes (the automatic one as it was computed; 0: unbounded).
+  vtkGetMacro(MemoryBudgetBytes, vtkTypeUInt64);
   vtkGetMacro(UsedOutOfCore, bool);
   vtkGetMacro(PeakStorageBytes, vtkTypeUInt64);
   // The largest size the temporary block files reached together (disk).
@@ -152,6 +156,7 @@ protected:
 
   bool UsedInCore = false;
   bool UsedOutOfCore = false;
+  vtkTypeUInt64 MemoryBudgetBytes = 0;
   vtkTypeUInt64 PeakStorageBytes = 0;
   vtkTypeUInt64 PeakTemporaryFileBytes = 0;
   vtkTypeUInt64 PageHits = 0;

@@ -571,7 +571,7 @@ bool AlgorithmProgress::Aborted()
 sipmss::storage::Profile MakeProfile(vtkSIPMSSFilterBase* f)
 {
   sipmss::storage::Profile p;
-  p.memoryBudget = static_cast<std::uint64_t>(f->GetMemoryBudgetMB() * 1024.0 * 1024.0);
+  sipmss::algorithms::ApplyMemoryBudget(f->GetMemoryBudgetMB(), p);
   switch (f->GetOperationMode())
   {
     case vtkSIPMSSFilterBase::IN_CORE:

@@ -1160,7 +1160,9 @@ std::uint64_t ClusterGrid::Key(double x, double y, double z) const
   return (idx[0] * this->dims[1] + idx[1]) * this->dims[2] + idx[2];
 }
 
-RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
+namespace
+{
+RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
   Progress& progress)
 {
   const int threads =
@@ -1238,6 +1240,14 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   progress.Finish();
   stats.storage = dml.GetStats();
   return stats;
+}
+} // namespace
+
+RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
+  Progress& progress)
+{
+  return TranslateOutOfMemory(
+    progress, options.storage, [&] { return ClusterRun(source, output, options, progress); });
 }
 
 } // namespace sipmss::algorithms

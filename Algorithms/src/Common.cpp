@@ -1,5 +1,7 @@
 #include "sipmss/algorithms/Common.h"
 
+#include "sipmss/storage/Memory.h"
+
 #include <sstream>
 
 namespace sipmss::algorithms
@@ -35,14 +37,99 @@ void Progress::Finish()
 
 std::string MemoryBudgetProblem(double megabytes)
 {
-  if (megabytes == 0 || (megabytes >= kMinimumMemoryBudgetMB && megabytes <= 1e9))
+  if (megabytes == kAutomaticMemoryBudget || megabytes == kUnboundedMemoryBudget ||
+    (megabytes >= kMinimumMemoryBudgetMB && megabytes <= 1e9))
   {
     return {};
   }
   std::ostringstream m;
-  m << "must be 0 (unbounded) or between " << kMinimumMemoryBudgetMB
+  m << "must be 0 (automatic), -1 (unbounded) or between " << kMinimumMemoryBudgetMB
     << " (64 KiB) and 1e9 MiB, not " << megabytes;
   return m.str();
+}
+
+bool ParseMemoryBudget(const std::string& text, double& megabytes)
+{
+  if (text == "auto" || text == "automatic")
+  {
+    megabytes = kAutomaticMemoryBudget;
+    return true;
+  }
+  if (text == "unbounded")
+  {
+    megabytes = kUnboundedMemoryBudget;
+    return true;
+  }
+  std::istringstream in(text);
+  double v = 0;
+  in >> v;
+  if (!in || !in.eof() || text.empty())
+  {
+    return false;
+  }
+  megabytes = v;
+  return true;
+}
+
+namespace
+{
+std::string MiB(std::uint64_t bytes)
+{
+  std::ostringstream m;
+  m.setf(std::ios::fixed);
+  m.precision(bytes < (std::uint64_t(10) << 20) ? 2 : 0);
+  m << static_cast<double>(bytes) / (1024.0 * 1024.0) << " MiB";
+  return m.str();
+}
+} // namespace
+
+void ApplyMemoryBudget(double megabytes, storage::Profile& profile)
+{
+  if (megabytes == kUnboundedMemoryBudget)
+  {
+    profile.memoryBudget = 0;
+    profile.budgetOrigin = "unbounded";
+  }
+  else if (megabytes == kAutomaticMemoryBudget)
+  {
+    const storage::MemoryLimit available = storage::AvailableMemory();
+    profile.memoryBudget = storage::AutomaticBudget(available);
+    profile.budgetOrigin = profile.memoryBudget == 0
+      ? "automatic: no memory limit known, unbounded"
+      : "automatic: half of the " + MiB(available.bytes) + " left under " + available.source;
+  }
+  else
+  {
+    profile.memoryBudget = static_cast<std::uint64_t>(megabytes * 1024.0 * 1024.0);
+    profile.budgetOrigin.clear();
+  }
+}
+
+std::string OutOfMemoryMessage(const char* phase, const storage::Profile& profile)
+{
+  std::string m = "out of memory";
+  if (phase && *phase)
+  {
+    m += std::string(" in the ") + phase + " phase";
+  }
+  if (profile.memoryBudget == 0)
+  {
+    m += " with an unbounded memory budget";
+  }
+  else
+  {
+    m += " with a memory budget of " + MiB(profile.memoryBudget);
+  }
+  if (!profile.budgetOrigin.empty() && profile.budgetOrigin != "unbounded")
+  {
+    m += " (" + profile.budgetOrigin + ")";
+  }
+  m += profile.memoryBudget == 0
+    ? ": set a budget (--memory-mb auto or MiB, MemoryBudgetMB 0 or MiB) so that what does not "
+      "fit goes to disk, or free memory"
+    : ": set a smaller budget (--memory-mb, MemoryBudgetMB) so that more of the run goes to "
+      "disk, or free memory";
+  return m;
 }
 
 // Every pass reads the same input (io::MeshInputFile: a FIFO or /dev/stdin is copied once to an

@@ -4480,10 +4480,12 @@ RunStats Decimate(const MeshSource& input, io::MeshSink& output, const DecimateO
   Progress& progress,
   const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
 {
-  RunStats stats;
-  Decimator d(options, progress, stats);
-  d.Run(input, output, onLevel);
-  return stats;
+  return TranslateOutOfMemory(progress, options.storage, [&] {
+    RunStats stats;
+    Decimator d(options, progress, stats);
+    d.Run(input, output, onLevel);
+    return stats;
+  });
 }
 
 double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOptions& options)

@@ -240,7 +240,9 @@ void Prefix(std::vector<PhaseStat>& phases, std::size_t from, const char* prefix
 }
 } // namespace
 
-RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageOptions& options,
+namespace
+{
+RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoStageOptions& options,
   Progress& progress,
   const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
 {
@@ -326,6 +328,15 @@ RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageO
   stats.outputTriangles = s2.outputTriangles;
   stats.storage = dml.GetStats();
   return stats;
+}
+} // namespace
+
+RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageOptions& options,
+  Progress& progress,
+  const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
+{
+  return TranslateOutOfMemory(progress, options.decimate.storage,
+    [&] { return TwoStageRun(input, output, options, progress, onLevel); });
 }
 
 } // namespace sipmss::algorithms

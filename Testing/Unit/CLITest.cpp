@@ -437,7 +437,9 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     "--boundary-weight nan",
     "--memory-mb nan",
     "--memory-mb inf",
-    "--memory-mb -1",
+    "--memory-mb -2",
+    "--memory-mb -0.5",
+    "--memory-mb automatic-ish",
     "--memory-mb 1e-7",
     "--memory-mb 0.01",
     "--grid -3",
@@ -452,7 +454,8 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
   EXPECT_NE(applies.out.find("does not apply to --algorithm cluster"), std::string::npos) << applies.out;
   // what is meaningful still runs
   const char* good[] = { "--algorithm decimate --target 1", "--algorithm two-stage --grid 10 --target 4",
-    "--algorithm decimate --reduction 0", "--memory-mb 0", "--memory-mb 0.0625", "--boundary-weight 1" };
+    "--algorithm decimate --reduction 0", "--memory-mb 0", "--memory-mb 0.0625", "--boundary-weight 1",
+    "--memory-mb auto", "--memory-mb unbounded", "--memory-mb -1" };
   for (const char* args : good)
   {
     Result r = RunCli(io + args);
@@ -985,5 +988,43 @@ TEST_F(CLI, TemporaryDiskStaysWithinTheDeclaredStructures)
     EXPECT_GT(peak, 0) << run << "\n" << json;
     EXPECT_GT(declared, 0) << run << "\n" << json;
     EXPECT_LE(peak, declared) << run;
+  }
+}
+
+// The default budget is automatic: under a `ulimit -v` smaller than the run's in-core need
+// (about 100 MB for a million triangles) the default run goes out of core and succeeds, and
+// says why; an explicitly unbounded run fails with an error that names the phase and the
+// option, never a bare std::bad_alloc, and writes nothing.
+TEST_F(CLI, DefaultBudgetFollowsTheAddressSpaceLimit)
+{
+  WriteGrid(P("grid.ply"), 700); // 980,000 triangles
+  const std::string limit = "ulimit -v 100000; ";
+  for (const char* algorithm : { "decimate", "two-stage", "cluster" })
+  {
+    const std::string target = std::string(algorithm) == "cluster" ? "" : " --target 1000";
+    Result r = RunCommand(limit + SIPMSS_CLI + " simplify " + P("grid.ply") + " " + P("out.ply") +
+      " --algorithm " + algorithm + target + " --quiet --stats-json " + P("s.json") +
+      " --tmpdir " + this->dir.string());
+    ASSERT_EQ(r.status, 0) << algorithm << "\n" << r.out;
+    std::ifstream js(P("s.json"));
+    const std::string json((std::istreambuf_iterator<char>(js)), std::istreambuf_iterator<char>());
+    EXPECT_NE(json.find("RLIMIT_AS"), std::string::npos) << json;
+    if (std::string(algorithm) == "decimate")
+    {
+      EXPECT_NE(json.find("\"used_out_of_core\": true"), std::string::npos) << json;
+    }
+    fs::remove(P("out.ply"));
+  }
+  Result u = RunCommand(limit + SIPMSS_CLI + " simplify " + P("grid.ply") + " " + P("out.ply") +
+    " --algorithm decimate --target 1000 --quiet --memory-mb unbounded");
+  EXPECT_EQ(u.status, 1) << u.out;
+  EXPECT_NE(u.out.find("out of memory in the "), std::string::npos) << u.out;
+  EXPECT_NE(u.out.find("--memory-mb"), std::string::npos) << u.out;
+  EXPECT_EQ(u.out.find("bad_alloc"), std::string::npos) << u.out;
+  EXPECT_FALSE(fs::exists(P("out.ply")));
+  for (const auto& e : fs::directory_iterator(this->dir))
+  {
+    EXPECT_EQ(e.path().filename().string().rfind(".sipmss-", 0), std::string::npos)
+      << "left behind: " << e.path();
   }
 }

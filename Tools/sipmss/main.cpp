@@ -368,18 +368,19 @@ const CLI::Validator Finite(
   },
   "FINITE");
 
-// 0 means unbounded; a positive budget below 64 KiB would round to nothing (or to unbounded).
+// "auto" (or 0: a share of the memory this process may use), "unbounded" (or -1), or MiB of at
+// least 64 KiB (a smaller budget would round to nothing).
 const CLI::Validator MemoryBudget(
   [](std::string& value) {
     double v = 0;
-    if (!CLI::detail::lexical_cast(value, v))
+    if (!algorithms::ParseMemoryBudget(value, v) || !std::isfinite(v))
     {
-      return std::string("must be a number, not ") + value;
+      return std::string("must be auto, unbounded or a number of MiB, not ") + value;
     }
     const std::string problem = algorithms::MemoryBudgetProblem(v);
     return problem.empty() ? problem : problem.substr(0, problem.rfind(", not ")) + ", not " + value;
   },
-  "0 or [0.0625 - 1e9]");
+  "auto|unbounded|MiB");
 
 struct SimplifyArgs
 {
@@ -387,7 +388,7 @@ struct SimplifyArgs
   int grid = 0;
   std::int64_t target = 0;
   double reduction = -1;
-  double memoryMB = 0;
+  std::string memory = "auto";
   double boundaryWeight = 0;
   std::vector<std::string> tmpdirs;
   int lods = 1;
@@ -453,7 +454,9 @@ int RunSimplify(const SimplifyArgs& a)
   const bool tty = !a.quiet && ::isatty(STDERR_FILENO);
   TerminalProgress progress(tty);
   storage::Profile profile;
-  profile.memoryBudget = static_cast<std::uint64_t>(a.memoryMB * 1024.0 * 1024.0);
+  double memoryMB = algorithms::kAutomaticMemoryBudget;
+  algorithms::ParseMemoryBudget(a.memory, memoryMB); // (checked by the option's validator)
+  algorithms::ApplyMemoryBudget(memoryMB, profile);
   profile.directories = a.tmpdirs;
   const algorithms::MeshSource source =
     algorithms::FileSource(a.input, a.tmpdirs.empty() ? std::string() : a.tmpdirs.front());
@@ -547,6 +550,7 @@ int RunSimplify(const SimplifyArgs& a)
     j["seconds"] = seconds;
     j["peak_rss_mb"] = PeakRssMB();
     j["memory_budget_bytes"] = profile.memoryBudget;
+    j["memory_budget"] = profile.budgetOrigin.empty() ? std::string("given") : profile.budgetOrigin;
     nlohmann::json phases = nlohmann::json::array();
     for (const auto& p : stats.phases)
     {
@@ -698,9 +702,12 @@ int main(int argc, char** argv)
   auto* boundaryWeight = simplify->add_option("--boundary-weight", sa.boundaryWeight,
     "cluster: boundary quadrics of this weight keep holes in place (0 = off; slower)")
     ->check(Finite & CLI::Range(0.0, 1e9));
-  simplify->add_option("--memory-mb", sa.memoryMB,
-    "memory budget in MiB: 0 = unbounded, else at least 0.0625 (64 KiB)")
-    ->check(Finite & MemoryBudget);
+  simplify->add_option("--memory-mb", sa.memory,
+    "memory budget in MiB (at least 0.0625), auto (= 0, the default: half of what this process "
+    "may use: the lowest of the cgroup limit, ulimit -v/-d and MemAvailable) or unbounded "
+    "(= -1: always in core)")
+    ->check(MemoryBudget)
+    ->capture_default_str();
   // One directory per --tmpdir (repeat it for more): a list option would also swallow the
   // positionals after it (`--tmpdir /scratch in.ply out.ply`).
   simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)")
@@ -777,6 +784,14 @@ int main(int argc, char** argv)
   {
     std::fprintf(stderr, "sipmss: error: %s\n", e.what());
     return 2;
+  }
+  catch (const std::bad_alloc&)
+  {
+    // (the cores name their phase and budget themselves: OutOfMemoryError)
+    std::fprintf(stderr,
+      "sipmss: error: out of memory: set a smaller budget (--memory-mb) so that more of the run "
+      "goes to disk, or free memory\n");
+    return 1;
   }
   catch (const std::exception& e)
   {

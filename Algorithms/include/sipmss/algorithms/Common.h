@@ -130,11 +130,44 @@ public:
 // Algorithms may call it more than once (e.g. a bounds pass with verticesOnly).
 using MeshSource = std::function<io::ReadStats(io::MeshSink& sink, const io::ReadOptions& options)>;
 
-// The memory budget rule of every front end (CLI --memory-mb, the filters' MemoryBudgetMB): 0 is
-// unbounded, else at least kMinimumMemoryBudgetMB (a smaller budget would round to nothing) and
-// finite. Returns what is wrong with `megabytes`, or an empty string.
+// The memory budget of every front end (CLI --memory-mb, the filters' MemoryBudgetMB), in MiB:
+// 0 (the default) is automatic, a share of the memory this process may use
+// (storage::AutomaticBudget: half of the lowest of the cgroup limit, ulimit -v/-d and
+// MemAvailable); -1 is unbounded (always in core); else at least kMinimumMemoryBudgetMB (a
+// smaller budget would round to nothing) and at most 1e9. MemoryBudgetProblem returns what is
+// wrong with `megabytes`, or an empty string.
+constexpr double kAutomaticMemoryBudget = 0;
+constexpr double kUnboundedMemoryBudget = -1;
 constexpr double kMinimumMemoryBudgetMB = 0.0625; // 64 KiB
 std::string MemoryBudgetProblem(double megabytes);
+// The CLI's words for the two special values ("auto", "unbounded") or a number; false if the
+// text is neither.
+bool ParseMemoryBudget(const std::string& text, double& megabytes);
+// Sets profile.memoryBudget and profile.budgetOrigin from a valid front-end value.
+void ApplyMemoryBudget(double megabytes, storage::Profile& profile);
+
+// Thrown instead of std::bad_alloc by the cores: names the phase, the budget, how it was chosen
+// and the option to change.
+class OutOfMemoryError : public std::runtime_error
+{
+public:
+  using std::runtime_error::runtime_error;
+};
+std::string OutOfMemoryMessage(const char* phase, const storage::Profile& profile);
+// Runs f(); a std::bad_alloc becomes an OutOfMemoryError for the progress's current phase.
+template <class F>
+auto TranslateOutOfMemory(const Progress& progress, const storage::Profile& profile, F&& f)
+  -> decltype(f())
+{
+  try
+  {
+    return f();
+  }
+  catch (const std::bad_alloc&)
+  {
+    throw OutOfMemoryError(OutOfMemoryMessage(progress.Phase(), profile));
+  }
+}
 
 // A source that streams a file through the IO readers.
 // tmpdir: where a FIFO or device input is copied as it is first read (empty: $TMPDIR or /tmp).

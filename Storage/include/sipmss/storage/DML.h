@@ -65,6 +65,9 @@ struct Profile
   ModePolicy policy = ModePolicy::Automatic;
   PagePolicy pagePolicy = PagePolicy::Adaptive; // measured better than StaticWeight: docs/storage.md
   std::size_t pageSize = 0; // 0: automatic
+  // How memoryBudget was chosen, for messages (e.g. "automatic: half of the 2.0 GiB left under
+  // RLIMIT_AS"); empty: given by the caller.
+  std::string budgetOrigin;
 };
 
 struct Stats
