@@ -13,6 +13,8 @@
 // thread (Prefetched) while this one clusters; the output does not depend on it.
 #include "sipmss/algorithms/Cluster.h"
 
+#include "StoredMesh.h"
+
 #include "sipmss/algorithms/Prefetch.h"
 
 #include <Eigen/Dense>
@@ -367,6 +369,7 @@ public:
   {
     this->expected_ = h.vertexCount;
     this->faces_ = h.faceCount;
+    this->meter_.Start(h.vertexCount);
     if (h.vertexCount)
     {
       this->progress_.Sized(h.vertexCount, h.faceCount);
@@ -388,9 +391,24 @@ public:
     this->seen_ += c.count;
     this->progress_.Tick(this->expected_ ? double(this->seen_) / double(this->expected_) : 0.0);
   }
-  void Triangles(const std::uint32_t*, std::size_t) override {}
+  // With MeasureLayout, the read goes on past the vertices until kProbeFaces faces are measured
+  // (then the sink throws detail::ProbeDone) or the input ends.
+  void MeasureLayout() { this->measure_ = true; }
+  const detail::LayoutMeter& Layout() const { return this->meter_; }
+  void Triangles(const std::uint32_t* idx, std::size_t count) override
+  {
+    for (std::size_t t = 0; t < count && this->meter_.Faces() < detail::kProbeFaces; ++t)
+    {
+      this->meter_.Face(idx + 3 * t);
+    }
+    if (this->meter_.Faces() >= detail::kProbeFaces)
+    {
+      throw detail::ProbeDone{};
+    }
+  }
   void End(const io::ReadStats&) override {}
   bool AbortRequested() override { return this->progress_.Aborted(); }
+  bool Measures() const { return this->measure_; }
 
   std::array<double, 6> b{ std::numeric_limits<double>::max(), -std::numeric_limits<double>::max(),
     std::numeric_limits<double>::max(), -std::numeric_limits<double>::max(),
@@ -400,6 +418,8 @@ private:
   Progress& progress_;
   std::function<double(std::uint64_t, std::uint64_t)> afterBounds_;
   std::uint64_t expected_ = 0, seen_ = 0, faces_ = 0;
+  bool measure_ = false;
+  detail::LayoutMeter meter_;
 };
 
 // The clustering pass: vertices to cells, faces to quadrics and output triangles.
@@ -1191,8 +1211,29 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
         ClusterWorkAfterRead(v, f, options.maximumGridDimension, options);
     });
     io::ReadOptions ro;
-    ro.verticesOnly = true;
-    input(bs, ro);
+    // A run on a DML of its own also measures the layout of the first faces here.
+    const bool measure = own && options.layout == LayoutPolicy::Automatic;
+    ro.verticesOnly = !measure;
+    if (measure)
+    {
+      bs.MeasureLayout();
+    }
+    try
+    {
+      // (measuring, the read stops early: on this thread, where the stop reaches the reader)
+      (measure ? source : input)(bs, ro);
+    }
+    catch (const detail::ProbeDone&)
+    {
+    }
+    if (measure && bs.Layout().Faces() > 0)
+    {
+      stats.layoutFarFraction = bs.Layout().FarFraction();
+      if (stats.layoutFarFraction > detail::kIncoherentFarFraction)
+      {
+        throw detail::ReorderNeeded{};
+      }
+    }
     bounds = bs.b;
     V = bs.VerticesSeen();
     F = bs.Faces();
@@ -1214,6 +1255,10 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
     stats.inputVertices = read.vertices;
     stats.inputTriangles = read.triangles;
     stats.droppedInputFaces = read.droppedFaces;
+  }
+  if (options.sourceConsumed)
+  {
+    options.sourceConsumed();
   }
   const double cells = double(sink.Cells()), candidates = double(sink.Candidates());
   ClusterOptions noBoundaries = options;
@@ -1241,13 +1286,110 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
   stats.storage = dml.GetStats();
   return stats;
 }
+
+// The structures of a clustering run on V vertices and F faces (the Config of ClusterSink).
+void AddClusterStructures(storage::Profile& profile, std::uint64_t V, std::uint64_t F,
+  const ClusterOptions& options)
+{
+  // (ClusterSink::Begin declares min(V, cells of the grid); before the bounds the grid is at
+  // most m^3 cells)
+  const std::uint64_t m = std::uint64_t(std::max(options.maximumGridDimension, 1));
+  const std::uint64_t maxCells = std::min<std::uint64_t>(V, m * m * m);
+  profile.structures.push_back({ "vertices", sizeof(VertexRec), V, 0.0 });
+  profile.structures.push_back({ "cells", sizeof(CellRec), maxCells, 0.0 });
+  profile.structures.push_back({ "cell map", sizeof(KeySlot), 2 * maxCells, 0.0 });
+  profile.structures.push_back({ "candidate triangles", sizeof(TriSlot), F, 0.0 });
+}
+
+} // namespace
+
+double EstimateClusterBytes(std::uint64_t V, std::uint64_t F, const ClusterOptions& options)
+{
+  storage::Profile p;
+  AddClusterStructures(p, V, F, options);
+  double bytes = 0;
+  for (const auto& s : p.structures)
+  {
+    bytes += double(s.elementSize) * double(s.maxCount);
+  }
+  return bytes;
+}
+
+namespace
+{
+// The layout step, then the clustering on the reordered copy (in the same DML, freed once read).
+RunStats ClusterReordered(const MeshSource& source, io::MeshSink& output,
+  const ClusterOptions& options, Progress& progress)
+{
+  DML dml;
+  dml.Config(options.storage);
+  RunStats before;
+  detail::StoredMesh mesh(dml);
+  double V = 0, F = 0, after = 1;
+  {
+    progress.BeginPhase("layout: read", 0.0, 1.0); // (its share once the header gives the sizes)
+    PhaseTimer timer(before, dml, "layout read");
+    mesh.SetProgress(&progress);
+    mesh.OnHeader([&](std::uint64_t v, std::uint64_t f) {
+      // The paper's Config: the copy and the clustering's structures decide the mode.
+      storage::Profile profile = options.storage;
+      detail::AddLayoutStructures(profile, v, f, 0);
+      AddClusterStructures(profile, v, f, options);
+      dml.Config(profile);
+      V = double(v);
+      F = double(f);
+      after = kWork::kCluster * (V + F) +
+        ClusterWorkAfterRead(v, f, options.maximumGridDimension, options);
+      progress.BeginPhase("layout: read", detail::kLayoutReadWork * (V + F),
+        detail::kLayoutReorderWork * (V + F) + after);
+    });
+    source(mesh, io::ReadOptions{});
+  }
+  {
+    progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
+    PhaseTimer timer(before, dml, "layout reorder");
+    mesh.Reorder(progress);
+  }
+  ClusterOptions o = options;
+  o.dml = &dml;
+  o.useBounds = true;
+  o.bounds = mesh.Bounds();
+  o.layout = LayoutPolicy::Keep;
+  o.threads = 1; // (no reader thread: the copy is read from this DML, which is single-threaded)
+  o.sourceConsumed = [&mesh, &options] {
+    mesh.Release();
+    if (options.sourceConsumed)
+    {
+      options.sourceConsumed();
+    }
+  };
+  RunStats stats = ClusterRun(
+    [&mesh](io::MeshSink& sink, const io::ReadOptions& ro) { return mesh.Replay(sink, ro); },
+    output, o, progress);
+  stats.phases.insert(stats.phases.begin(), before.phases.begin(), before.phases.end());
+  stats.reordered = true;
+  stats.layoutFarFraction = mesh.Layout().FarFraction();
+  return stats;
+}
 } // namespace
 
 RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
   Progress& progress)
 {
-  return TranslateOutOfMemory(
-    progress, options.storage, [&] { return ClusterRun(source, output, options, progress); });
+  return TranslateOutOfMemory(progress, options.storage, [&] {
+    if (!options.dml && options.layout == LayoutPolicy::Reorder)
+    {
+      return ClusterReordered(source, output, options, progress);
+    }
+    try
+    {
+      return ClusterRun(source, output, options, progress);
+    }
+    catch (const detail::ReorderNeeded&)
+    {
+      // (the bounds pass found the first faces far apart: the run goes on a reordered copy)
+      return ClusterReordered(source, output, options, progress);
+    }
+  });
 }
-
 } // namespace sipmss::algorithms

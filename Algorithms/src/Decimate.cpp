@@ -59,6 +59,8 @@
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Placement.h"
 
+#include "StoredMesh.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -781,16 +783,38 @@ public:
   }
   bool Aborted() const { return this->aborted_; }
   void Tick();
+  // Measures the layout of the first faces; an incoherent one throws detail::ReorderNeeded.
+  void MeasureLayout(std::uint64_t vertices)
+  {
+    this->measure_ = true;
+    this->meter_.Start(vertices);
+  }
+  const detail::LayoutMeter& Layout() const { return this->meter_; }
 
 private:
+  void Measured()
+  {
+    this->measure_ = false;
+    if (this->meter_.FarFraction() > detail::kIncoherentFarFraction)
+    {
+      throw detail::ReorderNeeded{};
+    }
+  }
   Decimator& d_;
   Progress& progress_;
   bool aborted_ = false;
+  bool measure_ = false;
+  detail::LayoutMeter meter_;
 };
 
 class Decimator
 {
 public:
+  // The loader measures the input's layout: a run on a DML of its own, layout Automatic.
+  bool MeasuresLayout() const
+  {
+    return !this->opt_.dml && this->opt_.layout == LayoutPolicy::Automatic;
+  }
   Decimator(const DecimateOptions& options, Progress& progress, RunStats& stats)
     : opt_(options)
     , progress_(progress)
@@ -1056,6 +1080,10 @@ void Loader::Tick()
 void Loader::Begin(const io::MeshHeader& header)
 {
   this->d_.BeginInput(header);
+  if (this->d_.MeasuresLayout())
+  {
+    this->MeasureLayout(header.vertexCount);
+  }
 }
 void Loader::Vertices(const io::VertexChunk& chunk)
 {
@@ -1065,10 +1093,25 @@ void Loader::Vertices(const io::VertexChunk& chunk)
 void Loader::Triangles(const std::uint32_t* indices, std::size_t count)
 {
   this->Tick();
+  if (this->measure_)
+  {
+    for (std::size_t t = 0; t < count && this->meter_.Faces() < detail::kProbeFaces; ++t)
+    {
+      this->meter_.Face(indices + 3 * t);
+    }
+    if (this->meter_.Faces() >= detail::kProbeFaces)
+    {
+      this->Measured();
+    }
+  }
   this->d_.AddTriangles(indices, count);
 }
 void Loader::End(const io::ReadStats& stats)
 {
+  if (this->measure_)
+  {
+    this->Measured();
+  }
   this->d_.EndInput(stats);
 }
 
@@ -1283,6 +1326,10 @@ void Decimator::Read(const MeshSource& input)
   if (loader.Aborted())
   {
     throw AbortedError();
+  }
+  if (loader.Layout().Faces() > 0)
+  {
+    this->stats_.layoutFarFraction = loader.Layout().FarFraction();
   }
   if (!this->begun_)
   {
@@ -4476,18 +4523,98 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
 
 } // namespace
 
+namespace
+{
+// The bytes of a decimation's structures on V vertices and F faces (without point data): the
+// table Decimator declares (Loader::Begin).
+double DecimateBytes(std::uint64_t V, std::uint64_t F)
+{
+  return double(V) *
+    double(sizeof(Vec3) + sizeof(Quadric) + sizeof(State) + sizeof(Cand) + 4 * sizeof(std::uint32_t)) +
+    double(F) * double(sizeof(Tri) + 3 * sizeof(std::uint32_t));
+}
+
+// The layout step, then the decimation of the reordered copy (in the same DML, freed as soon as
+// the decimation has built its own structures).
+RunStats DecimateReordered(const MeshSource& input, io::MeshSink& output,
+  const DecimateOptions& options, Progress& progress,
+  const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
+{
+  DML dml;
+  dml.Config(options.storage);
+  RunStats before;
+  detail::StoredMesh mesh(dml);
+  double V = 0, F = 0, after = 1;
+  {
+    progress.BeginPhase("layout: read", 0.0, 1.0); // (its share once the header gives the sizes)
+    PhaseTimer timer(before, dml, "layout read");
+    mesh.SetProgress(&progress);
+    mesh.OnHeader([&](std::uint64_t v, std::uint64_t f) {
+      // The paper's Config: the copy and the decimation's structures decide the mode.
+      storage::Profile profile = options.storage;
+      detail::AddLayoutStructures(profile, v, f, 0);
+      profile.structures.push_back({ "decimate", 1, std::uint64_t(DecimateBytes(v, f)), 0.0 });
+      dml.Config(profile);
+      V = double(v);
+      F = double(f);
+      after = EstimateDecimateWork(v, f, options);
+      progress.BeginPhase("layout: read", detail::kLayoutReadWork * (V + F),
+        detail::kLayoutReorderWork * (V + F) + after);
+    });
+    input(mesh, io::ReadOptions{});
+  }
+  {
+    progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
+    PhaseTimer timer(before, dml, "layout reorder");
+    mesh.Reorder(progress);
+  }
+  DecimateOptions o = options;
+  o.dml = &dml;
+  o.layout = LayoutPolicy::Keep;
+  o.sourceConsumed = [&mesh, &options] {
+    mesh.Release();
+    if (options.sourceConsumed)
+    {
+      options.sourceConsumed();
+    }
+  };
+  RunStats stats;
+  {
+    Decimator d(o, progress, stats);
+    d.Run([&mesh](io::MeshSink& sink, const io::ReadOptions& ro) { return mesh.Replay(sink, ro); },
+      output, onLevel);
+  }
+  stats.phases.insert(stats.phases.begin(), before.phases.begin(), before.phases.end());
+  stats.reordered = true;
+  stats.layoutFarFraction = mesh.Layout().FarFraction();
+  stats.storage = dml.GetStats();
+  return stats;
+}
+} // namespace
+
 RunStats Decimate(const MeshSource& input, io::MeshSink& output, const DecimateOptions& options,
   Progress& progress,
   const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
 {
   return TranslateOutOfMemory(progress, options.storage, [&] {
-    RunStats stats;
-    Decimator d(options, progress, stats);
-    d.Run(input, output, onLevel);
-    return stats;
+    if (!options.dml && options.layout == LayoutPolicy::Reorder)
+    {
+      return DecimateReordered(input, output, options, progress, onLevel);
+    }
+    try
+    {
+      RunStats stats;
+      Decimator d(options, progress, stats);
+      d.Run(input, output, onLevel);
+      return stats;
+    }
+    catch (const detail::ReorderNeeded&)
+    {
+      // (the loader found the first faces far apart: the run starts again on a reordered copy)
+      return DecimateReordered(input, output, options, progress, onLevel);
+    }
   });
 }
-
 double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOptions& options)
 {
   NullProgress none;

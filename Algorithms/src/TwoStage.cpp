@@ -1,7 +1,10 @@
 #include "sipmss/algorithms/TwoStage.h"
 
+#include "StoredMesh.h"
+
 #include <algorithm>
 #include <cstring>
+#include <optional>
 
 namespace sipmss::algorithms
 {
@@ -10,186 +13,9 @@ namespace
 using storage::Array;
 using storage::DML;
 
-struct Float3
-{
-  float v[3];
-};
-struct Triangle
-{
-  std::uint32_t v[3];
-};
 struct Quadric
 {
   double q[10];
-};
-
-// The stage hand-off: a MeshSink that keeps a mesh in DML blocks, and a MeshSource replaying it.
-class DmlMesh final : public io::MeshSink
-{
-public:
-  explicit DmlMesh(DML& dml)
-    : dml_(dml)
-  {
-  }
-  ~DmlMesh() override { this->Release(); }
-
-  // Frees the stored mesh (Replay is not possible afterwards).
-  void Release()
-  {
-    if (this->attrs_ >= 0)
-    {
-      this->dml_.CloseBlock(this->attrs_);
-      this->attrs_ = -1;
-    }
-    this->points_.Close();
-    this->triangles_.Close();
-  }
-
-  void Begin(const io::MeshHeader& h) override
-  {
-    this->header_ = h;
-    this->stride_ = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 1 : 0) +
-      (h.layout.texcoords ? 2 : 0) + h.layout.scalars.size(); // in 4-byte words
-    this->points_ = Array<Float3>(this->dml_, std::max<std::uint64_t>(h.vertexCount, 1));
-    this->triangles_ = Array<Triangle>(this->dml_, std::max<std::uint64_t>(h.faceCount, 1));
-    if (this->stride_)
-    {
-      this->attrs_ = this->dml_.OpenBlock(4 * this->stride_, std::max<std::uint64_t>(h.vertexCount, 1));
-    }
-  }
-  void Vertices(const io::VertexChunk& c) override
-  {
-    this->points_.Write(c.first, c.count, reinterpret_cast<const Float3*>(c.xyz));
-    if (this->stride_)
-    {
-      std::vector<std::uint32_t> rec(this->stride_ * c.count);
-      for (std::size_t i = 0; i < c.count; ++i)
-      {
-        std::uint32_t* r = &rec[this->stride_ * i];
-        std::size_t k = 0;
-        auto put = [&](const float* src, std::size_t n) {
-          std::memcpy(r + k, src, 4 * n);
-          k += n;
-        };
-        if (c.normals)
-          put(c.normals + 3 * i, 3);
-        if (c.rgba)
-        {
-          std::memcpy(r + k, c.rgba + 4 * i, 4);
-          ++k;
-        }
-        if (c.texcoords)
-          put(c.texcoords + 2 * i, 2);
-        if (c.scalars)
-          put(c.scalars + this->header_.layout.scalars.size() * i, this->header_.layout.scalars.size());
-      }
-      this->dml_.WriteRange(this->attrs_, c.first, c.count, rec.data());
-    }
-  }
-  void Triangles(const std::uint32_t* idx, std::size_t count) override
-  {
-    this->triangles_.Write(this->triangleCount_, count, reinterpret_cast<const Triangle*>(idx));
-    this->triangleCount_ += count;
-  }
-  void End(const io::ReadStats&) override {}
-
-  // Streams the stored mesh (the same chunk protocol as the readers).
-  io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options)
-  {
-    sink.Begin(this->header_);
-    const io::VertexLayout& L = this->header_.layout;
-    const std::size_t ns = L.scalars.size();
-    // at most about 1 MiB of buffers per chunk, whatever the number of vertex properties
-    const std::size_t perVertex = 12 + (L.normals ? 12 : 0) + (L.texcoords ? 8 : 0) + 8 * ns +
-      (L.colors ? 8 : 0);
-    const std::size_t chunk = std::clamp<std::size_t>((std::size_t(1) << 20) / perVertex, 1,
-      options.chunkElements ? options.chunkElements : 16384);
-    std::vector<float> xyz, normals, tex, scalars;
-    std::vector<std::uint8_t> rgba;
-    std::vector<std::uint32_t> rec;
-    for (std::uint64_t first = 0; first < this->header_.vertexCount; first += chunk)
-    {
-      const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->header_.vertexCount - first));
-      xyz.resize(3 * n);
-      this->points_.Read(first, n, reinterpret_cast<Float3*>(xyz.data()));
-      io::VertexChunk c;
-      c.first = first;
-      c.count = n;
-      c.xyz = xyz.data();
-      if (this->stride_)
-      {
-        rec.resize(this->stride_ * n);
-        this->dml_.ReadRange(this->attrs_, first, n, rec.data());
-        normals.resize(L.normals ? 3 * n : 0);
-        rgba.resize(L.colors ? 4 * n : 0);
-        tex.resize(L.texcoords ? 2 * n : 0);
-        scalars.resize(ns * n);
-        for (std::size_t i = 0; i < n; ++i)
-        {
-          const std::uint32_t* r = &rec[this->stride_ * i];
-          std::size_t k = 0;
-          if (L.normals)
-          {
-            std::memcpy(&normals[3 * i], r + k, 12);
-            k += 3;
-          }
-          if (L.colors)
-          {
-            std::memcpy(&rgba[4 * i], r + k, 4);
-            ++k;
-          }
-          if (L.texcoords)
-          {
-            std::memcpy(&tex[2 * i], r + k, 8);
-            k += 2;
-          }
-          if (ns)
-          {
-            std::memcpy(&scalars[ns * i], r + k, 4 * ns);
-          }
-        }
-        c.normals = L.normals ? normals.data() : nullptr;
-        c.rgba = L.colors ? rgba.data() : nullptr;
-        c.texcoords = L.texcoords ? tex.data() : nullptr;
-        c.scalars = ns ? scalars.data() : nullptr;
-      }
-      sink.Vertices(c);
-      if (sink.AbortRequested())
-      {
-        throw AbortedError();
-      }
-    }
-    io::ReadStats st;
-    st.vertices = this->header_.vertexCount;
-    if (options.verticesOnly)
-    {
-      return st;
-    }
-    std::vector<Triangle> tris;
-    for (std::uint64_t first = 0; first < this->triangleCount_; first += chunk)
-    {
-      const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->triangleCount_ - first));
-      tris.resize(n);
-      this->triangles_.Read(first, n, tris.data());
-      sink.Triangles(reinterpret_cast<const std::uint32_t*>(tris.data()), n);
-      if (sink.AbortRequested())
-      {
-        throw AbortedError();
-      }
-    }
-    st.triangles = st.polygons = this->triangleCount_;
-    sink.End(st);
-    return st;
-  }
-
-private:
-  DML& dml_;
-  io::MeshHeader header_;
-  std::size_t stride_ = 0;
-  Array<Float3> points_;
-  Array<Triangle> triangles_;
-  storage::BlockId attrs_ = -1;
-  std::uint64_t triangleCount_ = 0;
 };
 
 // Carries a stage's progress into the run's: the stage's [0,1] maps to [begin, end] of the
@@ -250,8 +76,56 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   dml.Config(options.decimate.storage);
   RunStats stats;
 
+  // The layout step for an incoherent input that stage 1 would cluster out of core: the
+  // input is copied into the DML and reordered, and stage 1 reads the copy (freed once read).
+  // (the probe is stage 1's bounds pass: the grid's box comes from it)
+  ClusterOptions probeOptions;
+  probeOptions.maximumGridDimension = options.gridDimension;
+  detail::LayoutProbe probe;
+  const bool probed = options.decimate.layout == LayoutPolicy::Automatic;
+  if (probed)
+  {
+    PhaseTimer timer(stats, dml, "stage 1 bounds");
+    probe = detail::ProbeLayout(input, progress);
+  }
+  std::optional<detail::StoredMesh> reordered;
+  MeshSource stage1Input = input;
+  if (options.decimate.layout == LayoutPolicy::Reorder || probe.Incoherent())
+  {
+    storage::Profile profile = options.decimate.storage;
+    detail::AddLayoutStructures(profile, probe.vertices, probe.faces, 0);
+    profile.structures.push_back({ "stage 1", 1,
+      std::uint64_t(EstimateClusterBytes(probe.vertices, probe.faces, probeOptions)), 0.0 });
+    dml.Config(profile);
+    detail::StoredMesh& mesh = reordered.emplace(dml);
+    const double V = double(probe.vertices), F = double(probe.faces);
+    const double after = EstimateClusterWork(probe.vertices, probe.faces, probeOptions) +
+      EstimateDecimateWork(probe.vertices / 8, probe.faces / 8, options.decimate);
+    {
+      progress.BeginPhase("layout: read", detail::kLayoutReadWork * (V + F),
+        detail::kLayoutReorderWork * (V + F) + after);
+      PhaseTimer timer(stats, dml, "layout read");
+      mesh.SetProgress(&progress);
+      input(mesh, io::ReadOptions{});
+    }
+    {
+      progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
+      PhaseTimer timer(stats, dml, "layout reorder");
+      mesh.Reorder(progress);
+    }
+    stage1Input = [&mesh](io::MeshSink& sink, const io::ReadOptions& ro) {
+      return mesh.Replay(sink, ro);
+    };
+    stats.reordered = true;
+    stats.layoutFarFraction = mesh.Layout().FarFraction();
+  }
+  else
+  {
+    stats.layoutFarFraction = probe.measured ? probe.farFraction : -1.0;
+  }
+
   // Stage 1: clustering into the hand-off mesh, cell quadrics kept per output vertex.
-  DmlMesh handoff(dml);
+  detail::StoredMesh handoff(dml);
   Array<Quadric> quadrics(dml, 1);
   {
     ClusterOptions co;
@@ -281,12 +155,25 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
         EstimateDecimateWork(std::uint64_t(faces / 2), std::uint64_t(faces), d2);
       return w1 + w2 > 0 ? w1 / (w1 + w2) : 0.5;
     });
-    RunStats s1 = Cluster(input, handoff, co, p1);
+    if (probed && !reordered && probe.verticesSeen > 0)
+    {
+      co.useBounds = true;
+      co.bounds = probe.bounds;
+    }
+    if (reordered)
+    {
+      co.useBounds = true;
+      co.bounds = reordered->Bounds();
+      co.sourceConsumed = [&reordered] { reordered.reset(); };
+      co.threads = 1; // (no reader thread: the copy is read from this DML, single-threaded)
+    }
+    RunStats s1 = Cluster(stage1Input, handoff, co, p1);
     stats.inputVertices = s1.inputVertices;
     stats.inputTriangles = s1.inputTriangles;
     stats.droppedInputFaces = s1.droppedInputFaces;
-    stats.phases = std::move(s1.phases);
-    Prefix(stats.phases, 0, "stage 1 ");
+    const std::size_t from1 = stats.phases.size();
+    stats.phases.insert(stats.phases.end(), s1.phases.begin(), s1.phases.end());
+    Prefix(stats.phases, from1, "stage 1 ");
   }
   dml.Reconfigure(); // stage 1's input-sized blocks are gone
 

@@ -962,22 +962,36 @@ ReadStats MeshInputFile::Read(MeshSink& sink, const ReadOptions& options)
     const bool gzip = in.Ensure(2) && static_cast<unsigned char>(in.p[0]) == 0x1f &&
       static_cast<unsigned char>(in.p[1]) == 0x8b;
     ReadStats st;
-    if (!gzip)
-      st = ReadFromInput(in, sink, options, Format::Unknown);
-    // The rest of the input (after a vertices-only pass), for the next reads.
-    in.context = "file";
-    do
-      in.p = in.e;
-    while (in.Refill());
-    spoolComplete_ = true;
+    // The rest of the input (after a vertices-only pass or a sink's StopRead), for the next reads.
+    auto drain = [&] {
+      in.context = "file";
+      do
+        in.p = in.e;
+      while (in.Refill());
+      spoolComplete_ = true;
+    };
+    try
+    {
+      if (!gzip)
+        st = ReadFromInput(in, sink, options, Format::Unknown);
+    }
+    catch (const StopRead&)
+    {
+      drain();
+      throw;
+    }
+    drain();
     if (gzip)
       return Read(sink, options);
     return st;
   }
   catch (...)
   {
-    ::close(spoolFd_);
-    spoolFd_ = -2; // the input is consumed: a later Read says so
+    if (!spoolComplete_)
+    {
+      ::close(spoolFd_);
+      spoolFd_ = -2; // the input is consumed: a later Read says so
+    }
     throw;
   }
 }

@@ -328,9 +328,9 @@ class SIPMSSPythonTest(unittest.TestCase):
         """The CLI's rules: NaN, infinities and budgets that round to nothing are errors."""
         src = sphere(20)  # alive while the filters use its port
         nan, inf = float("nan"), float("inf")
-        cases = [(vtkSIPMSSDecimate, "SetMemoryBudgetMB", nan, "MemoryBudgetMB must be 0 (unbounded) or"),
-                 (vtkSIPMSSDecimate, "SetMemoryBudgetMB", inf, "MemoryBudgetMB must be 0 (unbounded) or"),
-                 (vtkSIPMSSCluster, "SetMemoryBudgetMB", 1e-7, "MemoryBudgetMB must be 0 (unbounded) or"),
+        cases = [(vtkSIPMSSDecimate, "SetMemoryBudgetMB", nan, "MemoryBudgetMB must be 0 (automatic), -1 (unbounded) or"),
+                 (vtkSIPMSSDecimate, "SetMemoryBudgetMB", inf, "MemoryBudgetMB must be 0 (automatic), -1 (unbounded) or"),
+                 (vtkSIPMSSCluster, "SetMemoryBudgetMB", 1e-7, "MemoryBudgetMB must be 0 (automatic), -1 (unbounded) or"),
                  (vtkSIPMSSDecimate, "SetTargetReduction", nan, "TargetReduction must be a finite number"),
                  (vtkSIPMSSDecimate, "SetBoundaryWeight", nan, "BoundaryWeight must be a finite number"),
                  (vtkSIPMSSDecimate, "SetWeldDistance", inf, "WeldDistance must be a finite number"),
@@ -345,6 +345,13 @@ class SIPMSSPythonTest(unittest.TestCase):
             self.assertEqual(f.GetOutput().GetNumberOfPolys(), 0, setter)
             self.assertEqual(len(msgs.errors), 1, (setter, msgs.errors))
             self.assertIn(says, msgs.errors[0])
+        f = vtkSIPMSSCluster()
+        msgs = Messages(f)
+        f.SetInputConnection(src.GetOutputPort())
+        f.SetMemoryBudgetMB(-0.5)
+        f.Update()
+        self.assertEqual(len(msgs.errors), 1, msgs.errors)
+        self.assertIn("MemoryBudgetMB must be 0 (automatic), -1 (unbounded) or", msgs.errors[0])
         # still fine: an infinite MaximumError (no bound) and the smallest budget
         f = vtkSIPMSSDecimate()
         f.SetInputConnection(src.GetOutputPort())
@@ -352,6 +359,35 @@ class SIPMSSPythonTest(unittest.TestCase):
         f.SetMemoryBudgetMB(0.0625)
         f.Update()
         self.assertGreater(f.GetOutput().GetNumberOfPolys(), 0)
+
+    def test_memory_budget_is_automatic_by_default(self):
+        """MemoryBudgetMB 0 (the default) is a share of what the process may use, -1 unbounded,
+        a number that many MiB; the run reports the budget it had."""
+        src = sphere(40)
+        outputs = []
+        for cls in (vtkSIPMSSCluster, vtkSIPMSSDecimate):
+            self.assertEqual(cls().GetMemoryBudgetMB(), 0.0)
+            for budget, expect in ((0, None), (-1, 0), (8, 8 << 20)):
+                f = cls()
+                msgs = Messages(f)
+                f.SetInputConnection(src.GetOutputPort())
+                f.SetMemoryBudgetMB(budget)
+                f.Update()
+                self.assertEqual(msgs.errors, [])
+                if expect is None:
+                    # half of MemAvailable (or of a lower limit), never unbounded on Linux
+                    with open("/proc/meminfo") as m:
+                        avail = next(int(line.split()[1]) * 1024 for line in m
+                                     if line.startswith("MemAvailable:"))
+                    self.assertGreater(f.GetMemoryBudgetBytes(), 0)
+                    self.assertLessEqual(f.GetMemoryBudgetBytes(), avail // 2 + (64 << 20))
+                else:
+                    self.assertEqual(f.GetMemoryBudgetBytes(), expect)
+                self.assertTrue(f.GetUsedInCore())
+                outputs.append(f.GetOutput().GetNumberOfPolys())
+        # the budget does not change the result
+        self.assertEqual(len(set(outputs[:3])), 1, outputs)
+        self.assertEqual(len(set(outputs[3:])), 1, outputs)
 
 
 if __name__ == "__main__":

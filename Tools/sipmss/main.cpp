@@ -551,6 +551,17 @@ int RunSimplify(const SimplifyArgs& a)
     j["peak_rss_mb"] = PeakRssMB();
     j["memory_budget_bytes"] = profile.memoryBudget;
     j["memory_budget"] = profile.budgetOrigin.empty() ? std::string("given") : profile.budgetOrigin;
+    // The input's layout: the share of faces far from their neighbours in index order (null: not
+    // measured, the run fit in memory) and whether it was reordered first.
+    if (stats.layoutFarFraction >= 0)
+    {
+      j["layout_far_fraction"] = stats.layoutFarFraction;
+    }
+    else
+    {
+      j["layout_far_fraction"] = nullptr;
+    }
+    j["reordered"] = stats.reordered;
     nlohmann::json phases = nlohmann::json::array();
     for (const auto& p : stats.phases)
     {

@@ -41,6 +41,10 @@ struct ClusterOptions
   // Optional: run on this DML (already configured by the caller, e.g. the two-stage method that
   // keeps the clustered mesh in it for the second stage). Default: a DML of the run's own.
   storage::DML* dml = nullptr;
+  // Optional: called once the input has been read for the last time (the caller may free it).
+  std::function<void()> sourceConsumed;
+  // The layout step for incoherent inputs (only for a run on a DML of its own).
+  LayoutPolicy layout = LayoutPolicy::Automatic;
   // Optional: called for each output vertex with its cell's quadric (a2 ab ac b2 bc c2 ad bd cd d2).
   std::function<void(std::uint64_t vertex, const double quadric[10])> exportQuadric;
 };

@@ -117,6 +117,8 @@ struct DecimateOptions;
 double EstimateClusterWork(std::uint64_t V, std::uint64_t F, const ClusterOptions& options);
 double EstimateClusterFaces(std::uint64_t V, std::uint64_t F, const ClusterOptions& options);
 double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOptions& options);
+// The bytes of a clustering's structures on V vertices and F faces (what it declares to the DML).
+double EstimateClusterBytes(std::uint64_t V, std::uint64_t F, const ClusterOptions& options);
 
 // A progress that reports nothing and never aborts.
 class NullProgress final : public Progress
@@ -181,8 +183,24 @@ struct PhaseStat
   storage::Mode mode = storage::Mode::InCore;
 };
 
+// The layout step for inputs whose vertices and faces are not in a spatially coherent order
+// (docs/architecture.md, "Input layout"). Automatic: when a run would go out of core, the first
+// faces are measured and an incoherent input is copied into the DML and reordered (vertices along
+// a Morton curve, faces by their lowest vertex) before the core runs on it. Keep: never.
+// Reorder: always (the result is the core's on the reordered mesh, in any storage mode).
+enum class LayoutPolicy : std::uint8_t
+{
+  Automatic,
+  Keep,
+  Reorder
+};
+
 struct RunStats
 {
+  // The input's layout as measured (share of faces far from their neighbours in index order;
+  // -1: not measured, the run fit in memory) and whether the run reordered it.
+  double layoutFarFraction = -1;
+  bool reordered = false;
   std::uint64_t inputVertices = 0;
   std::uint64_t inputTriangles = 0;
   std::uint64_t outputVertices = 0;

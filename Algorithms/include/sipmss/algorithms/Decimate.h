@@ -36,6 +36,9 @@ struct DecimateOptions
   // passes): a caller that keeps the input in the same DML frees it there, so that the run can
   // move in core sooner.
   std::function<void()> sourceConsumed;
+  // The layout step for incoherent inputs (only for a run on a DML of its own; two-stage takes
+  // it from here for its whole run).
+  LayoutPolicy layout = LayoutPolicy::Automatic;
   // Pass schedule: each pass removes at most this fraction of the remaining triangles (the
   // cheapest collapses; only their endpoints are exclusive), and never goes below the next
   // level's target.

@@ -45,6 +45,14 @@ public:
   using MeshIOError::MeshIOError;
 };
 
+// A sink may throw StopRead (or a type derived from it) to end a read early, e.g. once it has
+// seen enough of the faces: it passes through the readers unchanged, and MeshInputFile still
+// copies a FIFO's rest for the next reads before passing it on.
+struct StopRead
+{
+  virtual ~StopRead() = default;
+};
+
 // Which per-vertex attributes a file carries (as delivered to the sink).
 struct VertexLayout
 {

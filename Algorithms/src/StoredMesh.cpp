@@ -1,0 +1,607 @@
+#include "StoredMesh.h"
+
+#include "sipmss/storage/Sort.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <optional>
+#include <vector>
+
+namespace sipmss::algorithms::detail
+{
+namespace
+{
+using storage::Array;
+
+class ProbeSink final : public io::MeshSink
+{
+public:
+  ProbeSink(LayoutProbe& probe, Progress& progress)
+    : probe_(probe)
+    , progress_(progress)
+  {
+  }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->probe_.vertices = h.vertexCount;
+    this->probe_.faces = h.faceCount;
+    this->meter_.Start(h.vertexCount);
+  }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    for (std::size_t i = 0; i < c.count; ++i)
+    {
+      for (int k = 0; k < 3; ++k)
+      {
+        const double v = c.xyz[3 * i + k];
+        this->probe_.bounds[2 * k] = std::min(this->probe_.bounds[2 * k], v);
+        this->probe_.bounds[2 * k + 1] = std::max(this->probe_.bounds[2 * k + 1], v);
+      }
+    }
+    this->probe_.verticesSeen = std::max<std::uint64_t>(this->probe_.verticesSeen, c.first + c.count);
+    this->progress_.Poll();
+  }
+  void Triangles(const std::uint32_t* idx, std::size_t count) override
+  {
+    for (std::size_t t = 0; t < count && this->meter_.Faces() < kProbeFaces; ++t)
+    {
+      this->meter_.Face(idx + 3 * t);
+    }
+    if (this->meter_.Faces() >= kProbeFaces)
+    {
+      this->Done();
+    }
+  }
+  void End(const io::ReadStats&) override { this->Record(); }
+  bool AbortRequested() override { return this->progress_.Aborted(); }
+
+private:
+  void Record()
+  {
+    this->probe_.measured = this->meter_.Faces() > 0;
+    this->probe_.farFraction = this->meter_.FarFraction();
+  }
+  void Done()
+  {
+    this->Record();
+    throw ProbeDone{};
+  }
+  LayoutProbe& probe_;
+  Progress& progress_;
+  LayoutMeter meter_;
+};
+
+// 21 bits of each coordinate interleaved (z y x from the top).
+std::uint64_t Spread21(std::uint64_t x)
+{
+  x &= 0x1fffff;
+  x = (x | x << 32) & 0x1f00000000ffffULL;
+  x = (x | x << 16) & 0x1f0000ff0000ffULL;
+  x = (x | x << 8) & 0x100f00f00f00f00fULL;
+  x = (x | x << 4) & 0x10c30c30c30c30c3ULL;
+  x = (x | x << 2) & 0x1249249249249249ULL;
+  return x;
+}
+
+struct KeyRec
+{
+  std::uint64_t key;
+  std::uint32_t old;
+  float p[3];
+};
+struct OldNew
+{
+  std::uint32_t old, now;
+};
+struct AttrRec
+{
+  std::uint32_t now;
+  std::uint32_t w[16];
+};
+struct Corner
+{
+  std::uint32_t v, face, k;
+};
+
+// Reads a block's elements [first, first + n) in chunks of at most kChunk and calls
+// f(data, first, count) (sequential access through the page cache either way).
+constexpr std::uint64_t kChunk = 2048;
+template <class T, class F>
+void Scan(Array<T>& a, std::uint64_t n, std::vector<T>& buf, F&& f, std::uint64_t chunk = kChunk)
+{
+  for (std::uint64_t first = 0; first < n; first += chunk)
+  {
+    const std::uint64_t c = std::min(chunk, n - first);
+    buf.resize(static_cast<std::size_t>(c));
+    a.Read(first, c, buf.data());
+    f(buf.data(), first, c);
+  }
+}
+} // namespace
+
+void AddLayoutStructures(
+  storage::Profile& profile, std::uint64_t V, std::uint64_t F, std::size_t stride)
+{
+  auto add = [&profile](const char* name, std::size_t size, std::uint64_t count) {
+    if (size)
+    {
+      profile.structures.push_back(storage::StructureSpec{ name, size, count, 0.0 });
+    }
+  };
+  add("layout.points", 12, V);
+  add("layout.pointData", 4 * stride, V);
+  add("layout.triangles", 12, F);
+  add("layout.corners", sizeof(Corner), 3 * F);
+  add("layout.sorted", sizeof(Corner), 3 * F); // the sort's second block
+}
+
+LayoutProbe ProbeLayout(const MeshSource& input, Progress& progress)
+{
+  LayoutProbe probe;
+  const double inf = std::numeric_limits<double>::infinity();
+  probe.bounds = { inf, -inf, inf, -inf, inf, -inf };
+  ProbeSink sink(probe, progress);
+  try
+  {
+    input(sink, io::ReadOptions{});
+  }
+  catch (const ProbeDone&)
+  {
+  }
+  return probe;
+}
+
+StoredMesh::StoredMesh(storage::DML& dml)
+  : dml_(dml)
+{
+  const double inf = std::numeric_limits<double>::infinity();
+  this->bounds_ = { inf, -inf, inf, -inf, inf, -inf };
+}
+
+StoredMesh::~StoredMesh()
+{
+  this->Release();
+}
+
+void StoredMesh::Release()
+{
+  if (this->attrs_ >= 0)
+  {
+    this->dml_.CloseBlock(this->attrs_);
+    this->attrs_ = -1;
+  }
+  this->points_.Close();
+  this->triangles_.Close();
+}
+
+void StoredMesh::Begin(const io::MeshHeader& h)
+{
+  if (this->onHeader_)
+  {
+    this->onHeader_(h.vertexCount, h.faceCount);
+  }
+  this->header_ = h;
+  this->stride_ = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 1 : 0) +
+    (h.layout.texcoords ? 2 : 0) + h.layout.scalars.size(); // in 4-byte words
+  this->points_ = Array<Float3>(this->dml_, std::max<std::uint64_t>(h.vertexCount, 1));
+  this->triangles_ = Array<Triangle>(this->dml_, std::max<std::uint64_t>(h.faceCount, 1));
+  if (this->stride_)
+  {
+    this->attrs_ =
+      this->dml_.OpenBlock(4 * this->stride_, std::max<std::uint64_t>(h.vertexCount, 1));
+  }
+  this->layout_.Start(h.vertexCount);
+}
+
+void StoredMesh::Vertices(const io::VertexChunk& c)
+{
+  if (c.first + c.count > this->points_.Size())
+  {
+    const std::uint64_t n = std::max<std::uint64_t>(c.first + c.count, 2 * this->points_.Size());
+    this->points_.Resize(n);
+    if (this->stride_)
+    {
+      this->dml_.Resize(this->attrs_, n);
+    }
+  }
+  this->points_.Write(c.first, c.count, reinterpret_cast<const Float3*>(c.xyz));
+  for (std::size_t i = 0; i < c.count; ++i)
+  {
+    for (int k = 0; k < 3; ++k)
+    {
+      const double v = c.xyz[3 * i + k];
+      this->bounds_[2 * k] = std::min(this->bounds_[2 * k], v);
+      this->bounds_[2 * k + 1] = std::max(this->bounds_[2 * k + 1], v);
+    }
+  }
+  if (this->stride_)
+  {
+    const std::size_t ns = this->header_.layout.scalars.size();
+    std::vector<std::uint32_t> rec(this->stride_ * c.count);
+    for (std::size_t i = 0; i < c.count; ++i)
+    {
+      std::uint32_t* r = &rec[this->stride_ * i];
+      std::size_t k = 0;
+      auto put = [&](const float* src, std::size_t n) {
+        std::memcpy(r + k, src, 4 * n);
+        k += n;
+      };
+      if (c.normals)
+        put(c.normals + 3 * i, 3);
+      if (c.rgba)
+      {
+        std::memcpy(r + k, c.rgba + 4 * i, 4);
+        ++k;
+      }
+      if (c.texcoords)
+        put(c.texcoords + 2 * i, 2);
+      if (c.scalars)
+        put(c.scalars + ns * i, ns);
+    }
+    this->dml_.WriteRange(this->attrs_, c.first, c.count, rec.data());
+  }
+  this->header_.vertexCount = std::max<std::uint64_t>(this->header_.vertexCount, c.first + c.count);
+}
+
+void StoredMesh::Triangles(const std::uint32_t* idx, std::size_t count)
+{
+  if (this->triangleCount_ + count > this->triangles_.Size())
+  {
+    this->triangles_.Resize(
+      std::max<std::uint64_t>(this->triangleCount_ + count, 2 * this->triangles_.Size()));
+  }
+  this->triangles_.Write(this->triangleCount_, count, reinterpret_cast<const Triangle*>(idx));
+  for (std::size_t t = 0; t < count; ++t)
+  {
+    this->layout_.Face(idx + 3 * t);
+  }
+  this->triangleCount_ += count;
+}
+
+void StoredMesh::End(const io::ReadStats& stats)
+{
+  this->read_ = stats;
+  this->header_.faceCount = this->triangleCount_;
+}
+
+void StoredMesh::Reorder(Progress& progress)
+{
+  const std::uint64_t V = this->header_.vertexCount;
+  const std::uint64_t T = this->triangleCount_;
+  if (V < 2 || T == 0)
+  {
+    return;
+  }
+  if (T > std::numeric_limits<std::uint32_t>::max())
+  {
+    throw std::length_error("the layout step numbers faces in 32 bits: " + std::to_string(T) +
+      " triangles are too many");
+  }
+  // The inverse permutation (for each old index its new one): in memory when it fits the
+  // budget's spare memory (then faces are renumbered in one scan), else a block sorted by old
+  // index and joined with the faces' corners by sorting them.
+  std::optional<storage::CountedBuffer<std::uint32_t>> newOf;
+  if (this->dml_.SpareMemory(8) / 2 >= 4 * V + (std::uint64_t(1) << 16))
+  {
+    newOf.emplace(this->dml_, static_cast<std::size_t>(V));
+  }
+  // Progress: each sort and scan's share by the bytes it moves.
+  const std::size_t groups = (this->stride_ + 15) / 16;
+  const double total =
+    double(V) * (2 * sizeof(KeyRec) + (newOf ? 0 : 2 * sizeof(OldNew)) +
+                  2.0 * double(groups) * sizeof(AttrRec)) +
+    double(T) * ((newOf ? 0 : 4 * 3 * sizeof(Corner)) + 2 * sizeof(Triangle));
+  double done = 0;
+  auto step = [&](double bytes) {
+    const double from = done / total, span = bytes / total;
+    done += bytes;
+    return [&progress, from, span](double f) { progress.Tick(from + span * f); };
+  };
+  auto tick = [&progress](std::uint64_t i) {
+    if ((i & (kChunk * 16 - 1)) == 0)
+    {
+      progress.Poll();
+    }
+  };
+
+  // 1. Vertices by Morton key (ties by the old index), positions carried.
+  Array<OldNew> inverse;
+  if (!newOf)
+  {
+    inverse = Array<OldNew>(this->dml_, V);
+  }
+  {
+    Array<KeyRec> keys(this->dml_, V);
+    const double lo[3] = { this->bounds_[0], this->bounds_[2], this->bounds_[4] };
+    double extent = 0;
+    for (int k = 0; k < 3; ++k)
+    {
+      extent = std::max(extent, this->bounds_[2 * k + 1] - this->bounds_[2 * k]);
+    }
+    const double scale = extent > 0 ? double((1u << 21) - 1) / extent : 0.0;
+    std::vector<Float3> pts;
+    std::vector<KeyRec> recs;
+    Scan(this->points_, V, pts, [&](const Float3* p, std::uint64_t first, std::uint64_t n) {
+      tick(first);
+      recs.resize(static_cast<std::size_t>(n));
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        std::uint64_t q[3];
+        for (int k = 0; k < 3; ++k)
+        {
+          const double t = std::floor((double(p[i].v[k]) - lo[k]) * scale);
+          q[k] = t <= 0 ? 0 : (t >= double((1u << 21) - 1) ? (1u << 21) - 1 : std::uint64_t(t));
+        }
+        recs[i].key = Spread21(q[0]) | Spread21(q[1]) << 1 | Spread21(q[2]) << 2;
+        recs[i].old = static_cast<std::uint32_t>(first + i);
+        std::memcpy(recs[i].p, p[i].v, 12);
+      }
+      keys.Write(first, n, recs.data());
+    });
+    storage::Sort(this->dml_, keys,
+      [](const KeyRec& a, const KeyRec& b) { return a.key != b.key ? a.key < b.key : a.old < b.old; },
+      step(2.0 * double(V) * sizeof(KeyRec)));
+    std::vector<OldNew> map;
+    Scan(keys, V, recs, [&](const KeyRec* r, std::uint64_t first, std::uint64_t n) {
+      tick(first);
+      pts.resize(static_cast<std::size_t>(n));
+      map.resize(static_cast<std::size_t>(n));
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        std::memcpy(pts[i].v, r[i].p, 12);
+        map[i] = OldNew{ r[i].old, static_cast<std::uint32_t>(first + i) };
+        if (newOf)
+        {
+          (*newOf)[r[i].old] = static_cast<std::uint32_t>(first + i);
+        }
+      }
+      this->points_.Write(first, n, pts.data());
+      if (!newOf)
+      {
+        inverse.Write(first, n, map.data());
+      }
+    });
+  }
+  // 2. The inverse: for each old index (in order) its new one.
+  if (!newOf)
+  {
+    storage::Sort(this->dml_, inverse,
+      [](const OldNew& a, const OldNew& b) { return a.old < b.old; },
+      step(2.0 * double(V) * sizeof(OldNew)));
+  }
+
+  // 3. Point data, 16 words at a time: (new index, words) in old order, sorted by new index.
+  if (this->stride_)
+  {
+    // (chunks of at most 1 MiB of point data, whatever the number of properties)
+    const std::uint64_t ac =
+      std::max<std::uint64_t>(1, std::min<std::uint64_t>(kChunk, (1u << 20) / (4 * this->stride_)));
+    std::vector<std::uint32_t> words;
+    std::vector<OldNew> map;
+    std::vector<AttrRec> recs;
+    for (std::size_t g = 0; g < groups; ++g)
+    {
+      const std::size_t w0 = 16 * g, nw = std::min<std::size_t>(16, this->stride_ - w0);
+      Array<AttrRec> moved(this->dml_, V);
+      for (std::uint64_t first = 0; first < V; first += ac)
+      {
+        progress.Poll();
+        const std::uint64_t n = std::min(ac, V - first);
+        words.resize(static_cast<std::size_t>(n) * this->stride_);
+        map.resize(static_cast<std::size_t>(n));
+        recs.assign(static_cast<std::size_t>(n), AttrRec{});
+        this->dml_.ReadRange(this->attrs_, first, n, words.data());
+        if (!newOf)
+        {
+          inverse.Read(first, n, map.data());
+        }
+        for (std::uint64_t i = 0; i < n; ++i)
+        {
+          recs[i].now = newOf ? (*newOf)[first + i] : map[i].now;
+          std::memcpy(recs[i].w, &words[i * this->stride_ + w0], 4 * nw);
+        }
+        moved.Write(first, n, recs.data());
+      }
+      storage::Sort(this->dml_, moved,
+        [](const AttrRec& a, const AttrRec& b) { return a.now < b.now; },
+        step(2.0 * double(V) * sizeof(AttrRec)));
+      for (std::uint64_t first = 0; first < V; first += ac)
+      {
+        progress.Poll();
+        const std::uint64_t n = std::min(ac, V - first);
+        words.resize(static_cast<std::size_t>(n) * this->stride_);
+        recs.resize(static_cast<std::size_t>(n));
+        this->dml_.ReadRange(this->attrs_, first, n, words.data());
+        moved.Read(first, n, recs.data());
+        for (std::uint64_t i = 0; i < n; ++i)
+        {
+          std::memcpy(&words[i * this->stride_ + w0], recs[i].w, 4 * nw);
+        }
+        this->dml_.WriteRange(this->attrs_, first, n, words.data());
+      }
+    }
+  }
+
+  // 4. Faces: renumbered in one scan when the inverse is in memory; else corners sorted by old
+  //    vertex, joined with the inverse in one sequential scan, sorted back by face.
+  if (newOf)
+  {
+    std::vector<Triangle> tris;
+    Scan(this->triangles_, T, tris, [&](Triangle* t, std::uint64_t first, std::uint64_t n) {
+      tick(first);
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        for (int k = 0; k < 3; ++k)
+        {
+          t[i].v[k] = (*newOf)[t[i].v[k]];
+        }
+      }
+      this->triangles_.Write(first, n, t);
+    });
+    newOf.reset();
+  }
+  else
+  {
+    Array<Corner> corners(this->dml_, 3 * T);
+    std::vector<Triangle> tris;
+    std::vector<Corner> cs;
+    Scan(this->triangles_, T, tris, [&](const Triangle* t, std::uint64_t first, std::uint64_t n) {
+      tick(first);
+      cs.resize(static_cast<std::size_t>(3 * n));
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        for (std::uint32_t k = 0; k < 3; ++k)
+        {
+          cs[3 * i + k] = Corner{ t[i].v[k], static_cast<std::uint32_t>(first + i), k };
+        }
+      }
+      corners.Write(3 * first, 3 * n, cs.data());
+    });
+    auto byVertex = [](const Corner& a, const Corner& b) {
+      return a.v != b.v ? a.v < b.v : (a.face != b.face ? a.face < b.face : a.k < b.k);
+    };
+    storage::Sort(this->dml_, corners, byVertex, step(2.0 * 3.0 * double(T) * sizeof(Corner)));
+    std::vector<OldNew> map;
+    std::uint64_t mapFirst = 0;
+    Scan(corners, 3 * T, cs, [&](Corner* c, std::uint64_t first, std::uint64_t n) {
+      tick(first);
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        // (corners ascend by vertex: the window of the inverse only moves forward)
+        if (c[i].v >= mapFirst + map.size())
+        {
+          mapFirst = c[i].v;
+          const std::uint64_t m = std::min(kChunk, V - mapFirst);
+          map.resize(static_cast<std::size_t>(m));
+          inverse.Read(mapFirst, m, map.data());
+        }
+        c[i].v = map[c[i].v - mapFirst].now;
+      }
+      corners.Write(first, n, c);
+    });
+    inverse.Close();
+    auto byFace = [](const Corner& a, const Corner& b) {
+      return a.face != b.face ? a.face < b.face : a.k < b.k;
+    };
+    storage::Sort(this->dml_, corners, byFace, step(2.0 * 3.0 * double(T) * sizeof(Corner)));
+    Scan(corners, 3 * T, cs, [&](const Corner* c, std::uint64_t first, std::uint64_t n) {
+      tick(first);
+      tris.resize(static_cast<std::size_t>(n / 3));
+      for (std::uint64_t i = 0; i < n / 3; ++i)
+      {
+        for (int k = 0; k < 3; ++k)
+        {
+          tris[i].v[k] = c[3 * i + k].v;
+        }
+      }
+      this->triangles_.Write(first / 3, n / 3, tris.data());
+    }, 3 * (kChunk / 3)); // (whole faces per chunk)
+  }
+  // 5. Faces by their lowest vertex, then their vertices (orientation kept).
+  storage::Sort(this->dml_, this->triangles_,
+    [](const Triangle& a, const Triangle& b) {
+      const std::uint32_t la = std::min({ a.v[0], a.v[1], a.v[2] });
+      const std::uint32_t lb = std::min({ b.v[0], b.v[1], b.v[2] });
+      if (la != lb)
+      {
+        return la < lb;
+      }
+      return std::lexicographical_compare(a.v, a.v + 3, b.v, b.v + 3);
+    },
+    step(2.0 * double(T) * sizeof(Triangle)));
+}
+
+io::ReadStats StoredMesh::Replay(io::MeshSink& sink, const io::ReadOptions& options)
+{
+  sink.Begin(this->header_);
+  const io::VertexLayout& L = this->header_.layout;
+  const std::size_t ns = L.scalars.size();
+  // at most about 1 MiB of buffers per chunk, whatever the number of vertex properties
+  const std::size_t perVertex =
+    12 + (L.normals ? 12 : 0) + (L.texcoords ? 8 : 0) + 8 * ns + (L.colors ? 8 : 0);
+  const std::size_t chunk = std::clamp<std::size_t>((std::size_t(1) << 20) / perVertex, 1,
+    options.chunkElements ? options.chunkElements : 16384);
+  std::vector<float> xyz, normals, tex, scalars;
+  std::vector<std::uint8_t> rgba;
+  std::vector<std::uint32_t> rec;
+  for (std::uint64_t first = 0; first < this->header_.vertexCount; first += chunk)
+  {
+    const std::size_t n =
+      std::size_t(std::min<std::uint64_t>(chunk, this->header_.vertexCount - first));
+    xyz.resize(3 * n);
+    this->points_.Read(first, n, reinterpret_cast<Float3*>(xyz.data()));
+    io::VertexChunk c;
+    c.first = first;
+    c.count = n;
+    c.xyz = xyz.data();
+    if (this->stride_)
+    {
+      rec.resize(this->stride_ * n);
+      this->dml_.ReadRange(this->attrs_, first, n, rec.data());
+      normals.resize(L.normals ? 3 * n : 0);
+      rgba.resize(L.colors ? 4 * n : 0);
+      tex.resize(L.texcoords ? 2 * n : 0);
+      scalars.resize(ns * n);
+      for (std::size_t i = 0; i < n; ++i)
+      {
+        const std::uint32_t* r = &rec[this->stride_ * i];
+        std::size_t k = 0;
+        if (L.normals)
+        {
+          std::memcpy(&normals[3 * i], r + k, 12);
+          k += 3;
+        }
+        if (L.colors)
+        {
+          std::memcpy(&rgba[4 * i], r + k, 4);
+          ++k;
+        }
+        if (L.texcoords)
+        {
+          std::memcpy(&tex[2 * i], r + k, 8);
+          k += 2;
+        }
+        if (ns)
+        {
+          std::memcpy(&scalars[ns * i], r + k, 4 * ns);
+        }
+      }
+      c.normals = L.normals ? normals.data() : nullptr;
+      c.rgba = L.colors ? rgba.data() : nullptr;
+      c.texcoords = L.texcoords ? tex.data() : nullptr;
+      c.scalars = ns ? scalars.data() : nullptr;
+    }
+    sink.Vertices(c);
+    if (sink.AbortRequested())
+    {
+      throw AbortedError();
+    }
+  }
+  io::ReadStats st;
+  st.vertices = this->header_.vertexCount;
+  st.droppedFaces = this->read_.droppedFaces;
+  if (options.verticesOnly)
+  {
+    return st;
+  }
+  std::vector<Triangle> tris;
+  for (std::uint64_t first = 0; first < this->triangleCount_; first += chunk)
+  {
+    const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->triangleCount_ - first));
+    tris.resize(n);
+    this->triangles_.Read(first, n, tris.data());
+    sink.Triangles(reinterpret_cast<const std::uint32_t*>(tris.data()), n);
+    if (sink.AbortRequested())
+    {
+      throw AbortedError();
+    }
+  }
+  st.triangles = this->triangleCount_;
+  st.polygons = this->read_.polygons ? this->read_.polygons : this->triangleCount_;
+  sink.End(st);
+  return st;
+}
+
+} // namespace sipmss::algorithms::detail

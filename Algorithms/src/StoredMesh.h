@@ -1,0 +1,155 @@
+// A mesh kept in DML blocks, replayable as a MeshSource, and the layout step of incoherent
+// inputs: the two-stage hand-off, and the reordered copy of a file whose vertices and faces are
+// not in a spatially coherent order (docs/architecture.md, "Input layout").
+#pragma once
+
+#include "sipmss/algorithms/Common.h"
+#include "sipmss/storage/DML.h"
+
+#include <algorithm>
+#include <array>
+#include <cstdint>
+#include <functional>
+
+namespace sipmss::algorithms::detail
+{
+
+// How far apart consecutive faces are in index order, measured as faces stream by (Isenburg and
+// Lindstrom's layout coherence, reduced to one number): a face is far when its middle vertex
+// index and the previous face's are more than `window` apart. Scanner order (faces along a sweep
+// of the vertices) and fans (one vertex in many faces, the others in order) are near; shuffled
+// vertices or faces are far.
+class LayoutMeter
+{
+public:
+  void Start(std::uint64_t vertexCount)
+  {
+    // (a row of a scan, a slice of a sorted volume: well inside 1/64 of the vertices)
+    this->window_ = std::max<std::uint64_t>(4096, vertexCount / 64);
+  }
+  void Face(const std::uint32_t* f)
+  {
+    const std::uint32_t mid = std::max(std::min(f[0], f[1]), std::min(std::max(f[0], f[1]), f[2]));
+    const std::uint64_t jump = mid > this->last_ ? mid - this->last_ : this->last_ - mid;
+    this->far_ += (this->faces_ > 0 && jump > this->window_) ? 1 : 0;
+    this->last_ = mid;
+    ++this->faces_;
+  }
+  std::uint64_t Faces() const { return this->faces_; }
+  // Share of far faces (0: none measured).
+  double FarFraction() const
+  {
+    return this->faces_ ? double(this->far_) / double(this->faces_) : 0.0;
+  }
+
+private:
+  std::uint64_t window_ = 4096;
+  std::uint64_t faces_ = 0, far_ = 0;
+  std::uint32_t last_ = 0;
+};
+
+// Above this share of far faces an input is incoherent: scanner-ordered files measure below 1%,
+// shuffled ones above 90%.
+constexpr double kIncoherentFarFraction = 0.05;
+// The faces the probe measures.
+constexpr std::uint64_t kProbeFaces = std::uint64_t(1) << 17;
+
+// Progress weights of the layout step (seconds per input vertex + face, measured in core on one
+// thread on the Dragon-size input, docs/architecture.md "Progress and abort").
+constexpr double kLayoutReadWork = 4.0e-8;
+constexpr double kLayoutReorderWork = 5.0e-7;
+
+// Thrown by a sink that has measured enough faces (the read stops there; a FIFO is still copied).
+struct ProbeDone : io::StopRead
+{
+};
+// Thrown by a core's sink that found its input incoherent while reading it: the run starts again
+// on a reordered copy (the cores' entry points catch it).
+struct ReorderNeeded : io::StopRead
+{
+};
+
+struct LayoutProbe
+{
+  std::uint64_t vertices = 0, faces = 0; // from the header (0: not announced)
+  std::uint64_t verticesSeen = 0;
+  std::array<double, 6> bounds{};
+  bool measured = false;  // faces were measured
+  double farFraction = 0; // of the first kProbeFaces faces
+  bool Incoherent() const { return this->measured && this->farFraction > kIncoherentFarFraction; }
+};
+
+// A bounds pass that also measures the layout of the first kProbeFaces faces (the readers parse
+// the vertices before them): the vertices' bounds and count, the header's counts, the layout.
+LayoutProbe ProbeLayout(const MeshSource& input, Progress& progress);
+
+// The structures of the layout step for V vertices, F triangles and `stride` words of point data
+// per vertex (the stored mesh and the largest sort's second block), for a DML's Config.
+void AddLayoutStructures(
+  storage::Profile& profile, std::uint64_t V, std::uint64_t F, std::size_t stride);
+
+// A mesh in DML blocks (positions, point data as 4-byte words, triangles), with its bounds.
+class StoredMesh final : public io::MeshSink
+{
+public:
+  explicit StoredMesh(storage::DML& dml);
+  ~StoredMesh() override;
+  StoredMesh(const StoredMesh&) = delete;
+  StoredMesh& operator=(const StoredMesh&) = delete;
+
+  // Frees the stored mesh (Replay is not possible afterwards).
+  void Release();
+
+  void Begin(const io::MeshHeader& h) override;
+  void Vertices(const io::VertexChunk& c) override;
+  void Triangles(const std::uint32_t* idx, std::size_t count) override;
+  void End(const io::ReadStats& stats) override;
+  bool AbortRequested() override { return this->progress_ && this->progress_->Aborted(); }
+
+  // Polls `progress` while it is filled (nullptr: never).
+  void SetProgress(Progress* progress) { this->progress_ = progress; }
+  // Called with the header's counts before any block is opened (e.g. to Config the DML).
+  void OnHeader(std::function<void(std::uint64_t V, std::uint64_t F)> f)
+  {
+    this->onHeader_ = std::move(f);
+  }
+  // What the read reported (dropped faces) and the layout of the faces as they came.
+  const io::ReadStats& ReadStats() const { return this->read_; }
+  const LayoutMeter& Layout() const { return this->layout_; }
+  const std::array<double, 6>& Bounds() const { return this->bounds_; }
+  std::size_t Stride() const { return this->stride_; }
+  std::uint64_t VertexCount() const { return this->header_.vertexCount; }
+  std::uint64_t TriangleCount() const { return this->triangleCount_; }
+
+  // Renumbers the vertices along a Morton curve over the bounds (ties by the old index) and
+  // sorts the faces by their lowest new vertex (then their vertices), orientation kept: every
+  // step a storage::Sort or a sequential scan, no random access. Point data follows its vertex.
+  void Reorder(Progress& progress);
+
+  // Streams the stored mesh (the same chunk protocol as the readers).
+  io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options);
+
+private:
+  struct Float3
+  {
+    float v[3];
+  };
+  struct Triangle
+  {
+    std::uint32_t v[3];
+  };
+  storage::DML& dml_;
+  Progress* progress_ = nullptr;
+  std::function<void(std::uint64_t, std::uint64_t)> onHeader_;
+  io::MeshHeader header_;
+  io::ReadStats read_;
+  std::size_t stride_ = 0; // point data, in 4-byte words per vertex
+  storage::Array<Float3> points_;
+  storage::Array<Triangle> triangles_;
+  storage::BlockId attrs_ = -1;
+  std::uint64_t triangleCount_ = 0;
+  LayoutMeter layout_;
+  std::array<double, 6> bounds_;
+};
+
+} // namespace sipmss::algorithms::detail

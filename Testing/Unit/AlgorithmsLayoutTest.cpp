@@ -1,0 +1,220 @@
+// The layout step: StoredMesh::Reorder keeps the mesh (the same triangles over the same points,
+// orientation kept, point data with its vertex) and makes it coherent; the probe tells scanner
+// order from shuffled; clustering and decimation of a shuffled input out of core reorder it.
+#include "AlgorithmsTestUtil.h"
+
+#include "../../Algorithms/src/StoredMesh.h"
+
+#include "sipmss/algorithms/Cluster.h"
+#include "sipmss/algorithms/Decimate.h"
+#include "sipmss/algorithms/TwoStage.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <cstring>
+#include <map>
+#include <numeric>
+#include <random>
+#include <set>
+#include <vector>
+
+namespace
+{
+using namespace sipmss;
+using namespace sipmss::algorithms;
+
+// A collecting sink.
+struct Collect final : io::MeshSink
+{
+  io::MeshHeader header;
+  std::vector<float> xyz, scalars;
+  std::vector<std::uint32_t> tris;
+  void Begin(const io::MeshHeader& h) override { this->header = h; }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    this->xyz.insert(this->xyz.end(), c.xyz, c.xyz + 3 * c.count);
+    if (c.scalars)
+    {
+      const std::size_t ns = this->header.layout.scalars.size();
+      this->scalars.insert(this->scalars.end(), c.scalars, c.scalars + ns * c.count);
+    }
+  }
+  void Triangles(const std::uint32_t* idx, std::size_t count) override
+  {
+    this->tris.insert(this->tris.end(), idx, idx + 3 * count);
+  }
+  void End(const io::ReadStats&) override {}
+};
+
+// A grid surface of n x n quads (2 n^2 triangles) with two scalars per vertex, in scanner order
+// or shuffled (vertices and faces by a fixed seed).
+struct Mesh
+{
+  std::vector<float> xyz, scalars;
+  std::vector<std::uint32_t> tris;
+};
+Mesh Grid(int n, bool shuffled)
+{
+  Mesh m;
+  const int V = (n + 1) * (n + 1);
+  std::vector<std::uint32_t> perm(V);
+  std::iota(perm.begin(), perm.end(), 0u);
+  std::mt19937 rng(7);
+  if (shuffled)
+  {
+    std::shuffle(perm.begin(), perm.end(), rng);
+  }
+  m.xyz.resize(3 * V);
+  m.scalars.resize(2 * V);
+  for (int j = 0; j <= n; ++j)
+  {
+    for (int i = 0; i <= n; ++i)
+    {
+      const int v = j * (n + 1) + i;
+      const std::uint32_t p = perm[v];
+      m.xyz[3 * p] = float(i);
+      m.xyz[3 * p + 1] = float(j);
+      m.xyz[3 * p + 2] = 0.1f * float((i * 7 + j * 3) % 5);
+      m.scalars[2 * p] = float(v);
+      m.scalars[2 * p + 1] = -float(v);
+    }
+  }
+  for (int j = 0; j < n; ++j)
+  {
+    for (int i = 0; i < n; ++i)
+    {
+      const std::uint32_t a = perm[j * (n + 1) + i], b = perm[j * (n + 1) + i + 1];
+      const std::uint32_t c = perm[(j + 1) * (n + 1) + i], d = perm[(j + 1) * (n + 1) + i + 1];
+      m.tris.insert(m.tris.end(), { a, b, d, a, d, c });
+    }
+  }
+  if (shuffled)
+  {
+    const std::size_t F = m.tris.size() / 3;
+    std::vector<std::size_t> fp(F);
+    std::iota(fp.begin(), fp.end(), std::size_t(0));
+    std::shuffle(fp.begin(), fp.end(), rng);
+    std::vector<std::uint32_t> t(m.tris.size());
+    for (std::size_t f = 0; f < F; ++f)
+    {
+      std::copy_n(&m.tris[3 * fp[f]], 3, &t[3 * f]);
+    }
+    m.tris.swap(t);
+  }
+  return m;
+}
+
+MeshSource SourceOf(const Mesh& m)
+{
+  return [&m](io::MeshSink& sink, const io::ReadOptions&) {
+    io::MeshHeader h;
+    h.format = io::Format::PlyBinaryLE;
+    h.vertexCount = m.xyz.size() / 3;
+    h.faceCount = m.tris.size() / 3;
+    h.layout.scalars = { "s", "t" };
+    sink.Begin(h);
+    io::VertexChunk c;
+    c.count = h.vertexCount;
+    c.xyz = m.xyz.data();
+    c.scalars = m.scalars.data();
+    sink.Vertices(c);
+    sink.Triangles(m.tris.data(), h.faceCount);
+    io::ReadStats st;
+    st.vertices = h.vertexCount;
+    st.triangles = st.polygons = h.faceCount;
+    sink.End(st);
+    return st;
+  };
+}
+
+// The triangles as sorted triples of their corners' (x, y, z, s, t), each rotated so that the
+// smallest corner comes first (orientation kept).
+using Corner = std::array<float, 5>;
+std::vector<std::array<Corner, 3>> Geometry(const std::vector<float>& xyz,
+  const std::vector<float>& scalars, const std::vector<std::uint32_t>& tris)
+{
+  std::vector<std::array<Corner, 3>> out;
+  for (std::size_t f = 0; f < tris.size() / 3; ++f)
+  {
+    std::array<Corner, 3> t;
+    for (int k = 0; k < 3; ++k)
+    {
+      const std::uint32_t v = tris[3 * f + k];
+      t[k] = { xyz[3 * v], xyz[3 * v + 1], xyz[3 * v + 2], scalars[2 * v], scalars[2 * v + 1] };
+    }
+    std::rotate(t.begin(), std::min_element(t.begin(), t.end()), t.end());
+    out.push_back(t);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+void CheckReorderKeepsTheMesh(std::uint64_t budget)
+{
+  const Mesh m = Grid(120, true); // 14,641 vertices, 28,800 triangles
+  storage::Profile p;
+  p.memoryBudget = budget;
+  p.policy = budget ? storage::ModePolicy::OutOfCore : storage::ModePolicy::Automatic;
+  storage::DML dml;
+  dml.Config(p);
+  detail::StoredMesh mesh(dml);
+  SourceOf(m)(mesh, io::ReadOptions{});
+  EXPECT_GT(mesh.Layout().FarFraction(), 0.3); // (random jumps of 14,641 vertices, window 4,096)
+  NullProgress progress;
+  progress.BeginPhase("test", 1, 0);
+  mesh.Reorder(progress);
+  Collect out;
+  mesh.Replay(out, io::ReadOptions{});
+  ASSERT_EQ(out.xyz.size(), m.xyz.size());
+  ASSERT_EQ(out.tris.size(), m.tris.size());
+  EXPECT_TRUE(Geometry(out.xyz, out.scalars, out.tris) == Geometry(m.xyz, m.scalars, m.tris))
+    << "budget " << budget;
+  // coherent now: faces ascend by their lowest vertex, few far apart
+  detail::LayoutMeter meter;
+  meter.Start(out.xyz.size() / 3);
+  std::uint32_t last = 0;
+  for (std::size_t f = 0; f < out.tris.size() / 3; ++f)
+  {
+    const std::uint32_t lo = std::min({ out.tris[3 * f], out.tris[3 * f + 1], out.tris[3 * f + 2] });
+    EXPECT_GE(lo, last);
+    last = lo;
+    meter.Face(&out.tris[3 * f]);
+  }
+  EXPECT_LT(meter.FarFraction(), detail::kIncoherentFarFraction) << meter.FarFraction();
+}
+
+TEST(AlgorithmsLayout, ReorderKeepsTheMeshInCore)
+{
+  CheckReorderKeepsTheMesh(0);
+}
+
+TEST(AlgorithmsLayout, ReorderKeepsTheMeshOutOfCore)
+{
+  CheckReorderKeepsTheMesh(256 << 10);
+}
+
+TEST(AlgorithmsLayout, ScannerOrderIsCoherentShuffledIsNot)
+{
+  for (bool shuffled : { false, true })
+  {
+    const Mesh m = Grid(200, shuffled);
+    detail::LayoutMeter meter;
+    meter.Start(m.xyz.size() / 3);
+    for (std::size_t f = 0; f < m.tris.size() / 3; ++f)
+    {
+      meter.Face(&m.tris[3 * f]);
+    }
+    if (shuffled)
+    {
+      EXPECT_GT(meter.FarFraction(), 0.5);
+    }
+    else
+    {
+      EXPECT_LT(meter.FarFraction(), 0.01);
+    }
+  }
+}
+
+} // namespace
