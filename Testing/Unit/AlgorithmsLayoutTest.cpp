@@ -6,6 +6,7 @@
 #include "../../Algorithms/src/StoredMesh.h"
 
 #include "sipmss/algorithms/Cluster.h"
+#include "sipmss/algorithms/Compare.h"
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/TwoStage.h"
 
@@ -13,6 +14,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstring>
 #include <map>
 #include <numeric>
@@ -76,7 +78,7 @@ Mesh Grid(int n, bool shuffled)
       const std::uint32_t p = perm[v];
       m.xyz[3 * p] = float(i);
       m.xyz[3 * p + 1] = float(j);
-      m.xyz[3 * p + 2] = 0.1f * float((i * 7 + j * 3) % 5);
+      m.xyz[3 * p + 2] = float(3.0 * std::sin(i / 7.0) * std::cos(j / 9.0)); // curved everywhere
       m.scalars[2 * p] = float(v);
       m.scalars[2 * p + 1] = -float(v);
     }
@@ -214,6 +216,115 @@ TEST(AlgorithmsLayout, ScannerOrderIsCoherentShuffledIsNot)
     {
       EXPECT_LT(meter.FarFraction(), 0.01);
     }
+  }
+}
+
+// The direct path (the inverse in memory) and the sort path (64 KiB: the corners are sorted)
+// give the same bytes.
+TEST(AlgorithmsLayout, ReorderIsTheSameInMemoryAndBySorting)
+{
+  const Mesh m = Grid(150, true); // 22,801 vertices, 45,000 triangles
+  std::vector<Collect> outs(2);
+  int k = 0;
+  for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(64) << 10 })
+  {
+    storage::Profile p;
+    p.memoryBudget = budget;
+    p.policy = budget ? storage::ModePolicy::OutOfCore : storage::ModePolicy::Automatic;
+    storage::DML dml;
+    dml.Config(p);
+    detail::StoredMesh mesh(dml);
+    SourceOf(m)(mesh, io::ReadOptions{});
+    NullProgress progress;
+    progress.BeginPhase("test", 1, 0);
+    mesh.Reorder(progress);
+    mesh.Replay(outs[k++], io::ReadOptions{});
+  }
+  EXPECT_TRUE(outs[0].xyz == outs[1].xyz);
+  EXPECT_TRUE(outs[0].scalars == outs[1].scalars);
+  EXPECT_TRUE(outs[0].tris == outs[1].tris);
+}
+
+struct CoreRun
+{
+  Collect out;
+  RunStats stats;
+};
+
+CoreRun Simplify(const Mesh& m, const std::string& algorithm, std::uint64_t budget,
+  LayoutPolicy layout = LayoutPolicy::Automatic)
+{
+  CoreRun r;
+  NullProgress progress;
+  storage::Profile p;
+  p.memoryBudget = budget;
+  if (algorithm == "cluster")
+  {
+    ClusterOptions o;
+    o.maximumGridDimension = 40;
+    o.storage = p;
+    o.layout = layout;
+    r.stats = Cluster(SourceOf(m), r.out, o, progress);
+  }
+  else
+  {
+    DecimateOptions o;
+    o.targetTriangles = 2000;
+    o.storage = p;
+    o.layout = layout;
+    if (algorithm == "decimate")
+    {
+      r.stats = Decimate(SourceOf(m), r.out, o, progress);
+    }
+    else
+    {
+      TwoStageOptions t;
+      t.gridDimension = 60;
+      t.decimate = o;
+      r.stats = TwoStage(SourceOf(m), r.out, t, progress);
+    }
+  }
+  return r;
+}
+
+double Rms(const Mesh& reference, const Collect& out)
+{
+  TriangleMesh a, b;
+  a.points = reference.xyz;
+  a.triangles = reference.tris;
+  b.points = out.xyz;
+  b.triangles = out.tris;
+  CompareOptions co;
+  co.samples = 200000;
+  return CompareMeshes(a, b, co).rms;
+}
+
+// Every core reorders a shuffled input (and only that), in core and out of core alike: the same
+// bytes in both modes, and the error of the run on the input in scanner order within 1%.
+TEST(AlgorithmsLayout, ShuffledInputsAreReorderedWithTheSameResultInEveryMode)
+{
+  const Mesh ordered = Grid(250, false);  // 63,001 vertices, 125,000 triangles
+  const Mesh shuffled = Grid(250, true);
+  for (const char* algorithm : { "cluster", "decimate", "two-stage" })
+  {
+    const CoreRun a = Simplify(ordered, algorithm, 0);
+    EXPECT_FALSE(a.stats.reordered) << algorithm;
+    EXPECT_LT(a.stats.layoutFarFraction, detail::kIncoherentFarFraction) << algorithm;
+    const CoreRun inCore = Simplify(shuffled, algorithm, 0);
+    const CoreRun outOfCore = Simplify(shuffled, algorithm, 512 << 10);
+    EXPECT_TRUE(inCore.stats.reordered) << algorithm;
+    EXPECT_TRUE(outOfCore.stats.reordered) << algorithm;
+    EXPECT_TRUE(outOfCore.stats.storage.usedOutOfCore) << algorithm;
+    EXPECT_GT(inCore.stats.layoutFarFraction, 0.5) << algorithm;
+    EXPECT_TRUE(inCore.out.xyz == outOfCore.out.xyz) << algorithm;
+    EXPECT_TRUE(inCore.out.tris == outOfCore.out.tris) << algorithm;
+    const double e0 = Rms(ordered, a.out), e1 = Rms(ordered, inCore.out);
+    EXPECT_NEAR(e1, e0, 0.01 * e0) << algorithm;
+    EXPECT_NEAR(double(inCore.out.tris.size()), double(a.out.tris.size()),
+      0.01 * double(a.out.tris.size())) << algorithm;
+    // Keep: the input's own order, no layout step
+    const CoreRun kept = Simplify(shuffled, algorithm, 0, LayoutPolicy::Keep);
+    EXPECT_FALSE(kept.stats.reordered) << algorithm;
   }
 }
 
