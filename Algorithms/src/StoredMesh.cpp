@@ -266,13 +266,13 @@ void StoredMesh::End(const io::ReadStats& stats)
   this->header_.faceCount = this->triangleCount_;
 }
 
-void StoredMesh::Reorder(Progress& progress)
+StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
 {
   const std::uint64_t V = this->header_.vertexCount;
   const std::uint64_t T = this->triangleCount_;
   if (V < 2 || T == 0)
   {
-    return;
+    return Renumbering::InMemory;
   }
   if (T > std::numeric_limits<std::uint32_t>::max())
   {
@@ -287,12 +287,25 @@ void StoredMesh::Reorder(Progress& progress)
   {
     newOf.emplace(this->dml_, static_cast<std::size_t>(V));
   }
+  // Else, when the inverse is read in at most kMaxSlices slices of what the spare memory holds,
+  // the faces are renumbered in one pass per slice (linear, no comparisons); else by sorting
+  // their corners (n log n, for any size).
+  const std::uint64_t sliceLength = std::max<std::uint64_t>(
+    1024, this->dml_.SpareMemory(8) / 2 / sizeof(OldNew));
+  const std::uint64_t slices = newOf ? 0 : (V + sliceLength - 1) / sliceLength;
+  constexpr std::uint64_t kMaxSlices = 32;
+  const Renumbering path = newOf ? Renumbering::InMemory
+    : slices <= kMaxSlices       ? Renumbering::Slices
+                                 : Renumbering::SortedCorners;
   // Progress: each sort and scan's share by the bytes it moves.
   const std::size_t groups = (this->stride_ + 15) / 16;
+  const double faceBytes = newOf ? 0.0
+    : slices <= kMaxSlices     ? 3.0 * double(sizeof(Triangle)) // (a pass's share: its 1/slices)
+                               : 4.0 * 3 * sizeof(Corner);
   const double total =
     double(V) * (2 * sizeof(KeyRec) + (newOf ? 0 : 2 * sizeof(OldNew)) +
                   2.0 * double(groups) * sizeof(AttrRec)) +
-    double(T) * ((newOf ? 0 : 4 * 3 * sizeof(Corner)) + 2 * sizeof(Triangle));
+    double(T) * (faceBytes + 2 * sizeof(Triangle));
   double done = 0;
   auto step = [&](double bytes) {
     const double from = done / total, span = bytes / total;
@@ -442,6 +455,49 @@ void StoredMesh::Reorder(Progress& progress)
     });
     newOf.reset();
   }
+  else if (slices <= kMaxSlices)
+  {
+    // A few slices of the inverse in memory, one pass over the faces each: the faces are read
+    // in their old numbering and written renumbered to a second block (corners outside the
+    // slice keep what an earlier pass wrote).
+    Array<Triangle> renumbered(this->dml_, T);
+    storage::CountedBuffer<OldNew> slice(this->dml_, static_cast<std::size_t>(sliceLength));
+    std::vector<Triangle> src, dst;
+    for (std::uint64_t lo = 0; lo < V; lo += sliceLength)
+    {
+      const std::uint64_t n = std::min(sliceLength, V - lo);
+      inverse.Read(lo, n, slice.Data());
+      const double from = done / total;
+      const double span = double(T) * 3 * sizeof(Triangle) / double(slices) / total;
+      done += double(T) * 3 * sizeof(Triangle) / double(slices);
+      Scan(this->triangles_, T, src, [&](const Triangle* t, std::uint64_t first, std::uint64_t c) {
+        tick(first);
+        dst.resize(static_cast<std::size_t>(c));
+        if (lo > 0)
+        {
+          renumbered.Read(first, c, dst.data());
+        }
+        for (std::uint64_t i = 0; i < c; ++i)
+        {
+          for (int k = 0; k < 3; ++k)
+          {
+            const std::uint64_t v = t[i].v[k];
+            if (v - lo < n)
+            {
+              dst[i].v[k] = slice[v - lo].now;
+            }
+          }
+        }
+        renumbered.Write(first, c, dst.data());
+        if ((first & (kChunk * 64 - 1)) == 0)
+        {
+          progress.Tick(from + span * double(first) / double(T));
+        }
+      });
+    }
+    inverse.Close();
+    this->triangles_.Swap(renumbered); // (the old numbering closes with `renumbered`)
+  }
   else
   {
     Array<Corner> corners(this->dml_, 3 * T);
@@ -459,8 +515,9 @@ void StoredMesh::Reorder(Progress& progress)
       }
       corners.Write(3 * first, 3 * n, cs.data());
     });
+    // (a vertex is in a face once: (vertex, face) orders the corners totally, one 64-bit compare)
     auto byVertex = [](const Corner& a, const Corner& b) {
-      return a.v != b.v ? a.v < b.v : (a.face != b.face ? a.face < b.face : a.k < b.k);
+      return (std::uint64_t(a.v) << 32 | a.face) < (std::uint64_t(b.v) << 32 | b.face);
     };
     storage::Sort(this->dml_, corners, byVertex, step(2.0 * 3.0 * double(T) * sizeof(Corner)));
     std::vector<OldNew> map;
@@ -483,7 +540,7 @@ void StoredMesh::Reorder(Progress& progress)
     });
     inverse.Close();
     auto byFace = [](const Corner& a, const Corner& b) {
-      return a.face != b.face ? a.face < b.face : a.k < b.k;
+      return (std::uint64_t(a.face) << 2 | a.k) < (std::uint64_t(b.face) << 2 | b.k);
     };
     storage::Sort(this->dml_, corners, byFace, step(2.0 * 3.0 * double(T) * sizeof(Corner)));
     Scan(corners, 3 * T, cs, [&](const Corner* c, std::uint64_t first, std::uint64_t n) {
@@ -511,6 +568,7 @@ void StoredMesh::Reorder(Progress& progress)
       return std::lexicographical_compare(a.v, a.v + 3, b.v, b.v + 3);
     },
     step(2.0 * double(T) * sizeof(Triangle)));
+  return path;
 }
 
 io::ReadStats StoredMesh::Replay(io::MeshSink& sink, const io::ReadOptions& options)

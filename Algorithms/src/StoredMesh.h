@@ -124,7 +124,15 @@ public:
   // Renumbers the vertices along a Morton curve over the bounds (ties by the old index) and
   // sorts the faces by their lowest new vertex (then their vertices), orientation kept: every
   // step a storage::Sort or a sequential scan, no random access. Point data follows its vertex.
-  void Reorder(Progress& progress);
+  // Returns how the faces were renumbered: the inverse permutation in memory, in slices of it
+  // (one pass over the faces each), or by sorting their corners.
+  enum class Renumbering
+  {
+    InMemory,
+    Slices,
+    SortedCorners
+  };
+  Renumbering Reorder(Progress& progress);
 
   // Streams the stored mesh (the same chunk protocol as the readers).
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options);

@@ -219,30 +219,37 @@ TEST(AlgorithmsLayout, ScannerOrderIsCoherentShuffledIsNot)
   }
 }
 
-// The direct path (the inverse in memory) and the sort path (64 KiB: the corners are sorted)
+// The three ways to renumber the faces (the inverse in memory, in slices, by sorting corners)
 // give the same bytes.
-TEST(AlgorithmsLayout, ReorderIsTheSameInMemoryAndBySorting)
+TEST(AlgorithmsLayout, ReorderIsTheSameInMemoryInSlicesAndBySorting)
 {
-  const Mesh m = Grid(150, true); // 22,801 vertices, 45,000 triangles
-  std::vector<Collect> outs(2);
-  int k = 0;
-  for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(64) << 10 })
+  const Mesh m = Grid(300, true); // 90,601 vertices, 180,000 triangles
+  std::vector<Collect> outs(3);
+  const std::uint64_t budgets[3] = { 0, std::uint64_t(1) << 20, std::uint64_t(64) << 10 };
+  const detail::StoredMesh::Renumbering paths[3] = { detail::StoredMesh::Renumbering::InMemory,
+    detail::StoredMesh::Renumbering::Slices, detail::StoredMesh::Renumbering::SortedCorners };
+  for (int k = 0; k < 3; ++k)
   {
     storage::Profile p;
-    p.memoryBudget = budget;
-    p.policy = budget ? storage::ModePolicy::OutOfCore : storage::ModePolicy::Automatic;
+    p.memoryBudget = budgets[k];
+    p.policy = budgets[k] ? storage::ModePolicy::OutOfCore : storage::ModePolicy::Automatic;
     storage::DML dml;
     dml.Config(p);
     detail::StoredMesh mesh(dml);
     SourceOf(m)(mesh, io::ReadOptions{});
     NullProgress progress;
     progress.BeginPhase("test", 1, 0);
-    mesh.Reorder(progress);
-    mesh.Replay(outs[k++], io::ReadOptions{});
+    EXPECT_EQ(int(mesh.Reorder(progress)), int(paths[k])) << "budget " << budgets[k];
+    mesh.Replay(outs[k], io::ReadOptions{});
   }
-  EXPECT_TRUE(outs[0].xyz == outs[1].xyz);
-  EXPECT_TRUE(outs[0].scalars == outs[1].scalars);
-  EXPECT_TRUE(outs[0].tris == outs[1].tris);
+  for (int k = 1; k < 3; ++k)
+  {
+    EXPECT_TRUE(outs[0].xyz == outs[k].xyz) << k;
+    EXPECT_TRUE(outs[0].scalars == outs[k].scalars) << k;
+    EXPECT_TRUE(outs[0].tris == outs[k].tris) << k;
+  }
+  EXPECT_TRUE(Geometry(outs[2].xyz, outs[2].scalars, outs[2].tris) ==
+    Geometry(m.xyz, m.scalars, m.tris));
 }
 
 struct CoreRun

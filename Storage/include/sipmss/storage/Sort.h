@@ -214,14 +214,39 @@ void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {})
         refill(j);
         *heapLast++ = static_cast<std::uint32_t>(j);
       }
-      std::make_heap(heapFirst, heapLast, later);
+      // A min-heap of the runs by head (heapFirst[0] the least): the least run's next head
+      // replaces it at the top and sinks once (one sift per element, not a pop and a push).
+      auto sink = [&]() {
+        const std::size_t size = static_cast<std::size_t>(heapLast - heapFirst);
+        std::size_t at = 0;
+        const std::uint32_t top = heapFirst[0];
+        for (;;)
+        {
+          std::size_t child = 2 * at + 1;
+          if (child >= size)
+          {
+            break;
+          }
+          if (child + 1 < size && later(heapFirst[child], heapFirst[child + 1]))
+          {
+            ++child;
+          }
+          if (!later(top, heapFirst[child]))
+          {
+            break;
+          }
+          heapFirst[at] = heapFirst[child];
+          at = child;
+        }
+        heapFirst[at] = top;
+      };
+      std::make_heap(heapFirst, heapLast, later); // (a max-heap under `later`: the least on top)
       T* out = buf + k * per;
       std::uint64_t outFill = 0;
       std::uint64_t written = group;
       while (heapLast != heapFirst)
       {
-        std::pop_heap(heapFirst, heapLast, later);
-        const std::uint32_t j = heapLast[-1];
+        const std::uint32_t j = heapFirst[0];
         out[outFill++] = buf[j * per + pos[j]];
         if (outFill == per)
         {
@@ -242,11 +267,14 @@ void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {})
           }
           else
           {
-            --heapLast;
-            continue;
+            heapFirst[0] = *--heapLast; // the run is done: the last leaf takes its place
+            if (heapLast == heapFirst)
+            {
+              continue;
+            }
           }
         }
-        std::push_heap(heapFirst, heapLast, later);
+        sink();
       }
       if (outFill > 0)
       {
