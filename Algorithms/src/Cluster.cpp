@@ -1348,7 +1348,7 @@ RunStats ClusterReordered(const MeshSource& source, io::MeshSink& output,
   {
     progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
     PhaseTimer timer(before, dml, "layout reorder");
-    mesh.Reorder(progress);
+    mesh.Reorder(progress, options.threads);
   }
   ClusterOptions o = options;
   o.dml = &dml;

@@ -4566,7 +4566,7 @@ RunStats DecimateReordered(const MeshSource& input, io::MeshSink& output,
   {
     progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
     PhaseTimer timer(before, dml, "layout reorder");
-    mesh.Reorder(progress);
+    mesh.Reorder(progress, options.threads);
   }
   DecimateOptions o = options;
   o.dml = &dml;

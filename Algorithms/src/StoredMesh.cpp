@@ -85,6 +85,17 @@ std::uint64_t Spread21(std::uint64_t x)
   return x;
 }
 
+// Rotates a triangle so that its lowest vertex comes first (its orientation is kept).
+template <class Tri>
+void LowestFirst(Tri& t)
+{
+  const int m = t.v[0] < t.v[1] ? (t.v[0] < t.v[2] ? 0 : 2) : (t.v[1] < t.v[2] ? 1 : 2);
+  const std::uint32_t a = t.v[m], b = t.v[(m + 1) % 3], c = t.v[(m + 2) % 3];
+  t.v[0] = a;
+  t.v[1] = b;
+  t.v[2] = c;
+}
+
 struct KeyRec
 {
   std::uint64_t key;
@@ -130,11 +141,13 @@ void AddLayoutStructures(
       profile.structures.push_back(storage::StructureSpec{ name, size, count, 0.0 });
     }
   };
+  // (an upper bound: every block the step may open, each sort's second block as large as the first)
   add("layout.points", 12, V);
   add("layout.pointData", 4 * stride, V);
   add("layout.triangles", 12, F);
-  add("layout.corners", sizeof(Corner), 3 * F);
-  add("layout.sorted", sizeof(Corner), 3 * F); // the sort's second block
+  add("layout.keys", sizeof(KeyRec), 2 * V);
+  add("layout.inverse", sizeof(OldNew), 2 * V);
+  add("layout.corners", sizeof(Corner), 2 * 3 * F);
 }
 
 LayoutProbe ProbeLayout(const MeshSource& input, Progress& progress)
@@ -253,7 +266,8 @@ void StoredMesh::Triangles(const std::uint32_t* idx, std::size_t count)
       std::max<std::uint64_t>(this->triangleCount_ + count, 2 * this->triangles_.Size()));
   }
   this->triangles_.Write(this->triangleCount_, count, reinterpret_cast<const Triangle*>(idx));
-  for (std::size_t t = 0; t < count; ++t)
+  // (the layout of the first faces, as every measurement of it)
+  for (std::size_t t = 0; t < count && this->layout_.Faces() < kProbeFaces; ++t)
   {
     this->layout_.Face(idx + 3 * t);
   }
@@ -266,7 +280,7 @@ void StoredMesh::End(const io::ReadStats& stats)
   this->header_.faceCount = this->triangleCount_;
 }
 
-StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
+StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
 {
   const std::uint64_t V = this->header_.vertexCount;
   const std::uint64_t T = this->triangleCount_;
@@ -355,7 +369,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
     });
     storage::Sort(this->dml_, keys,
       [](const KeyRec& a, const KeyRec& b) { return a.key != b.key ? a.key < b.key : a.old < b.old; },
-      step(2.0 * double(V) * sizeof(KeyRec)));
+      step(2.0 * double(V) * sizeof(KeyRec)), threads);
     std::vector<OldNew> map;
     Scan(keys, V, recs, [&](const KeyRec* r, std::uint64_t first, std::uint64_t n) {
       tick(first);
@@ -382,7 +396,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
   {
     storage::Sort(this->dml_, inverse,
       [](const OldNew& a, const OldNew& b) { return a.old < b.old; },
-      step(2.0 * double(V) * sizeof(OldNew)));
+      step(2.0 * double(V) * sizeof(OldNew)), threads);
   }
 
   // 3. Point data, 16 words at a time: (new index, words) in old order, sorted by new index.
@@ -419,7 +433,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
       }
       storage::Sort(this->dml_, moved,
         [](const AttrRec& a, const AttrRec& b) { return a.now < b.now; },
-        step(2.0 * double(V) * sizeof(AttrRec)));
+        step(2.0 * double(V) * sizeof(AttrRec)), threads);
       for (std::uint64_t first = 0; first < V; first += ac)
       {
         progress.Poll();
@@ -450,6 +464,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
         {
           t[i].v[k] = (*newOf)[t[i].v[k]];
         }
+        LowestFirst(t[i]);
       }
       this->triangles_.Write(first, n, t);
     });
@@ -487,6 +502,10 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
               dst[i].v[k] = slice[v - lo].now;
             }
           }
+          if (lo + n == V)
+          {
+            LowestFirst(dst[i]); // (the last slice: every corner is renumbered)
+          }
         }
         renumbered.Write(first, c, dst.data());
         if ((first & (kChunk * 64 - 1)) == 0)
@@ -519,7 +538,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
     auto byVertex = [](const Corner& a, const Corner& b) {
       return (std::uint64_t(a.v) << 32 | a.face) < (std::uint64_t(b.v) << 32 | b.face);
     };
-    storage::Sort(this->dml_, corners, byVertex, step(2.0 * 3.0 * double(T) * sizeof(Corner)));
+    storage::Sort(this->dml_, corners, byVertex, step(2.0 * 3.0 * double(T) * sizeof(Corner)), threads);
     std::vector<OldNew> map;
     std::uint64_t mapFirst = 0;
     Scan(corners, 3 * T, cs, [&](Corner* c, std::uint64_t first, std::uint64_t n) {
@@ -542,7 +561,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
     auto byFace = [](const Corner& a, const Corner& b) {
       return (std::uint64_t(a.face) << 2 | a.k) < (std::uint64_t(b.face) << 2 | b.k);
     };
-    storage::Sort(this->dml_, corners, byFace, step(2.0 * 3.0 * double(T) * sizeof(Corner)));
+    storage::Sort(this->dml_, corners, byFace, step(2.0 * 3.0 * double(T) * sizeof(Corner)), threads);
     Scan(corners, 3 * T, cs, [&](const Corner* c, std::uint64_t first, std::uint64_t n) {
       tick(first);
       tris.resize(static_cast<std::size_t>(n / 3));
@@ -552,22 +571,19 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress)
         {
           tris[i].v[k] = c[3 * i + k].v;
         }
+        LowestFirst(tris[i]);
       }
       this->triangles_.Write(first / 3, n / 3, tris.data());
     }, 3 * (kChunk / 3)); // (whole faces per chunk)
   }
-  // 5. Faces by their lowest vertex, then their vertices (orientation kept).
+  // 5. Faces (each rotated to start at its lowest vertex, orientation kept) by their vertices.
   storage::Sort(this->dml_, this->triangles_,
     [](const Triangle& a, const Triangle& b) {
-      const std::uint32_t la = std::min({ a.v[0], a.v[1], a.v[2] });
-      const std::uint32_t lb = std::min({ b.v[0], b.v[1], b.v[2] });
-      if (la != lb)
-      {
-        return la < lb;
-      }
-      return std::lexicographical_compare(a.v, a.v + 3, b.v, b.v + 3);
+      const std::uint64_t ka = std::uint64_t(a.v[0]) << 32 | a.v[1];
+      const std::uint64_t kb = std::uint64_t(b.v[0]) << 32 | b.v[1];
+      return ka != kb ? ka < kb : a.v[2] < b.v[2];
     },
-    step(2.0 * double(T) * sizeof(Triangle)));
+    step(2.0 * double(T) * sizeof(Triangle)), threads);
   return path;
 }
 

@@ -122,8 +122,9 @@ public:
   std::uint64_t TriangleCount() const { return this->triangleCount_; }
 
   // Renumbers the vertices along a Morton curve over the bounds (ties by the old index) and
-  // sorts the faces by their lowest new vertex (then their vertices), orientation kept: every
-  // step a storage::Sort or a sequential scan, no random access. Point data follows its vertex.
+  // sorts the faces (each rotated to start at its lowest new vertex, orientation kept) by their
+  // vertices: every step a storage::Sort or a sequential scan, no random access. Point data
+  // follows its vertex.
   // Returns how the faces were renumbered: the inverse permutation in memory, in slices of it
   // (one pass over the faces each), or by sorting their corners.
   enum class Renumbering
@@ -132,7 +133,8 @@ public:
     Slices,
     SortedCorners
   };
-  Renumbering Reorder(Progress& progress);
+  // threads: for the sorts in core (1: the calling thread only; 0: all cores).
+  Renumbering Reorder(Progress& progress, int threads = 0);
 
   // Streams the stored mesh (the same chunk protocol as the readers).
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options);

@@ -111,7 +111,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     {
       progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
       PhaseTimer timer(stats, dml, "layout reorder");
-      mesh.Reorder(progress);
+      mesh.Reorder(progress, options.threads);
     }
     stage1Input = [&mesh](io::MeshSink& sink, const io::ReadOptions& ro) {
       return mesh.Replay(sink, ro);

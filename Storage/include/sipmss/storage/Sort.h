@@ -1,7 +1,7 @@
 // Sorting a DML block within the memory budget, in whichever mode the DML is.
 //
 // In core the block is plain memory and is sorted in place (an introsort whose top levels poll,
-// no extra memory). Out of core it is an external merge sort in sort(N) I/Os: runs as large as
+// no extra memory; on two threads from 2^20 elements). Out of core it is an external merge sort in sort(N) I/Os: runs as large as
 // the budget's spare memory are read, sorted in memory and written back in place; then passes of
 // a k-way merge (k as large as the spare memory allows one page of input per run) go between the
 // block and a second block of the same size, and the arrays are exchanged if the result ends in
@@ -18,9 +18,11 @@
 #include "sipmss/storage/DML.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <thread>
 #include <utility>
 
 namespace sipmss::storage
@@ -102,10 +104,70 @@ void SortInMemory(T* data, std::uint64_t n, Less& less, const SortPoll& poll, do
     }
   }
 }
+// In memory on two threads when there are at least two cores and 2^20 elements: one
+// median-of-three partition, the smaller side sorted on a helper thread (it stops at its next
+// partition once the calling thread's poll has thrown), the larger on the calling thread with the
+// polls. The same result as on one thread (the partition is the same; each side is sorted).
+template <class T, class Less>
+void SortInMemoryParallel(T* data, std::uint64_t n, Less& less, const SortPoll& poll, int threads)
+{
+  if (n < (std::uint64_t(1) << 20) || threads == 1 ||
+    (threads <= 0 && std::thread::hardware_concurrency() < 2))
+  {
+    SortInMemory(data, n, less, poll, 0.0, 1.0);
+    return;
+  }
+  T* a = data;
+  T* b = data + n / 2;
+  T* c = data + (n - 1);
+  T* m = less(*a, *b) ? (less(*b, *c) ? b : (less(*a, *c) ? c : a))
+                      : (less(*a, *c) ? a : (less(*b, *c) ? c : b));
+  const T pivot = *m;
+  T* lo = std::partition(data, data + n, [&](const T& x) { return less(x, pivot); });
+  T* hi = std::partition(lo, data + n, [&](const T& x) { return !less(pivot, x); });
+  const std::uint64_t left = static_cast<std::uint64_t>(lo - data);
+  const std::uint64_t right = static_cast<std::uint64_t>(data + n - hi);
+  struct Stopped
+  {
+  };
+  std::atomic<bool> stop{ false };
+  const SortPoll helperPoll = [&stop](double) {
+    if (stop.load(std::memory_order_relaxed))
+    {
+      throw Stopped{};
+    }
+  };
+  T* smallFirst = left <= right ? data : hi;
+  const std::uint64_t small = left <= right ? left : right;
+  T* bigFirst = left <= right ? hi : data;
+  const std::uint64_t big = left <= right ? right : left;
+  std::thread helper([&] {
+    try
+    {
+      SortInMemory(smallFirst, small, less, helperPoll, 0.0, 0.0);
+    }
+    catch (const Stopped&)
+    {
+    }
+  });
+  try
+  {
+    SortInMemory(bigFirst, big, less, poll, 0.0, 1.0);
+  }
+  catch (...)
+  {
+    stop = true;
+    helper.join();
+    throw;
+  }
+  helper.join();
+}
 } // namespace detail
 
+// threads: 1 = the calling thread only; 0 = two when the machine has two cores (in core; `less`
+// is then called from two threads at once).
 template <class T, class Less>
-void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {})
+void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {}, int threads = 0)
 {
   const std::uint64_t n = array.Size();
   if (n < 2)
@@ -114,7 +176,7 @@ void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {})
   }
   if (T* base = static_cast<T*>(dml.BasePointer(array.Id())))
   {
-    detail::SortInMemory(base, n, less, poll, 0.0, 1.0);
+    detail::SortInMemoryParallel(base, n, less, poll, threads);
     return;
   }
 
