@@ -1325,31 +1325,15 @@ RunStats ClusterReordered(const MeshSource& source, io::MeshSink& output,
   dml.Config(options.storage);
   RunStats before;
   detail::StoredMesh mesh(dml);
-  double V = 0, F = 0, after = 1;
-  {
-    progress.BeginPhase("layout: read", 0.0, 1.0); // (its share once the header gives the sizes)
-    PhaseTimer timer(before, dml, "layout read");
-    mesh.SetProgress(&progress);
-    mesh.OnHeader([&](std::uint64_t v, std::uint64_t f) {
-      // The paper's Config: the copy and the clustering's structures decide the mode.
-      storage::Profile profile = options.storage;
-      detail::AddLayoutStructures(profile, v, f, 0);
-      AddClusterStructures(profile, v, f, options);
-      dml.Config(profile);
-      V = double(v);
-      F = double(f);
-      after = kWork::kCluster * (V + F) +
+  detail::ReadAndReorder(source, mesh, dml, options.storage,
+    [&options](storage::Profile& p, std::uint64_t v, std::uint64_t f) {
+      AddClusterStructures(p, v, f, options);
+    },
+    [&options](std::uint64_t v, std::uint64_t f) {
+      return kWork::kCluster * double(v + f) +
         ClusterWorkAfterRead(v, f, options.maximumGridDimension, options);
-      progress.BeginPhase("layout: read", detail::kLayoutReadWork * (V + F),
-        detail::kLayoutReorderWork * (V + F) + after);
-    });
-    source(mesh, io::ReadOptions{});
-  }
-  {
-    progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
-    PhaseTimer timer(before, dml, "layout reorder");
-    mesh.Reorder(progress, options.threads);
-  }
+    },
+    progress, before, options.threads);
   ClusterOptions o = options;
   o.dml = &dml;
   o.useBounds = true;

@@ -4544,30 +4544,12 @@ RunStats DecimateReordered(const MeshSource& input, io::MeshSink& output,
   dml.Config(options.storage);
   RunStats before;
   detail::StoredMesh mesh(dml);
-  double V = 0, F = 0, after = 1;
-  {
-    progress.BeginPhase("layout: read", 0.0, 1.0); // (its share once the header gives the sizes)
-    PhaseTimer timer(before, dml, "layout read");
-    mesh.SetProgress(&progress);
-    mesh.OnHeader([&](std::uint64_t v, std::uint64_t f) {
-      // The paper's Config: the copy and the decimation's structures decide the mode.
-      storage::Profile profile = options.storage;
-      detail::AddLayoutStructures(profile, v, f, 0);
-      profile.structures.push_back({ "decimate", 1, std::uint64_t(DecimateBytes(v, f)), 0.0 });
-      dml.Config(profile);
-      V = double(v);
-      F = double(f);
-      after = EstimateDecimateWork(v, f, options);
-      progress.BeginPhase("layout: read", detail::kLayoutReadWork * (V + F),
-        detail::kLayoutReorderWork * (V + F) + after);
-    });
-    input(mesh, io::ReadOptions{});
-  }
-  {
-    progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
-    PhaseTimer timer(before, dml, "layout reorder");
-    mesh.Reorder(progress, options.threads);
-  }
+  detail::ReadAndReorder(input, mesh, dml, options.storage,
+    [](storage::Profile& p, std::uint64_t v, std::uint64_t f) {
+      p.structures.push_back({ "decimate", 1, std::uint64_t(DecimateBytes(v, f)), 0.0 });
+    },
+    [&options](std::uint64_t v, std::uint64_t f) { return EstimateDecimateWork(v, f, options); },
+    progress, before, options.threads);
   DecimateOptions o = options;
   o.dml = &dml;
   o.layout = LayoutPolicy::Keep;

@@ -166,6 +166,36 @@ LayoutProbe ProbeLayout(const MeshSource& input, Progress& progress)
   return probe;
 }
 
+void ReadAndReorder(const MeshSource& input, StoredMesh& mesh, storage::DML& dml,
+  const storage::Profile& storage,
+  const std::function<void(storage::Profile&, std::uint64_t, std::uint64_t)>& addStructures,
+  const std::function<double(std::uint64_t, std::uint64_t)>& workAfter, Progress& progress,
+  RunStats& stats, int threads)
+{
+  double V = 0, F = 0, after = 1;
+  {
+    progress.BeginPhase("layout: read", 0.0, 1.0); // (its share once the header gives the sizes)
+    PhaseTimer timer(stats, dml, "layout read");
+    mesh.SetProgress(&progress);
+    mesh.OnHeader([&](std::uint64_t v, std::uint64_t f) {
+      // The paper's Config: the copy's and the core's structures decide the mode.
+      storage::Profile profile = storage;
+      AddLayoutStructures(profile, v, f, 0);
+      addStructures(profile, v, f);
+      dml.Config(profile);
+      V = double(v);
+      F = double(f);
+      after = workAfter(v, f);
+      progress.BeginPhase("layout: read", kLayoutReadWork * (V + F),
+        kLayoutReorderWork * (V + F) + after);
+    });
+    input(mesh, io::ReadOptions{});
+  }
+  progress.BeginPhase("layout: reorder", kLayoutReorderWork * (V + F), after);
+  PhaseTimer timer(stats, dml, "layout reorder");
+  mesh.Reorder(progress, threads);
+}
+
 StoredMesh::StoredMesh(storage::DML& dml)
   : dml_(dml)
 {

@@ -88,6 +88,18 @@ LayoutProbe ProbeLayout(const MeshSource& input, Progress& progress);
 void AddLayoutStructures(
   storage::Profile& profile, std::uint64_t V, std::uint64_t F, std::size_t stride);
 
+class StoredMesh;
+
+// The layout step of a core's run: reads `input` into `mesh`, configuring `dml` when the header
+// gives the sizes (the layout step's structures and, from addStructures, the core's), and
+// reorders it; the phases "layout read" and "layout reorder" go into `stats`, their progress
+// planned against workAfter(V, F), the core's work after them.
+void ReadAndReorder(const MeshSource& input, StoredMesh& mesh, storage::DML& dml,
+  const storage::Profile& storage,
+  const std::function<void(storage::Profile&, std::uint64_t V, std::uint64_t F)>& addStructures,
+  const std::function<double(std::uint64_t V, std::uint64_t F)>& workAfter, Progress& progress,
+  RunStats& stats, int threads);
+
 // A mesh in DML blocks (positions, point data as 4-byte words, triangles), with its bounds.
 class StoredMesh final : public io::MeshSink
 {

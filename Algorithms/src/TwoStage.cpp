@@ -76,9 +76,9 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   dml.Config(options.decimate.storage);
   RunStats stats;
 
-  // The layout step for an incoherent input that stage 1 would cluster out of core: the
-  // input is copied into the DML and reordered, and stage 1 reads the copy (freed once read).
-  // (the probe is stage 1's bounds pass: the grid's box comes from it)
+  // The layout step for an incoherent input: the input is copied into the DML and reordered,
+  // and stage 1 reads the copy (freed once read). The probe is stage 1's bounds pass: the
+  // grid's box comes from it.
   ClusterOptions probeOptions;
   probeOptions.maximumGridDimension = options.gridDimension;
   detail::LayoutProbe probe;
@@ -92,27 +92,17 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   MeshSource stage1Input = input;
   if (options.decimate.layout == LayoutPolicy::Reorder || probe.Incoherent())
   {
-    storage::Profile profile = options.decimate.storage;
-    detail::AddLayoutStructures(profile, probe.vertices, probe.faces, 0);
-    profile.structures.push_back({ "stage 1", 1,
-      std::uint64_t(EstimateClusterBytes(probe.vertices, probe.faces, probeOptions)), 0.0 });
-    dml.Config(profile);
     detail::StoredMesh& mesh = reordered.emplace(dml);
-    const double V = double(probe.vertices), F = double(probe.faces);
-    const double after = EstimateClusterWork(probe.vertices, probe.faces, probeOptions) +
-      EstimateDecimateWork(probe.vertices / 8, probe.faces / 8, options.decimate);
-    {
-      progress.BeginPhase("layout: read", detail::kLayoutReadWork * (V + F),
-        detail::kLayoutReorderWork * (V + F) + after);
-      PhaseTimer timer(stats, dml, "layout read");
-      mesh.SetProgress(&progress);
-      input(mesh, io::ReadOptions{});
-    }
-    {
-      progress.BeginPhase("layout: reorder", detail::kLayoutReorderWork * (V + F), after);
-      PhaseTimer timer(stats, dml, "layout reorder");
-      mesh.Reorder(progress, options.threads);
-    }
+    detail::ReadAndReorder(input, mesh, dml, options.decimate.storage,
+      [&probeOptions](storage::Profile& p, std::uint64_t v, std::uint64_t f) {
+        p.structures.push_back(
+          { "stage 1", 1, std::uint64_t(EstimateClusterBytes(v, f, probeOptions)), 0.0 });
+      },
+      [&probeOptions, &options](std::uint64_t v, std::uint64_t f) {
+        return EstimateClusterWork(v, f, probeOptions) +
+          EstimateDecimateWork(v / 8, f / 8, options.decimate);
+      },
+      progress, stats, options.threads);
     stage1Input = [&mesh](io::MeshSink& sink, const io::ReadOptions& ro) {
       return mesh.Replay(sink, ro);
     };

@@ -81,6 +81,22 @@ std::vector<std::uint64_t> Keys(const std::string& kind, std::uint64_t n, std::u
   return v;
 }
 
+// Keys written to an array of a DML with this budget (automatic mode).
+struct KeysInDml
+{
+  DML dml;
+  Array<std::uint64_t> a;
+  KeysInDml(const std::vector<std::uint64_t>& in, std::uint64_t budget, const std::string& dir)
+  {
+    Profile p;
+    p.directories = { dir };
+    p.memoryBudget = budget;
+    this->dml.Config(p);
+    this->a = Array<std::uint64_t>(this->dml, in.size());
+    this->a.Write(0, in.size(), in.data());
+  }
+};
+
 struct SortRun
 {
   std::vector<std::uint64_t> out;
@@ -240,13 +256,9 @@ TEST(StorageSort, AbortLeavesAPermutationAndNothingHeld)
     {
       const std::uint64_t n = 300000;
       const auto in = Keys("random", n, 3);
-      Profile p;
-      p.directories = { tmp.Path() };
-      p.memoryBudget = budget;
-      DML dml;
-      dml.Config(p);
-      Array<std::uint64_t> a(dml, n);
-      a.Write(0, n, in.data());
+      KeysInDml k(in, budget, tmp.Path());
+      DML& dml = k.dml;
+      Array<std::uint64_t>& a = k.a;
       const Stats before = dml.GetStats();
       const std::uint64_t spareBefore = dml.SpareMemory(4);
       int calls = 0;
@@ -283,13 +295,9 @@ TEST(StorageSort, ProgressReachesOne)
   {
     const std::uint64_t n = 400000;
     const auto in = Keys("random", n, 5);
-    Profile p;
-    p.directories = { tmp.Path() };
-    p.memoryBudget = budget;
-    DML dml;
-    dml.Config(p);
-    Array<std::uint64_t> a(dml, n);
-    a.Write(0, n, in.data());
+    KeysInDml k(in, budget, tmp.Path());
+    DML& dml = k.dml;
+    Array<std::uint64_t>& a = k.a;
     double last = 0;
     int calls = 0;
     Sort(dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; }, [&](double f) {
