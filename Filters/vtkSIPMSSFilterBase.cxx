@@ -40,6 +40,8 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->UsedInCore = this->UsedOutOfCore = false;
   this->PeakStorageBytes = this->PeakTemporaryFileBytes = this->PageHits = this->PageMisses = 0;
   this->MemoryBudgetBytes = 0;
+  this->LayoutFarFraction = -1;
+  this->Reordered = false;
   this->BytesRead = this->BytesWritten = this->Reconfigurations = 0;
   this->ElapsedSeconds = 0;
 
@@ -180,6 +182,8 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       profile, [&] { return run(source, haveBounds, bounds, sink, profile, progress); });
     this->ElapsedSeconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    this->LayoutFarFraction = stats.layoutFarFraction;
+    this->Reordered = stats.reordered;
     this->UsedInCore = stats.storage.usedInCore;
     this->UsedOutOfCore = stats.storage.usedOutOfCore;
     this->PeakStorageBytes = stats.storage.peakBytes;
@@ -233,6 +237,9 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "UsedOutOfCore: " << this->UsedOutOfCore << "\n";
   os << indent << "PeakStorageBytes: " << this->PeakStorageBytes << "\n";
   os << indent << "PeakTemporaryFileBytes: " << this->PeakTemporaryFileBytes << "\n";
+  os << indent << "MemoryBudgetBytes: " << this->MemoryBudgetBytes << "\n";
+  os << indent << "LayoutFarFraction: " << this->LayoutFarFraction << "\n";
+  os << indent << "Reordered: " << this->Reordered << "\n";
   os << indent << "PageHits: " << this->PageHits << "\n";
   os << indent << "PageMisses: " << this->PageMisses << "\n";
 }

@@ -109,6 +109,10 @@ public:
   vtkGetMacro(UsedInCore, bool);
   // The budget the run had in bytes (the automatic one as it was computed; 0: unbounded).
   vtkGetMacro(MemoryBudgetBytes, vtkTypeUInt64);
+  // The input's layout: the share of its first faces far apart in index order (-1: not
+  // measured), and whether the run reordered it first (docs/architecture.md, "Input layout").
+  vtkGetMacro(LayoutFarFraction, double);
+  vtkGetMacro(Reordered, bool);
   vtkGetMacro(UsedOutOfCore, bool);
   vtkGetMacro(PeakStorageBytes, vtkTypeUInt64);
   // The largest size the temporary block files reached together (disk).
@@ -157,6 +161,8 @@ protected:
   bool UsedInCore = false;
   bool UsedOutOfCore = false;
   vtkTypeUInt64 MemoryBudgetBytes = 0;
+  double LayoutFarFraction = -1;
+  bool Reordered = false;
   vtkTypeUInt64 PeakStorageBytes = 0;
   vtkTypeUInt64 PeakTemporaryFileBytes = 0;
   vtkTypeUInt64 PageHits = 0;

@@ -10,10 +10,12 @@ from vtkmodules.vtkIOPLY import vtkPLYWriter
 from vtkmodules.vtkCommonTransforms import vtkTransform
 from vtkmodules.vtkFiltersGeneral import vtkDistancePolyDataFilter, vtkTransformPolyDataFilter
 import json
+import random
 import subprocess
 
 from vtkmodules.vtkCommonCore import (VTK_DOUBLE, VTK_FLOAT, VTK_INT, VTK_LONG_LONG, VTK_STRING,
-                                      VTK_UNSIGNED_CHAR, vtkDoubleArray, vtkFloatArray, vtkIntArray,
+                                      VTK_UNSIGNED_CHAR, vtkDoubleArray, vtkFloatArray, vtkIdList,
+                                      vtkIntArray,
                                       vtkLongLongArray, vtkPoints, vtkStringArray,
                                       vtkUnsignedCharArray)
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
@@ -388,6 +390,52 @@ class SIPMSSPythonTest(unittest.TestCase):
         # the budget does not change the result
         self.assertEqual(len(set(outputs[:3])), 1, outputs)
         self.assertEqual(len(set(outputs[3:])), 1, outputs)
+
+    def test_a_shuffled_input_is_reordered(self):
+        """A vtkPolyData whose points and triangles are in random order is reordered before the
+        run (the statistics say so); the same surface in order is not; both give an output of
+        the same size, and the shuffled one keeps its point array."""
+        src = sphere(300)  # 89,402 points, 178,800 triangles, in theta/phi order
+        pd = src.GetOutput()
+        n = pd.GetNumberOfPoints()
+        perm = list(range(n))
+        random.Random(3).shuffle(perm)
+        pts = vtkPoints()
+        pts.SetNumberOfPoints(n)
+        ids = vtkIntArray()
+        ids.SetName("OriginalId")
+        ids.SetNumberOfTuples(n)
+        for old in range(n):
+            pts.SetPoint(perm[old], pd.GetPoint(old))
+            ids.SetValue(perm[old], old)
+        tris = []
+        cells = pd.GetPolys()
+        cells.InitTraversal()
+        idl = vtkIdList()
+        while cells.GetNextCell(idl):
+            tris.append([perm[idl.GetId(k)] for k in range(idl.GetNumberOfIds())])
+        random.Random(4).shuffle(tris)
+        polys = vtkCellArray()
+        for t in tris:
+            polys.InsertNextCell(len(t), t)
+        shuffled = vtkPolyData()
+        shuffled.SetPoints(pts)
+        shuffled.SetPolys(polys)
+        shuffled.GetPointData().AddArray(ids)
+        sizes = []
+        for data, expect in ((pd, False), (shuffled, True)):
+            f = vtkSIPMSSDecimate()
+            f.SetInputData(data)
+            f.SetTargetNumberOfTriangles(5000)
+            f.Update()
+            self.assertEqual(f.GetReordered(), expect)
+            if expect:
+                self.assertGreater(f.GetLayoutFarFraction(), 0.5)
+                self.assertIsNotNone(f.GetOutput().GetPointData().GetArray("OriginalId"))
+            else:
+                self.assertLess(f.GetLayoutFarFraction(), 0.05)
+            sizes.append(f.GetOutput().GetNumberOfPolys())
+        self.assertLess(abs(sizes[0] - sizes[1]), 0.01 * sizes[0] + 2, sizes)
 
 
 if __name__ == "__main__":
