@@ -1331,6 +1331,7 @@ void Decimator::Read(const MeshSource& input)
   {
     this->stats_.layoutFarFraction = loader.Layout().FarFraction();
   }
+  this->progress_.Poll(); // (the exact sizes and the mode's re-evaluation follow: storage calls)
   if (!this->begun_)
   {
     io::MeshHeader h;
@@ -1348,6 +1349,7 @@ void Decimator::Read(const MeshSource& input)
     this->attr_.Resize(this->vCap_ * this->recSize_);
   }
   this->faces_.Resize(this->fCap_);
+  this->progress_.Poll();
   this->dml_.Reconfigure();
 }
 

@@ -317,8 +317,8 @@ protected:
     // Wall time, loosely (another process may take the core for a while).
     EXPECT_LE(wallGap, 5 * kMaxEventGapSeconds) << c.Name();
     std::printf("%s: %.2f s (CPU %.2f s), %zu events, longest gap %.3f s CPU (%.1f%%), %.3f s "
-                "wall\n",
-      c.Name().c_str(), wall, cpu, e.size(), gap, 100.0 * gap / cpu, wallGap);
+                "wall, %s\n",
+      c.Name().c_str(), wall, cpu, e.size(), gap, 100.0 * gap / cpu, wallGap, where.c_str());
     return wall;
   }
 
