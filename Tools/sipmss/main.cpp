@@ -18,6 +18,7 @@
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
 
+#include <malloc.h>
 #include <sys/resource.h>
 #include <fcntl.h>
 #include <sys/stat.h>
@@ -688,6 +689,16 @@ int RunInfo(const std::string& path)
 
 int main(int argc, char** argv)
 {
+  // Under a limit on the address space (ulimit -v), every thread's first allocation would reserve
+  // a glibc arena of 64 MiB of it, which the automatic budget cannot foresee: one arena for all
+  // threads then (the threads allocate little; their scratch is reused).
+  {
+    struct rlimit rl{};
+    if (::getrlimit(RLIMIT_AS, &rl) == 0 && rl.rlim_cur != RLIM_INFINITY)
+    {
+      ::mallopt(M_ARENA_MAX, 1);
+    }
+  }
   CLI::App app{ "sipmss: simplify huge triangle meshes under a fixed memory budget" };
   app.set_version_flag("--version", std::string("sipmss ") + SIPMSS_VERSION);
   app.require_subcommand(1);
