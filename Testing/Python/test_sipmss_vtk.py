@@ -42,11 +42,8 @@ class Messages:
         f.AddObserver("ErrorEvent", on_error)
 
 
-def unit_square_with(polygons):
-    """The four corners of the unit square with these polygons (point id tuples)."""
-    pts = vtkPoints()
-    for p in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)):
-        pts.InsertNextPoint(p)
+def poly_data(pts, polygons):
+    """A vtkPolyData of these vtkPoints and polygons (point id sequences)."""
     cells = vtkCellArray()
     for ids in polygons:
         cells.InsertNextCell(len(ids), ids)
@@ -54,6 +51,14 @@ def unit_square_with(polygons):
     pd.SetPoints(pts)
     pd.SetPolys(cells)
     return pd
+
+
+def unit_square_with(polygons):
+    """The four corners of the unit square with these polygons (point id tuples)."""
+    pts = vtkPoints()
+    for p in ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)):
+        pts.InsertNextPoint(p)
+    return poly_data(pts, polygons)
 
 
 def attributed_sphere():
@@ -415,12 +420,7 @@ class SIPMSSPythonTest(unittest.TestCase):
         while cells.GetNextCell(idl):
             tris.append([perm[idl.GetId(k)] for k in range(idl.GetNumberOfIds())])
         random.Random(4).shuffle(tris)
-        polys = vtkCellArray()
-        for t in tris:
-            polys.InsertNextCell(len(t), t)
-        shuffled = vtkPolyData()
-        shuffled.SetPoints(pts)
-        shuffled.SetPolys(polys)
+        shuffled = poly_data(pts, tris)
         shuffled.GetPointData().AddArray(ids)
         sizes = []
         for data, expect in ((pd, False), (shuffled, True)):
