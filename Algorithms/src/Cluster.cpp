@@ -103,6 +103,18 @@ struct TriSlot
   std::uint32_t used; // 0 = empty
 };
 
+// The structures of a clustering run on V vertices and F faces over a grid of gridCells cells
+// (the paper's Config table).
+void AddClusterStructures(
+  storage::Profile& profile, std::uint64_t V, std::uint64_t F, std::uint64_t gridCells)
+{
+  const std::uint64_t maxCells = std::min<std::uint64_t>(V, gridCells);
+  profile.structures.push_back({ "vertices", sizeof(VertexRec), V, 0.0 });
+  profile.structures.push_back({ "cells", sizeof(CellRec), maxCells, 0.0 });
+  profile.structures.push_back({ "cell map", sizeof(KeySlot), 2 * maxCells, 0.0 });
+  profile.structures.push_back({ "candidate triangles", sizeof(TriSlot), F, 0.0 });
+}
+
 // A few pinned pages of one block kept across element accesses (out of core), so that runs of
 // nearby accesses cost one page lookup instead of one per element. In core it is a plain pointer.
 // Release() before anything that may move or resize the block.
@@ -379,15 +391,7 @@ public:
   }
   void Vertices(const io::VertexChunk& c) override
   {
-    for (std::size_t i = 0; i < c.count; ++i)
-    {
-      for (int k = 0; k < 3; ++k)
-      {
-        const double v = c.xyz[3 * i + k];
-        this->b[2 * k] = std::min(this->b[2 * k], v);
-        this->b[2 * k + 1] = std::max(this->b[2 * k + 1], v);
-      }
-    }
+    detail::ExtendBounds(this->b, c.xyz, c.count);
     this->seen_ += c.count;
     this->progress_.Tick(this->expected_ ? double(this->seen_) / double(this->expected_) : 0.0);
   }
@@ -397,11 +401,7 @@ public:
   const detail::LayoutMeter& Layout() const { return this->meter_; }
   void Triangles(const std::uint32_t* idx, std::size_t count) override
   {
-    for (std::size_t t = 0; t < count && this->meter_.Faces() < detail::kProbeFaces; ++t)
-    {
-      this->meter_.Face(idx + 3 * t);
-    }
-    if (this->meter_.Faces() >= detail::kProbeFaces)
+    if (this->meter_.Chunk(idx, count))
     {
       throw detail::ProbeDone{};
     }
@@ -446,13 +446,8 @@ public:
       storage::Profile profile = this->options_.storage;
       const std::uint64_t gridCells =
         std::uint64_t(this->grid_.dims[0]) * this->grid_.dims[1] * this->grid_.dims[2];
-      const std::uint64_t maxCells = std::min<std::uint64_t>(h.vertexCount, gridCells);
-      profile.structures = {
-        { "vertices", sizeof(VertexRec), h.vertexCount, 0.0 },
-        { "cells", sizeof(CellRec), maxCells, 0.0 },
-        { "cell map", sizeof(KeySlot), 2 * maxCells, 0.0 },
-        { "candidate triangles", sizeof(TriSlot), h.faceCount, 0.0 },
-      };
+      profile.structures.clear();
+      AddClusterStructures(profile, h.vertexCount, h.faceCount, gridCells);
       this->dml_.Config(profile);
     }
     this->header_ = h;
@@ -1288,17 +1283,11 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
 }
 
 // The structures of a clustering run on V vertices and F faces (the Config of ClusterSink).
-void AddClusterStructures(storage::Profile& profile, std::uint64_t V, std::uint64_t F,
-  const ClusterOptions& options)
+// Before the bounds the grid has at most m^3 cells.
+std::uint64_t MaxGridCells(const ClusterOptions& options)
 {
-  // (ClusterSink::Begin declares min(V, cells of the grid); before the bounds the grid is at
-  // most m^3 cells)
   const std::uint64_t m = std::uint64_t(std::max(options.maximumGridDimension, 1));
-  const std::uint64_t maxCells = std::min<std::uint64_t>(V, m * m * m);
-  profile.structures.push_back({ "vertices", sizeof(VertexRec), V, 0.0 });
-  profile.structures.push_back({ "cells", sizeof(CellRec), maxCells, 0.0 });
-  profile.structures.push_back({ "cell map", sizeof(KeySlot), 2 * maxCells, 0.0 });
-  profile.structures.push_back({ "candidate triangles", sizeof(TriSlot), F, 0.0 });
+  return m * m * m;
 }
 
 } // namespace
@@ -1306,7 +1295,7 @@ void AddClusterStructures(storage::Profile& profile, std::uint64_t V, std::uint6
 double EstimateClusterBytes(std::uint64_t V, std::uint64_t F, const ClusterOptions& options)
 {
   storage::Profile p;
-  AddClusterStructures(p, V, F, options);
+  AddClusterStructures(p, V, F, MaxGridCells(options));
   double bytes = 0;
   for (const auto& s : p.structures)
   {
@@ -1327,7 +1316,7 @@ RunStats ClusterReordered(const MeshSource& source, io::MeshSink& output,
   detail::StoredMesh mesh(dml);
   detail::ReadAndReorder(source, mesh, dml, options.storage,
     [&options](storage::Profile& p, std::uint64_t v, std::uint64_t f) {
-      AddClusterStructures(p, v, f, options);
+      AddClusterStructures(p, v, f, MaxGridCells(options));
     },
     [&options](std::uint64_t v, std::uint64_t f) {
       return kWork::kCluster * double(v + f) +

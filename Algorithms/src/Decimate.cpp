@@ -1095,11 +1095,7 @@ void Loader::Triangles(const std::uint32_t* indices, std::size_t count)
   this->Tick();
   if (this->measure_)
   {
-    for (std::size_t t = 0; t < count && this->meter_.Faces() < detail::kProbeFaces; ++t)
-    {
-      this->meter_.Face(indices + 3 * t);
-    }
-    if (this->meter_.Faces() >= detail::kProbeFaces)
+    if (this->meter_.Chunk(indices, count))
     {
       this->Measured();
     }

@@ -31,25 +31,13 @@ public:
   }
   void Vertices(const io::VertexChunk& c) override
   {
-    for (std::size_t i = 0; i < c.count; ++i)
-    {
-      for (int k = 0; k < 3; ++k)
-      {
-        const double v = c.xyz[3 * i + k];
-        this->probe_.bounds[2 * k] = std::min(this->probe_.bounds[2 * k], v);
-        this->probe_.bounds[2 * k + 1] = std::max(this->probe_.bounds[2 * k + 1], v);
-      }
-    }
+    ExtendBounds(this->probe_.bounds, c.xyz, c.count);
     this->probe_.verticesSeen = std::max<std::uint64_t>(this->probe_.verticesSeen, c.first + c.count);
     this->progress_.Poll();
   }
   void Triangles(const std::uint32_t* idx, std::size_t count) override
   {
-    for (std::size_t t = 0; t < count && this->meter_.Faces() < kProbeFaces; ++t)
-    {
-      this->meter_.Face(idx + 3 * t);
-    }
-    if (this->meter_.Faces() >= kProbeFaces)
+    if (this->meter_.Chunk(idx, count))
     {
       this->Done();
     }
@@ -250,15 +238,7 @@ void StoredMesh::Vertices(const io::VertexChunk& c)
     }
   }
   this->points_.Write(c.first, c.count, reinterpret_cast<const Float3*>(c.xyz));
-  for (std::size_t i = 0; i < c.count; ++i)
-  {
-    for (int k = 0; k < 3; ++k)
-    {
-      const double v = c.xyz[3 * i + k];
-      this->bounds_[2 * k] = std::min(this->bounds_[2 * k], v);
-      this->bounds_[2 * k + 1] = std::max(this->bounds_[2 * k + 1], v);
-    }
-  }
+  ExtendBounds(this->bounds_, c.xyz, c.count);
   if (this->stride_)
   {
     const std::size_t ns = this->header_.layout.scalars.size();
@@ -296,11 +276,7 @@ void StoredMesh::Triangles(const std::uint32_t* idx, std::size_t count)
       std::max<std::uint64_t>(this->triangleCount_ + count, 2 * this->triangles_.Size()));
   }
   this->triangles_.Write(this->triangleCount_, count, reinterpret_cast<const Triangle*>(idx));
-  // (the layout of the first faces, as every measurement of it)
-  for (std::size_t t = 0; t < count && this->layout_.Faces() < kProbeFaces; ++t)
-  {
-    this->layout_.Face(idx + 3 * t);
-  }
+  this->layout_.Chunk(idx, count); // (the layout of the first faces, as every measurement of it)
   this->triangleCount_ += count;
 }
 

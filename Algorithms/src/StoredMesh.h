@@ -14,6 +14,26 @@
 namespace sipmss::algorithms::detail
 {
 
+// Above this share of far faces an input is incoherent: scanner-ordered files measure below 1%,
+// shuffled ones above 90%.
+constexpr double kIncoherentFarFraction = 0.05;
+// The faces the probe measures.
+constexpr std::uint64_t kProbeFaces = std::uint64_t(1) << 17;
+
+// Extends xmin xmax ymin ymax zmin zmax by n points (x y z floats).
+inline void ExtendBounds(std::array<double, 6>& b, const float* xyz, std::size_t n)
+{
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    for (int k = 0; k < 3; ++k)
+    {
+      const double v = xyz[3 * i + k];
+      b[2 * k] = std::min(b[2 * k], v);
+      b[2 * k + 1] = std::max(b[2 * k + 1], v);
+    }
+  }
+}
+
 // How far apart consecutive faces are in index order, measured as faces stream by (Isenburg and
 // Lindstrom's layout coherence, reduced to one number): a face is far when its middle vertex
 // index and the previous face's are more than `window` apart. Scanner order (faces along a sweep
@@ -35,6 +55,15 @@ public:
     this->last_ = mid;
     ++this->faces_;
   }
+  // Measures a chunk's faces up to the first kProbeFaces of the input; true once that many are.
+  bool Chunk(const std::uint32_t* idx, std::size_t count)
+  {
+    for (std::size_t t = 0; t < count && this->faces_ < kProbeFaces; ++t)
+    {
+      this->Face(idx + 3 * t);
+    }
+    return this->faces_ >= kProbeFaces;
+  }
   std::uint64_t Faces() const { return this->faces_; }
   // Share of far faces (0: none measured).
   double FarFraction() const
@@ -48,11 +77,6 @@ private:
   std::uint32_t last_ = 0;
 };
 
-// Above this share of far faces an input is incoherent: scanner-ordered files measure below 1%,
-// shuffled ones above 90%.
-constexpr double kIncoherentFarFraction = 0.05;
-// The faces the probe measures.
-constexpr std::uint64_t kProbeFaces = std::uint64_t(1) << 17;
 
 // Progress weights of the layout step (seconds per input vertex + face, measured in core on the
 // shuffled Dragon-size input: 0.01 s and 0.13 s for 401,457 + 810,080 elements;

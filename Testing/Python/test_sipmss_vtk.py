@@ -259,18 +259,22 @@ class SIPMSSPythonTest(unittest.TestCase):
             self.assertIn("Names", text)
             self.assertEqual(msgs.errors, [])
 
+    def assert_both_filters_refuse(self, pd, says, empty="GetNumberOfPoints"):
+        """Both filters give an empty output (`empty` counts 0) and one error that says `says`."""
+        for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
+            msgs = Messages(f)
+            f.SetInputData(pd)
+            f.Update()
+            self.assertEqual(getattr(f.GetOutput(), empty)(), 0)
+            self.assertEqual(len(msgs.errors), 1, msgs.errors)
+            self.assertIn(says, msgs.errors[0])
+
     def test_non_finite_points_are_an_error(self):
         for bad in (float("nan"), float("inf")):
             pd = vtkPolyData()
             pd.DeepCopy(sphere(20).GetOutput())
             pd.GetPoints().SetPoint(7, 0.1, bad, 0.2)
-            for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
-                msgs = Messages(f)
-                f.SetInputData(pd)
-                f.Update()
-                self.assertEqual(f.GetOutput().GetNumberOfPoints(), 0)
-                self.assertEqual(len(msgs.errors), 1, msgs.errors)
-                self.assertIn("point 7 has a non-finite coordinate", msgs.errors[0])
+            self.assert_both_filters_refuse(pd, "point 7 has a non-finite coordinate")
 
     def test_points_beyond_single_precision_are_an_error(self):
         # found by the VTK bridge fuzzer: a double beyond FLT_MAX came out as an infinite point
@@ -281,23 +285,12 @@ class SIPMSSPythonTest(unittest.TestCase):
         points.DeepCopy(pd.GetPoints())
         points.SetPoint(3, 1e39, 0.0, 0.0)
         pd.SetPoints(points)
-        for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
-            msgs = Messages(f)
-            f.SetInputData(pd)
-            f.Update()
-            self.assertEqual(f.GetOutput().GetNumberOfPoints(), 0)
-            self.assertEqual(len(msgs.errors), 1, msgs.errors)
-            self.assertIn("point 3 has a coordinate beyond single precision", msgs.errors[0])
+        self.assert_both_filters_refuse(pd, "point 3 has a coordinate beyond single precision")
 
     def test_point_ids_are_checked_in_64_bits(self):
         pd = unit_square_with([(0, 1, 3), (0, 1, 2 ** 32 + 2)])  # must not wrap to (0, 1, 2)
-        for f in (vtkSIPMSSCluster(), vtkSIPMSSDecimate()):
-            msgs = Messages(f)
-            f.SetInputData(pd)
-            f.Update()
-            self.assertEqual(f.GetOutput().GetNumberOfPolys(), 0)
-            self.assertEqual(len(msgs.errors), 1, msgs.errors)
-            self.assertIn("references point id 4294967298, but the input has 4 points", msgs.errors[0])
+        self.assert_both_filters_refuse(pd, "references point id 4294967298, but the input has 4 points",
+                                        empty="GetNumberOfPolys")
 
     def test_point_arrays_of_the_wrong_length_are_dropped(self):
         # found by the VTK bridge fuzzer: an array shorter than the points was read past its end

@@ -32,6 +32,22 @@ using SortPoll = std::function<void(double fraction)>;
 
 namespace detail
 {
+// Partitions [first, last) around the median of its first, middle and last elements: returns
+// the ends of the run equal to the pivot ([first, lo) less, [lo, hi) equal, [hi, last) greater).
+template <class T, class Less>
+std::pair<T*, T*> PartitionByMedian(T* first, T* last, Less& less)
+{
+  T* a = first;
+  T* b = first + (last - first) / 2;
+  T* c = last - 1;
+  T* m = less(*a, *b) ? (less(*b, *c) ? b : (less(*a, *c) ? c : a))
+                      : (less(*a, *c) ? a : (less(*b, *c) ? c : b));
+  const T pivot = *m; // (a copy: the partition moves the elements)
+  T* lo = std::partition(first, last, [&](const T& x) { return less(x, pivot); });
+  T* hi = std::partition(lo, last, [&](const T& x) { return !less(pivot, x); });
+  return { lo, hi };
+}
+
 // Introsort over [first, last) that polls between partitions of large ranges: median-of-three
 // partitions down to ranges of kLeaf elements, which std::sort finishes; a range that recurses
 // deeper than 2 log2(n) levels is finished by a heap sort (no quadratic input).
@@ -67,16 +83,7 @@ void SortInMemory(T* data, std::uint64_t n, Less& less, const SortPoll& poll, do
         std::sort_heap(data + p.first, data + p.last, less);
         break;
       }
-      T* a = data + p.first;
-      T* b = data + (p.first + (p.last - p.first) / 2);
-      T* c = data + (p.last - 1);
-      // Median of three as the pivot (a copy: the partition moves the elements).
-      T* m = less(*a, *b) ? (less(*b, *c) ? b : (less(*a, *c) ? c : a))
-                          : (less(*a, *c) ? a : (less(*b, *c) ? c : b));
-      const T pivot = *m;
-      T* lo = std::partition(data + p.first, data + p.last,
-        [&](const T& x) { return less(x, pivot); });
-      T* hi = std::partition(lo, data + p.last, [&](const T& x) { return !less(pivot, x); });
+      const auto [lo, hi] = PartitionByMedian(data + p.first, data + p.last, less);
       const std::uint64_t mid1 = static_cast<std::uint64_t>(lo - data);
       const std::uint64_t mid2 = static_cast<std::uint64_t>(hi - data);
       done += mid2 - mid1; // the pivot's equals are in place
@@ -117,14 +124,7 @@ void SortInMemoryParallel(T* data, std::uint64_t n, Less& less, const SortPoll& 
     SortInMemory(data, n, less, poll, 0.0, 1.0);
     return;
   }
-  T* a = data;
-  T* b = data + n / 2;
-  T* c = data + (n - 1);
-  T* m = less(*a, *b) ? (less(*b, *c) ? b : (less(*a, *c) ? c : a))
-                      : (less(*a, *c) ? a : (less(*b, *c) ? c : b));
-  const T pivot = *m;
-  T* lo = std::partition(data, data + n, [&](const T& x) { return less(x, pivot); });
-  T* hi = std::partition(lo, data + n, [&](const T& x) { return !less(pivot, x); });
+  const auto [lo, hi] = PartitionByMedian(data, data + n, less);
   const std::uint64_t left = static_cast<std::uint64_t>(lo - data);
   const std::uint64_t right = static_cast<std::uint64_t>(data + n - hi);
   struct Stopped
