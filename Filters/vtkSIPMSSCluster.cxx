@@ -2,7 +2,9 @@
 
 #include "vtkSIPMSSPolyDataBridge.h"
 
-#include "sipmss/algorithms/Cluster.h"
+#include "sipmss/algorithms/Simplify.h"
+
+#include <algorithm>
 
 #include "vtkInformationVector.h"
 #include "vtkObjectFactory.h"
@@ -17,39 +19,19 @@ vtkSIPMSSCluster::vtkSIPMSSCluster() = default;
 int vtkSIPMSSCluster::RequestData(
   vtkInformation*, vtkInformationVector** inputVector, vtkInformationVector* outputVector)
 {
-  vtkPolyData* output = vtkPolyData::GetData(outputVector, 0);
-  return this->Simplify(inputVector, output,
-    [this](const Source& source, bool haveBounds, const std::array<double, 6>& bounds,
-      sipmss::io::MeshSink& sink, const sipmss::storage::Profile& profile,
-      sipmss::algorithms::Progress& progress) {
-      sipmss::algorithms::ClusterOptions options;
-      options.maximumGridDimension = this->MaximumGridDimension;
-      options.storage = profile;
-      options.threads = this->NumberOfThreads;
-      options.boundaryQuadrics = this->BoundaryWeight > 0;
-      options.boundaryWeight = this->BoundaryWeight;
-      if (this->UseBounds)
-      {
-        options.useBounds = true;
-        std::copy_n(this->Bounds, 6, options.bounds.begin());
-      }
-      else if (haveBounds)
-      {
-        options.useBounds = true;
-        options.bounds = bounds;
-      }
-      return sipmss::algorithms::Cluster(source, sink, options, progress);
-    });
+  return this->Simplify(inputVector, vtkPolyData::GetData(outputVector, 0));
 }
 
-std::string vtkSIPMSSCluster::ParameterProblem()
+void vtkSIPMSSCluster::FillRequest(sipmss::algorithms::SimplifyRequest& request)
 {
-  std::string problem = FiniteProblem("BoundaryWeight", this->BoundaryWeight);
-  for (int k = 0; k < 6 && problem.empty() && this->UseBounds; ++k)
+  request.algorithm = sipmss::algorithms::Algorithm::Cluster;
+  request.grid = this->MaximumGridDimension;
+  request.boundaryWeight = this->BoundaryWeight;
+  if (this->UseBounds)
   {
-    problem = FiniteProblem("Bounds", this->Bounds[k]);
+    request.bounds.emplace();
+    std::copy_n(this->Bounds, 6, request.bounds->begin());
   }
-  return problem;
 }
 
 void vtkSIPMSSCluster::PrintSelf(ostream& os, vtkIndent indent)

@@ -58,7 +58,7 @@ protected:
 
   int RequestData(vtkInformation*, vtkInformationVector**, vtkInformationVector*) override;
 #ifndef __VTK_WRAP__
-  std::string ParameterProblem() override;
+  void FillRequest(sipmss::algorithms::SimplifyRequest& request) override;
 #endif
 
   int MaximumGridDimension = 50;

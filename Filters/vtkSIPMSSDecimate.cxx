@@ -2,8 +2,7 @@
 
 #include "vtkSIPMSSPolyDataBridge.h"
 
-#include "sipmss/algorithms/Decimate.h"
-#include "sipmss/algorithms/TwoStage.h"
+#include "sipmss/algorithms/Simplify.h"
 
 #include "vtkDataObject.h"
 #include "vtkInformation.h"
@@ -13,7 +12,8 @@
 #include "vtkObjectFactory.h"
 #include "vtkPolyData.h"
 
-#include <cmath>
+#include <limits>
+#include <string>
 
 vtkStandardNewMacro(vtkSIPMSSDecimate);
 
@@ -39,53 +39,35 @@ int vtkSIPMSSDecimate::RequestData(
   vtkMultiBlockDataSet* levels = vtkMultiBlockDataSet::GetData(outputVector, 1);
   levels->Initialize();
   return this->Simplify(inputVector, output,
-    [this, levels](const Source& source, bool, const std::array<double, 6>&,
-      sipmss::io::MeshSink& sink, const sipmss::storage::Profile& profile,
-      sipmss::algorithms::Progress& progress) {
-      sipmss::algorithms::DecimateOptions options;
-      options.targetTriangles = static_cast<std::uint64_t>(this->TargetNumberOfTriangles);
-      options.targetReduction = this->TargetReduction;
-      options.maximumError =
-        this->MaximumError >= VTK_DOUBLE_MAX ? std::numeric_limits<double>::infinity() : this->MaximumError;
-      options.levelsOfDetail = this->NumberOfLevelsOfDetail;
-      options.lockBoundary = this->LockBoundary;
-      options.boundaryWeight = this->BoundaryWeight;
-      options.weldDistance = this->WeldDistance;
-      options.storage = profile;
-      options.threads = this->NumberOfThreads;
-      auto onLevel = [this, levels](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
-        vtkNew<vtkPolyData> lod;
-        vtkSIPMSSPolyDataBridge::PolyDataSink lodSink(lod, this->InputPointData);
-        emit(lodSink);
-        levels->SetBlock(static_cast<unsigned int>(level), lod);
-        levels->GetMetaData(static_cast<unsigned int>(level))
-          ->Set(vtkMultiBlockDataSet::NAME(), ("LOD " + std::to_string(level)).c_str());
-      };
-      if (this->PreClusterGridDimension > 0)
-      {
-        sipmss::algorithms::TwoStageOptions two;
-        two.gridDimension = this->PreClusterGridDimension;
-        two.decimate = options;
-        return sipmss::algorithms::TwoStage(source, sink, two, progress, onLevel);
-      }
-      return sipmss::algorithms::Decimate(source, sink, options, progress, onLevel);
+    [this, levels](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
+      vtkNew<vtkPolyData> lod;
+      vtkSIPMSSPolyDataBridge::PolyDataSink lodSink(lod, this->InputPointData);
+      emit(lodSink);
+      levels->SetBlock(static_cast<unsigned int>(level), lod);
+      levels->GetMetaData(static_cast<unsigned int>(level))
+        ->Set(vtkMultiBlockDataSet::NAME(), ("LOD " + std::to_string(level)).c_str());
     });
 }
 
-std::string vtkSIPMSSDecimate::ParameterProblem()
+void vtkSIPMSSDecimate::FillRequest(sipmss::algorithms::SimplifyRequest& request)
 {
-  const std::pair<const char*, double> values[] = { { "TargetReduction", this->TargetReduction },
-    { "BoundaryWeight", this->BoundaryWeight }, { "WeldDistance", this->WeldDistance } };
-  for (const auto& [name, value] : values)
-  {
-    std::string problem = FiniteProblem(name, value);
-    if (!problem.empty())
-    {
-      return problem;
-    }
-  }
-  // MaximumError may be infinite (no bound), but not NaN
-  return std::isnan(this->MaximumError) ? "MaximumError must be a number, not nan" : std::string();
+  using sipmss::algorithms::Algorithm;
+  request.algorithm = this->PreClusterGridDimension > 0 ? Algorithm::TwoStage : Algorithm::Decimate;
+  request.grid = this->PreClusterGridDimension;
+  request.targetTriangles = static_cast<std::uint64_t>(this->TargetNumberOfTriangles);
+  request.targetReduction = this->TargetReduction;
+  request.maximumError =
+    this->MaximumError >= VTK_DOUBLE_MAX ? std::numeric_limits<double>::infinity() : this->MaximumError;
+  request.levelsOfDetail = this->NumberOfLevelsOfDetail;
+  request.lockBoundary = this->LockBoundary;
+  request.boundaryWeight = this->BoundaryWeight;
+  request.weldDistance = this->WeldDistance;
+}
+
+const char* vtkSIPMSSDecimate::PropertyName(sipmss::algorithms::Parameter parameter)
+{
+  return parameter == sipmss::algorithms::Parameter::Grid ? "PreClusterGridDimension"
+                                                         : this->Superclass::PropertyName(parameter);
 }
 
 void vtkSIPMSSDecimate::PrintSelf(ostream& os, vtkIndent indent)

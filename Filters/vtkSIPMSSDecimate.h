@@ -96,7 +96,8 @@ protected:
   int FillOutputPortInformation(int port, vtkInformation* info) override;
   int RequestData(vtkInformation*, vtkInformationVector**, vtkInformationVector*) override;
 #ifndef __VTK_WRAP__
-  std::string ParameterProblem() override;
+  void FillRequest(sipmss::algorithms::SimplifyRequest& request) override;
+  const char* PropertyName(sipmss::algorithms::Parameter parameter) override;
 #endif
 
   vtkIdType TargetNumberOfTriangles = 0;

@@ -10,7 +10,9 @@
 #include "vtkPolyData.h"
 #include "vtkSmartPointer.h"
 
-#include <cmath>
+#include "sipmss/algorithms/Simplify.h"
+
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -33,8 +35,36 @@ int vtkSIPMSSFilterBase::FillInputPortInformation(int port, vtkInformation* info
   return 1;
 }
 
+const char* vtkSIPMSSFilterBase::PropertyName(sipmss::algorithms::Parameter parameter)
+{
+  using sipmss::algorithms::Parameter;
+  switch (parameter)
+  {
+    case Parameter::TargetTriangles:
+      return "TargetNumberOfTriangles";
+    case Parameter::TargetReduction:
+      return "TargetReduction";
+    case Parameter::MaximumError:
+      return "MaximumError";
+    case Parameter::LevelsOfDetail:
+      return "NumberOfLevelsOfDetail";
+    case Parameter::Grid:
+      return "MaximumGridDimension";
+    case Parameter::Bounds:
+      return "Bounds";
+    case Parameter::BoundaryWeight:
+      return "BoundaryWeight";
+    case Parameter::WeldDistance:
+      return "WeldDistance";
+    case Parameter::MemoryBudget:
+      return "MemoryBudgetMB";
+    default:
+      return "NumberOfThreads";
+  }
+}
+
 int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyData* output,
-  const CoreRun& run)
+  const sipmss::algorithms::LevelCallback& onLevel)
 {
   namespace bridge = vtkSIPMSSPolyDataBridge;
   this->UsedInCore = this->UsedOutOfCore = false;
@@ -44,24 +74,38 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->Reordered = false;
   this->BytesRead = this->BytesWritten = this->Reconfigurations = 0;
   this->ElapsedSeconds = 0;
+  this->InputTriangles = this->OutputTriangles = 0;
+  this->AchievedReduction = 0;
 
-  // The same rules as the CLI's: NaN, infinities and meaningless values are errors.
-  std::string problem = sipmss::algorithms::MemoryBudgetProblem(this->MemoryBudgetMB);
-  if (!problem.empty())
+  // The request, and the same rules as the CLI's: NaN, infinities and meaningless values are
+  // errors before any work.
+  sipmss::algorithms::SimplifyRequest request;
+  request.memoryBudgetMB = this->MemoryBudgetMB;
+  if (const char* dirs = this->TemporaryDirectories)
   {
-    problem = "MemoryBudgetMB " + problem;
+    std::stringstream ss(dirs);
+    std::string d;
+    while (std::getline(ss, d, ';'))
+    {
+      if (!d.empty())
+      {
+        request.temporaryDirectories.push_back(d);
+      }
+    }
   }
-  else
+  request.mode = this->OperationMode == IN_CORE ? sipmss::storage::ModePolicy::InCore
+    : this->OperationMode == OUT_OF_CORE        ? sipmss::storage::ModePolicy::OutOfCore
+                                                : sipmss::storage::ModePolicy::Automatic;
+  request.threads = this->NumberOfThreads;
+  this->FillRequest(request);
+  const auto problems = sipmss::algorithms::Problems(request);
+  if (!problems.empty())
   {
-    problem = this->ParameterProblem();
-  }
-  if (!problem.empty())
-  {
-    vtkErrorMacro(<< problem << ".");
+    vtkErrorMacro(<< this->PropertyName(problems.front().parameter) << " "
+                  << problems.front().problem << ".");
     output->Initialize();
     return 0;
   }
-
   sipmss::algorithms::MeshSource source;
   vtkSmartPointer<vtkPolyData> repaired; // the input without the point arrays that cannot be read
   bool haveBounds = false;
@@ -175,13 +219,21 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     {
       bounds = bridge::Bounds(vtkPolyData::GetData(inputVector[0], 0));
     }
+    if (haveBounds && !request.bounds)
+    {
+      request.bounds = bounds; // (a clustering needs no bounds pass)
+    }
     const auto start = std::chrono::steady_clock::now();
-    const sipmss::storage::Profile profile = bridge::MakeProfile(this);
-    this->MemoryBudgetBytes = profile.memoryBudget;
-    sipmss::algorithms::RunStats stats = sipmss::algorithms::TranslateOutOfMemory(progress,
-      profile, [&] { return run(source, haveBounds, bounds, sink, profile, progress); });
+    sipmss::algorithms::RunStats stats =
+      sipmss::algorithms::Simplify(request, source, sink, progress, onLevel);
+    this->MemoryBudgetBytes = stats.memoryBudgetBytes;
     this->ElapsedSeconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    this->InputTriangles = stats.inputTriangles;
+    this->OutputTriangles = stats.outputTriangles;
+    this->AchievedReduction = stats.inputTriangles
+      ? 1.0 - double(stats.outputTriangles) / double(stats.inputTriangles)
+      : 0.0;
     this->LayoutFarFraction = stats.layoutFarFraction;
     this->Reordered = stats.reordered;
     this->UsedInCore = stats.storage.usedInCore;
@@ -218,12 +270,6 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   return 1;
 }
 
-std::string vtkSIPMSSFilterBase::FiniteProblem(const char* name, double value)
-{
-  return std::isfinite(value) ? std::string()
-                              : std::string(name) + " must be a finite number, not " + std::to_string(value);
-}
-
 void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
 {
   this->Superclass::PrintSelf(os, indent);
@@ -242,4 +288,7 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "Reordered: " << this->Reordered << "\n";
   os << indent << "PageHits: " << this->PageHits << "\n";
   os << indent << "PageMisses: " << this->PageMisses << "\n";
+  os << indent << "InputTriangles: " << this->InputTriangles << "\n";
+  os << indent << "OutputTriangles: " << this->OutputTriangles << "\n";
+  os << indent << "AchievedReduction: " << this->AchievedReduction << "\n";
 }

@@ -18,7 +18,7 @@
 class vtkPointData;
 class vtkPolyData;
 
-#include <array>      // for std::array
+#include <cstdint>    // for std::uint8_t
 #include <functional> // for std::function
 #include <string>     // for std::string
 
@@ -37,8 +37,8 @@ struct Profile;
 }
 namespace algorithms
 {
-struct RunStats;
-class Progress;
+struct SimplifyRequest;
+enum class Parameter : std::uint8_t;
 }
 }
 #endif
@@ -123,6 +123,10 @@ public:
   vtkGetMacro(BytesWritten, vtkTypeUInt64);
   vtkGetMacro(Reconfigurations, vtkTypeUInt64);
   vtkGetMacro(ElapsedSeconds, double);
+  // Triangles in and out, and the fraction of the input's triangles removed (0 before a run).
+  vtkGetMacro(InputTriangles, vtkTypeUInt64);
+  vtkGetMacro(OutputTriangles, vtkTypeUInt64);
+  vtkGetMacro(AchievedReduction, double);
   ///@}
 
 protected:
@@ -132,20 +136,17 @@ protected:
   int FillInputPortInformation(int port, vtkInformation* info) override;
 
 #ifndef __VTK_WRAP__
-  // Runs a core on the input port or FileName into output; fills the statistics, reports errors.
-  using Source = std::function<sipmss::io::ReadStats(
-    sipmss::io::MeshSink&, const sipmss::io::ReadOptions&)>; // = algorithms::MeshSource
-  using CoreRun = std::function<sipmss::algorithms::RunStats(const Source&, bool haveBounds,
-    const std::array<double, 6>& bounds, sipmss::io::MeshSink& output,
-    const sipmss::storage::Profile& profile, sipmss::algorithms::Progress& progress)>;
-  int Simplify(vtkInformationVector** inputVector, vtkPolyData* output, const CoreRun& run);
-  // What is wrong with the subclass's parameters (checked by Simplify before any work, after
-  // MemoryBudgetMB), or an empty string. The rules are the CLI's.
-  virtual std::string ParameterProblem() { return {}; }
-  // "NAME must be a finite number, not VALUE" for NaN and infinities, else empty.
-  static std::string FiniteProblem(const char* name, double value);
+  // The filter's request: the base fills the storage and thread properties, the subclass its
+  // algorithm and parameters (FillRequest). The request's rules (algorithms::Problems) are
+  // checked before any work and reported with PropertyName's names.
+  virtual void FillRequest(sipmss::algorithms::SimplifyRequest& request) = 0;
+  virtual const char* PropertyName(sipmss::algorithms::Parameter parameter);
+  // Runs the request on the input port or FileName into output (levels of detail through
+  // onLevel); fills the statistics, reports errors.
+  int Simplify(vtkInformationVector** inputVector, vtkPolyData* output,
+    const std::function<void(int level, const std::function<void(sipmss::io::MeshSink&)>& emit)>&
+      onLevel = nullptr);
 #endif
-
 #ifndef __VTK_WRAP__
   // During a run on the input port: the input's point data, whose arrays every output (also
   // a level of detail) rebuilds with their names, types and roles. Null for FileName runs.
@@ -171,6 +172,9 @@ protected:
   vtkTypeUInt64 BytesWritten = 0;
   vtkTypeUInt64 Reconfigurations = 0;
   double ElapsedSeconds = 0.0;
+  vtkTypeUInt64 InputTriangles = 0;
+  vtkTypeUInt64 OutputTriangles = 0;
+  double AchievedReduction = 0.0;
 
 private:
   vtkSIPMSSFilterBase(const vtkSIPMSSFilterBase&) = delete;

@@ -568,33 +568,4 @@ bool AlgorithmProgress::Aborted()
   return this->algorithm_->GetAbortExecute() != 0;
 }
 
-sipmss::storage::Profile MakeProfile(vtkSIPMSSFilterBase* f)
-{
-  sipmss::storage::Profile p;
-  sipmss::algorithms::ApplyMemoryBudget(f->GetMemoryBudgetMB(), p);
-  switch (f->GetOperationMode())
-  {
-    case vtkSIPMSSFilterBase::IN_CORE:
-      p.policy = sipmss::storage::ModePolicy::InCore;
-      break;
-    case vtkSIPMSSFilterBase::OUT_OF_CORE:
-      p.policy = sipmss::storage::ModePolicy::OutOfCore;
-      break;
-    default:
-      p.policy = sipmss::storage::ModePolicy::Automatic;
-  }
-  if (const char* dirs = f->GetTemporaryDirectories())
-  {
-    std::stringstream ss(dirs);
-    std::string d;
-    while (std::getline(ss, d, ';'))
-    {
-      if (!d.empty())
-      {
-        p.directories.push_back(d);
-      }
-    }
-  }
-  return p;
-}
 }

@@ -59,8 +59,6 @@ private:
   vtkAlgorithm* algorithm_;
 };
 
-// The storage profile from the filter's MemoryBudgetMB, TemporaryDirectories, OperationMode.
-sipmss::storage::Profile MakeProfile(vtkSIPMSSFilterBase* filter);
 }
 
 #endif

@@ -431,7 +431,24 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     "--algorithm cluster --reduction 0.5",
     "--algorithm cluster --lods 2",
     "--algorithm decimate --grid 100",           // decimate has no grid
-    "--algorithm two-stage --boundary-weight 1", // boundary quadrics are the clustering's
+    "--algorithm cluster --max-error 1",         // the options of decimation only
+    "--algorithm cluster --lock-boundary",
+    "--algorithm cluster --weld 0.1",
+    "--algorithm decimate --bounds 0 1 0 1 0 1", // the clustering's box
+    "--algorithm two-stage --bounds 0 1 0 1 0 1",
+    "--algorithm decimate --max-error nan",
+    "--algorithm decimate --max-error -1",
+    "--algorithm decimate --weld nan",
+    "--algorithm decimate --weld inf",
+    "--bounds 0 1 0 1 0 inf",
+    "--bounds 0 1 0 1 0",
+    "--mode sideways",
+    "--threads 257",
+    "--threads -1",
+    "--algorithm decimate --lods 65",
+    "--algorithm decimate --lods 0",
+    "--grid 65536",
+    "--boundary-weight -1",
     "--algorithm decimate --reduction nan",
     "--algorithm decimate --reduction inf",
     "--boundary-weight nan",
@@ -455,7 +472,13 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
   // what is meaningful still runs
   const char* good[] = { "--algorithm decimate --target 1", "--algorithm two-stage --grid 10 --target 4",
     "--algorithm decimate --reduction 0", "--memory-mb 0", "--memory-mb 0.0625", "--boundary-weight 1",
-    "--memory-mb auto", "--memory-mb unbounded", "--memory-mb -1" };
+    "--memory-mb auto", "--memory-mb unbounded", "--memory-mb -1",
+    "--algorithm two-stage --boundary-weight 1 --target 4", // stage 2's boundary quadrics
+    "--algorithm decimate --boundary-weight 0", "--algorithm decimate --max-error inf",
+    "--algorithm decimate --max-error 0.5 --lock-boundary --weld 0",
+    "--algorithm two-stage --grid 10 --lock-boundary --weld 0.01 --max-error 1",
+    "--bounds -2 2 -2 2 -2 2", "--mode in-core", "--mode out-of-core --memory-mb 1",
+    "--algorithm decimate --mode out-of-core --memory-mb 1 --threads 2" };
   for (const char* args : good)
   {
     Result r = RunCli(io + args);

@@ -1,6 +1,6 @@
 // sipmss-meshgen: inputs for the demo, the tests and the benchmarks.
 //
-//   sipmss-meshgen scan OUTPUT [--triangles N] [--order scanner|shuffled]
+//   sipmss-meshgen scan OUTPUT [--triangles N] [--order scanner|shuffled|rings]
 //       a closed, bumpy, scan-like surface (a displaced sphere) of about N triangles
 //   sipmss-meshgen subdivide INPUT OUTPUT [--levels L] [--displace D] [--order scanner|shuffled]
 //       midpoint subdivision (x4 triangles per level) with a small displacement along the normal
@@ -8,7 +8,10 @@
 //
 // "scanner" order: vertices sorted along the longest axis, faces by their first vertex (the way
 // volumetric reconstructions such as vrip write their output); "shuffled": random order.
-// This is a tool for making inputs: it holds the mesh in memory (unlike sipmss itself).
+// This is a tool for making inputs: it holds the mesh in memory (unlike sipmss itself), except
+// `scan --order rings`: the same kind of surface with its poles on the longest axis, written ring
+// by ring as it is generated (vertices along that axis, faces by their first ring), in a few MB
+// whatever its size: the 100M- to 1B-triangle inputs of the scale benchmarks.
 #include "sipmss/io/MeshIO.h"
 #include "sipmss/io/VectorSink.h"
 
@@ -17,6 +20,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
+#include <stdexcept>
+#include <string>
 #include <numeric>
 #include <random>
 #include <unordered_map>
@@ -32,16 +38,20 @@ struct Mesh
   std::vector<std::uint32_t> t;
 };
 
+// The displaced sphere's radius at polar angle th and azimuth ph.
+double ScanRadius(double th, double ph)
+{
+  return 1.0 + 0.08 * std::sin(5 * th) * std::cos(4 * ph) + 0.03 * std::sin(17 * th + 3 * ph) +
+    0.01 * std::cos(41 * ph) * std::sin(29 * th);
+}
+
 Mesh Scan(std::uint64_t triangles)
 {
   // UV sphere with n rings and 2n segments: about 4 n^2 triangles
   const int n = std::max(4, int(std::sqrt(double(triangles) / 4.0)));
   const int m = 2 * n;
   Mesh mesh;
-  auto radius = [](double th, double ph) {
-    return 1.0 + 0.08 * std::sin(5 * th) * std::cos(4 * ph) + 0.03 * std::sin(17 * th + 3 * ph) +
-      0.01 * std::cos(41 * ph) * std::sin(29 * th);
-  };
+  const auto radius = ScanRadius;
   mesh.p.insert(mesh.p.end(), { 0.f, 0.f, float(radius(0, 0)) });
   for (int i = 1; i < n; ++i)
   {
@@ -71,6 +81,89 @@ Mesh Scan(std::uint64_t triangles)
     }
   }
   return mesh;
+}
+
+// `scan --order rings`: n rings of 2n vertices between two poles on the x axis (the longest, as
+// in Scan), streamed to the writer ring by ring: about 4 n^2 triangles in O(chunk) memory.
+void WriteScanRings(std::uint64_t triangles, const std::string& path)
+{
+  const std::uint64_t n = std::max<std::uint64_t>(4, std::uint64_t(std::sqrt(double(triangles) / 4.0)));
+  const std::uint64_t m = 2 * n;
+  const std::uint64_t nv = 2 + (n - 1) * m;
+  const std::uint64_t nt = 2 * m + 2 * m * (n - 2);
+  if (nv > std::numeric_limits<std::uint32_t>::max())
+  {
+    throw std::runtime_error("too many vertices for 32-bit indices: " + std::to_string(nv));
+  }
+  auto w = io::MeshWriter::Create(path, false);
+  w->Begin(nv, nt, io::VertexLayout{});
+  const std::uint64_t chunk = 1 << 16;
+  std::vector<float> xyz;
+  xyz.reserve(3 * chunk);
+  std::uint64_t first = 0;
+  auto flushVertices = [&]() {
+    io::VertexChunk c;
+    c.first = first;
+    c.count = xyz.size() / 3;
+    c.xyz = xyz.data();
+    w->Vertices(c);
+    first += c.count;
+    xyz.clear();
+  };
+  auto vertex = [&](double th, double ph) {
+    const double r = ScanRadius(th, ph);
+    xyz.insert(xyz.end(), { float(1.3 * r * std::cos(th)), float(r * std::sin(th) * std::cos(ph)),
+                            float(r * std::sin(th) * std::sin(ph)) });
+    if (xyz.size() == 3 * chunk)
+    {
+      flushVertices();
+    }
+  };
+  vertex(0, 0);
+  for (std::uint64_t i = 1; i < n; ++i)
+  {
+    for (std::uint64_t j = 0; j < m; ++j)
+    {
+      vertex(M_PI * double(i) / double(n), 2 * M_PI * double(j) / double(m));
+    }
+  }
+  vertex(M_PI, 0);
+  flushVertices();
+  const std::uint32_t last = std::uint32_t(nv - 1);
+  auto id = [&](std::uint64_t i, std::uint64_t j) { return std::uint32_t(1 + (i - 1) * m + (j % m)); };
+  std::vector<std::uint32_t> t;
+  t.reserve(3 * chunk + 6);
+  auto emit = [&](std::initializer_list<std::uint32_t> v) {
+    t.insert(t.end(), v);
+    if (t.size() >= 3 * chunk)
+    {
+      w->Triangles(t.data(), t.size() / 3);
+      t.clear();
+    }
+  };
+  for (std::uint64_t j = 0; j < m; ++j)
+  {
+    emit({ 0, id(1, j), id(1, j + 1) });
+  }
+  for (std::uint64_t i = 1; i + 1 < n; ++i)
+  {
+    for (std::uint64_t j = 0; j < m; ++j)
+    {
+      emit({ id(i, j), id(i + 1, j), id(i + 1, j + 1) });
+      emit({ id(i, j), id(i + 1, j + 1), id(i, j + 1) });
+    }
+  }
+  for (std::uint64_t j = 0; j < m; ++j)
+  {
+    emit({ last, id(n - 1, j + 1), id(n - 1, j) });
+  }
+  if (!t.empty())
+  {
+    w->Triangles(t.data(), t.size() / 3);
+  }
+  w->End();
+  std::printf("sipmss-meshgen: wrote %s: %llu vertices, %llu triangles\n", path.c_str(),
+    (unsigned long long)nv, (unsigned long long)nt);
 }
 
 void Subdivide(Mesh& mesh, double displace)
@@ -212,7 +305,9 @@ int main(int argc, char** argv)
   auto* scan = app.add_subcommand("scan", "a bumpy closed scan-like surface");
   scan->add_option("OUTPUT", out)->required();
   scan->add_option("--triangles", triangles, "about this many triangles")->check(CLI::Range(16.0, 4e9));
-  scan->add_option("--order", order)->check(CLI::IsMember({ "scanner", "shuffled" }));
+  scan->add_option("--order", order,
+        "scanner, shuffled, or rings (streamed as generated, in bounded memory)")
+    ->check(CLI::IsMember({ "scanner", "shuffled", "rings" }));
   auto* sub = app.add_subcommand("subdivide", "midpoint subdivision with displacement");
   sub->add_option("INPUT", in)->required();
   sub->add_option("OUTPUT", out)->required();
@@ -229,6 +324,11 @@ int main(int argc, char** argv)
   }
   try
   {
+    if (*scan && order == "rings")
+    {
+      WriteScanRings(triangles, out);
+      return 0;
+    }
     Mesh mesh;
     if (*scan)
     {

@@ -1,8 +1,8 @@
 // sipmss: simplify huge triangle meshes under a fixed memory budget, compare and inspect meshes.
 //
-//   sipmss simplify INPUT OUTPUT [--algorithm cluster|decimate|two-stage] [--grid N] [--target N |
-//                  --reduction R] [--memory-mb MB] [--tmpdir DIR]... [--lods K]
-//                  [--stats-json FILE] [--quiet]
+//   sipmss simplify INPUT OUTPUT [--algorithm cluster|decimate|two-stage] [options by topic:
+//                  target, clustering, boundaries and welding, memory and storage, output;
+//                  `sipmss simplify --help`]
 //   sipmss compare REFERENCE CANDIDATE [--samples N]
 //   sipmss info FILE
 //   sipmss --version
@@ -10,8 +10,7 @@
 // Exit status: 0 success, 1 input or I/O error, 2 usage error.
 #include "sipmss/algorithms/Cluster.h"
 #include "sipmss/algorithms/Compare.h"
-#include "sipmss/algorithms/Decimate.h"
-#include "sipmss/algorithms/TwoStage.h"
+#include "sipmss/algorithms/Simplify.h"
 #include "sipmss/io/MeshIO.h"
 #include "sipmss/io/VectorSink.h"
 
@@ -357,44 +356,17 @@ void RefuseToOverwriteInput(const std::string& input, const std::vector<fs::path
   }
 }
 
-// Numeric options: NaN and infinities are refused (a Range alone lets NaN through).
-const CLI::Validator Finite(
-  [](std::string& value) {
-    double v = 0;
-    if (!CLI::detail::lexical_cast(value, v) || !std::isfinite(v))
-    {
-      return std::string("must be a finite number, not ") + value;
-    }
-    return std::string();
-  },
-  "FINITE");
-
-// "auto" (or 0: a share of the memory this process may use), "unbounded" (or -1), or MiB of at
-// least 64 KiB (a smaller budget would round to nothing).
-const CLI::Validator MemoryBudget(
-  [](std::string& value) {
-    double v = 0;
-    if (!algorithms::ParseMemoryBudget(value, v) || !std::isfinite(v))
-    {
-      return std::string("must be auto, unbounded or a number of MiB, not ") + value;
-    }
-    const std::string problem = algorithms::MemoryBudgetProblem(v);
-    return problem.empty() ? problem : problem.substr(0, problem.rfind(", not ")) + ", not " + value;
-  },
-  "auto|unbounded|MiB");
-
+// The command line of `simplify`: the request (the one every front end fills) and the CLI's own
+// paths and switches.
 struct SimplifyArgs
 {
-  std::string input, output, algorithm = "cluster", statsJson;
-  int grid = 0;
-  std::int64_t target = 0;
-  double reduction = -1;
+  std::string input, output, statsJson;
+  std::string algorithm = "cluster";
   std::string memory = "auto";
-  double boundaryWeight = 0;
-  std::vector<std::string> tmpdirs;
-  int lods = 1;
-  int threads = 0;
+  std::string mode = "auto";
+  std::vector<double> bounds;
   bool quiet = false;
+  algorithms::SimplifyRequest request;
 };
 
 // A path this run will write must be a writable place: its directory exists and is writable, and
@@ -431,7 +403,8 @@ void CheckWritablePath(const fs::path& path, const char* what)
 void CheckOutputs(const SimplifyArgs& a)
 {
   std::vector<fs::path> writes{ fs::path(a.output) };
-  for (int level = 0; level < a.lods && a.lods > 1; ++level)
+  const int lods = a.request.levelsOfDetail;
+  for (int level = 0; level < lods && lods > 1; ++level)
   {
     writes.push_back(LodPath(a.output, level));
   }
@@ -452,18 +425,15 @@ void CheckOutputs(const SimplifyArgs& a)
 int RunSimplify(const SimplifyArgs& a)
 {
   CheckOutputs(a);
+  const algorithms::SimplifyRequest& request = a.request;
   const bool tty = !a.quiet && ::isatty(STDERR_FILENO);
   TerminalProgress progress(tty);
-  storage::Profile profile;
-  double memoryMB = algorithms::kAutomaticMemoryBudget;
-  algorithms::ParseMemoryBudget(a.memory, memoryMB); // (checked by the option's validator)
-  algorithms::ApplyMemoryBudget(memoryMB, profile);
-  profile.directories = a.tmpdirs;
+  const std::vector<std::string>& tmpdirs = request.temporaryDirectories;
   const algorithms::MeshSource source =
-    algorithms::FileSource(a.input, a.tmpdirs.empty() ? std::string() : a.tmpdirs.front());
+    algorithms::FileSource(a.input, tmpdirs.empty() ? std::string() : tmpdirs.front());
   // Block directories left by runs that were killed (kill -9) are removed first.
   {
-    std::vector<std::string> dirs = a.tmpdirs;
+    std::vector<std::string> dirs = tmpdirs;
     if (dirs.empty())
     {
       const char* t = std::getenv("TMPDIR");
@@ -481,55 +451,17 @@ int RunSimplify(const SimplifyArgs& a)
 
   std::vector<std::unique_ptr<FileSink>> lodSinks;
   FileSink sink(WriteTarget(a.output));
-  algorithms::RunStats stats;
+  algorithms::LevelCallback onLevel;
+  if (request.levelsOfDetail > 1)
+  {
+    onLevel = [&](int level, const std::function<void(io::MeshSink&)>& emit) {
+      auto s = std::make_unique<FileSink>(WriteTarget(LodPath(a.output, level)));
+      emit(*s);
+      lodSinks.push_back(std::move(s));
+    };
+  }
   const auto start = std::chrono::steady_clock::now();
-  if (a.algorithm == "cluster")
-  {
-    algorithms::ClusterOptions o;
-    o.maximumGridDimension = a.grid > 0 ? a.grid : 50;
-    o.storage = profile;
-    o.boundaryQuadrics = a.boundaryWeight > 0;
-    o.boundaryWeight = a.boundaryWeight;
-    o.threads = a.threads;
-    stats = algorithms::Cluster(source, sink, o, progress);
-  }
-  else if (a.algorithm == "decimate" || a.algorithm == "two-stage")
-  {
-    algorithms::DecimateOptions o;
-    o.targetTriangles = static_cast<std::uint64_t>(a.target);
-    if (a.reduction >= 0)
-    {
-      o.targetReduction = a.reduction;
-    }
-    o.levelsOfDetail = a.lods;
-    o.storage = profile;
-    o.threads = a.threads;
-    std::function<void(int, const std::function<void(io::MeshSink&)>&)> onLevel;
-    if (a.lods > 1)
-    {
-      onLevel = [&](int level, const std::function<void(io::MeshSink&)>& emit) {
-        auto s = std::make_unique<FileSink>(WriteTarget(LodPath(a.output, level)));
-        emit(*s);
-        lodSinks.push_back(std::move(s));
-      };
-    }
-    if (a.algorithm == "decimate")
-    {
-      stats = algorithms::Decimate(source, sink, o, progress, onLevel);
-    }
-    else
-    {
-      algorithms::TwoStageOptions t;
-      t.gridDimension = a.grid > 0 ? a.grid : 300;
-      t.decimate = o;
-      t.threads = a.threads;
-      stats = algorithms::TwoStage(source, sink, t, progress, onLevel);
-    }
-  }
-  else
-  {
-    throw CLI::ValidationError("--algorithm", "unknown algorithm " + a.algorithm);
-  }
+  const algorithms::RunStats stats = algorithms::Simplify(request, source, sink, progress, onLevel);
   progress.Clear();
   const double seconds =
     std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -550,8 +482,8 @@ int RunSimplify(const SimplifyArgs& a)
     j["output_triangles"] = stats.outputTriangles;
     j["seconds"] = seconds;
     j["peak_rss_mb"] = PeakRssMB();
-    j["memory_budget_bytes"] = profile.memoryBudget;
-    j["memory_budget"] = profile.budgetOrigin.empty() ? std::string("given") : profile.budgetOrigin;
+    j["memory_budget_bytes"] = stats.memoryBudgetBytes;
+    j["memory_budget"] = stats.memoryBudgetOrigin.empty() ? std::string("given") : stats.memoryBudgetOrigin;
     // The input's layout: the share of faces far from their neighbours in index order (null: not
     // measured, the run fit in memory) and whether it was reordered first.
     if (stats.layoutFarFraction >= 0)
@@ -619,7 +551,7 @@ int RunSimplify(const SimplifyArgs& a)
                                   : "in core",
       disk);
     std::printf("sipmss: wrote %s\n", a.output.c_str());
-    if (a.lods > 1 && !lodSinks.empty())
+    if (request.levelsOfDetail > 1 && !lodSinks.empty())
     {
       std::printf("sipmss: wrote %zu levels of detail %s .. %s\n", lodSinks.size(),
         LodPath(a.output, 0).c_str(), LodPath(a.output, int(lodSinks.size()) - 1).c_str());
@@ -704,52 +636,79 @@ int main(int argc, char** argv)
   app.require_subcommand(1);
 
   SimplifyArgs sa;
+  algorithms::SimplifyRequest& rq = sa.request;
+  std::int64_t target = 0;
   CLI::App* simplify = app.add_subcommand("simplify", "simplify INPUT into OUTPUT");
   simplify->add_option("INPUT", sa.input, "PLY, STL or OBJ file (.gz too)")->required();
   simplify->add_option("OUTPUT", sa.output,
     "output file (.ply, .stl or .obj, optionally .gz); never the input file")->required();
-  simplify->add_option("--algorithm", sa.algorithm, "cluster, decimate or two-stage")
+  simplify->add_option("--algorithm", sa.algorithm, "cluster (default), decimate or two-stage")
     ->check(CLI::IsMember({ "cluster", "decimate", "two-stage" }));
-  auto* grid = simplify->add_option("--grid", sa.grid,
-    "cluster, two-stage: maximum grid dimension of the clustering (cluster: default 50; "
-    "two-stage: default 300)")
-    ->check(CLI::Range(1, 65535));
-  auto* target = simplify->add_option("--target", sa.target,
-    "decimate, two-stage: target triangle count (at least 1)")
-    ->check(CLI::Range(std::int64_t(1), std::numeric_limits<std::int64_t>::max()));
-  auto* reduction = simplify->add_option("--reduction", sa.reduction,
-    "decimate, two-stage: fraction of triangles to remove (default 0.9 without --target)")
-    ->check(Finite & CLI::Range(0.0, 1.0))
-    ->excludes(target);
-  auto* boundaryWeight = simplify->add_option("--boundary-weight", sa.boundaryWeight,
-    "cluster: boundary quadrics of this weight keep holes in place (0 = off; slower)")
-    ->check(Finite & CLI::Range(0.0, 1e9));
-  simplify->add_option("--memory-mb", sa.memory,
+  // The options, grouped by topic, are those of the filters (docs/architecture.md, "One
+  // request"); their ranges and messages are algorithms::Problems', checked once parsed.
+  CLI::Option_group* targets = simplify->add_option_group("Target",
+    "decimate and two-stage: how far to simplify");
+  auto* targetOption = targets->add_option("--target", target,
+    "stop at this many triangles (at least 1)");
+  auto* reduction = targets->add_option("--reduction", rq.targetReduction,
+    "fraction of the triangles to remove (default 0.9 without --target)")
+    ->excludes(targetOption);
+  auto* maxError = targets->add_option("--max-error", rq.maximumError,
+    "stop when the cheapest collapse costs more than this quadric error (a squared distance in "
+    "the input's units; default: no bound)");
+  auto* lods = targets->add_option("--lods", rq.levelsOfDetail,
+    "levels of detail, written as OUTPUT_lodK (default 1)");
+  CLI::Option_group* clustering = simplify->add_option_group("Clustering",
+    "cluster and two-stage: the grid");
+  auto* grid = clustering->add_option("--grid", rq.grid,
+    "maximum grid dimension (cells along the longest axis; cluster: default 50, two-stage: "
+    "default 300)");
+  auto* bounds = clustering->add_option("--bounds", sa.bounds,
+    "cluster: the grid's box, xmin xmax ymin ymax zmin zmax (default: the input's bounds)")
+    ->expected(6)
+    ->allow_extra_args(false);
+  CLI::Option_group* boundaries = simplify->add_option_group("Boundaries and welding");
+  boundaries->add_option("--boundary-weight", rq.boundaryWeight,
+    "weight of the boundary quadrics that keep holes in place (cluster: default 0 = off, slower "
+    "when on; decimate, two-stage: default 100)");
+  auto* lockBoundary = boundaries->add_flag("--lock-boundary", rq.lockBoundary,
+    "decimate, two-stage: boundary vertices never move");
+  auto* weld = boundaries->add_option("--weld", rq.weldDistance,
+    "decimate, two-stage: weld input vertices closer than this distance first (default: off)");
+  CLI::Option_group* storageGroup = simplify->add_option_group("Memory and storage");
+  storageGroup->add_option("--memory-mb", sa.memory,
     "memory budget in MiB (at least 0.0625), auto (= 0, the default: half of what this process "
     "may use: the lowest of the cgroup limit, ulimit -v/-d and MemAvailable) or unbounded "
     "(= -1: always in core)")
-    ->check(MemoryBudget)
     ->capture_default_str();
   // One directory per --tmpdir (repeat it for more): a list option would also swallow the
   // positionals after it (`--tmpdir /scratch in.ply out.ply`).
-  simplify->add_option("--tmpdir", sa.tmpdirs, "directory for out-of-core files (repeatable)")
+  storageGroup->add_option("--tmpdir", rq.temporaryDirectories,
+    "directory for out-of-core files (repeatable; one that is missing, read-only or full is "
+    "skipped)")
     ->expected(1)
     ->allow_extra_args(false)
     ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
-  auto* lods = simplify->add_option("--lods", sa.lods,
-    "decimate, two-stage: levels of detail, written as OUTPUT_lodK")
-    ->check(CLI::Range(1, 64));
-  simplify->add_option("--stats-json", sa.statsJson, "write run statistics as JSON");
-  simplify->add_option("--threads", sa.threads,
-    "threads (0 = all cores; the output does not depend on it)")
-    ->check(CLI::Range(0, 256));
-  simplify->add_flag("--quiet", sa.quiet, "no progress bar and no summary");
-  // An option that does not apply to the chosen algorithm is a usage error, not ignored.
+  storageGroup->add_option("--mode", sa.mode,
+    "auto (default: in core when the data fits the budget), in-core or out-of-core")
+    ->check(CLI::IsMember({ "auto", "in-core", "out-of-core" }))
+    ->capture_default_str();
+  storageGroup->add_option("--threads", rq.threads,
+    "threads (0 = all cores, the default; the output does not depend on it)");
+  CLI::Option_group* report = simplify->add_option_group("Output");
+  report->add_option("--stats-json", sa.statsJson, "write run statistics as JSON");
+  report->add_flag("--quiet", sa.quiet, "no progress bar and no summary");
+  // Once parsed: the request is complete, an option that does not apply to the chosen algorithm
+  // is a usage error (not ignored), and the request's own rules hold.
   simplify->callback([&]() {
-    const bool cluster = sa.algorithm == "cluster";
-    const std::pair<CLI::Option*, bool> applies[] = { { grid, sa.algorithm != "decimate" },
-      { target, !cluster }, { reduction, !cluster }, { lods, !cluster },
-      { boundaryWeight, cluster } };
+    rq.algorithm = sa.algorithm == "decimate" ? algorithms::Algorithm::Decimate
+      : sa.algorithm == "two-stage"           ? algorithms::Algorithm::TwoStage
+                                              : algorithms::Algorithm::Cluster;
+    const bool cluster = rq.algorithm == algorithms::Algorithm::Cluster;
+    const std::pair<CLI::Option*, bool> applies[] = {
+      { grid, rq.algorithm != algorithms::Algorithm::Decimate }, { bounds, cluster },
+      { targetOption, !cluster }, { reduction, !cluster }, { maxError, !cluster },
+      { lods, !cluster }, { lockBoundary, !cluster }, { weld, !cluster } };
     for (const auto& [option, ok] : applies)
     {
       if (option->count() > 0 && !ok)
@@ -757,6 +716,32 @@ int main(int argc, char** argv)
         throw CLI::ValidationError(option->get_name(),
           "does not apply to --algorithm " + sa.algorithm + " (see sipmss simplify --help)");
       }
+    }
+    if (targetOption->count() > 0 && target < 1)
+    {
+      throw CLI::ValidationError("--target", "must be at least 1, not " + std::to_string(target));
+    }
+    rq.targetTriangles = static_cast<std::uint64_t>(std::max<std::int64_t>(target, 0));
+    if (grid->count() > 0 && rq.grid < 1)
+    {
+      throw CLI::ValidationError("--grid", "must be at least 1, not " + std::to_string(rq.grid));
+    }
+    if (!sa.bounds.empty())
+    {
+      rq.bounds.emplace();
+      std::copy_n(sa.bounds.begin(), 6, rq.bounds->begin());
+    }
+    if (!algorithms::ParseMemoryBudget(sa.memory, rq.memoryBudgetMB))
+    {
+      throw CLI::ValidationError(
+        "--memory-mb", "must be auto, unbounded or a number of MiB, not " + sa.memory);
+    }
+    rq.mode = sa.mode == "in-core" ? storage::ModePolicy::InCore
+      : sa.mode == "out-of-core"   ? storage::ModePolicy::OutOfCore
+                                   : storage::ModePolicy::Automatic;
+    for (const auto& p : algorithms::Problems(rq))
+    {
+      throw CLI::ValidationError(algorithms::CliOption(p.parameter), p.problem);
     }
   });
 

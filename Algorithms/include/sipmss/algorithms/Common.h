@@ -208,6 +208,10 @@ struct RunStats
   std::uint64_t droppedInputFaces = 0;
   std::vector<PhaseStat> phases;
   storage::Stats storage; // the DML's statistics at the end of the run (peak, hits, misses, ...)
+  // The budget the run had (bytes, 0: unbounded) and how it was chosen (empty: given), as
+  // Simplify() computed it once for the run.
+  std::uint64_t memoryBudgetBytes = 0;
+  std::string memoryBudgetOrigin;
 };
 
 // Times one phase and records the DML mode in use when it ends.

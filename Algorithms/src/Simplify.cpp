@@ -1,0 +1,206 @@
+#include "sipmss/algorithms/Simplify.h"
+
+#include <cmath>
+#include <sstream>
+
+namespace sipmss::algorithms
+{
+
+const char* ToString(Algorithm a)
+{
+  switch (a)
+  {
+    case Algorithm::Decimate:
+      return "decimate";
+    case Algorithm::TwoStage:
+      return "two-stage";
+    default:
+      return "cluster";
+  }
+}
+
+int SimplifyRequest::EffectiveGrid() const
+{
+  if (this->grid > 0)
+  {
+    return this->grid;
+  }
+  return this->algorithm == Algorithm::TwoStage ? kDefaultTwoStageGrid : kDefaultClusterGrid;
+}
+
+double SimplifyRequest::EffectiveBoundaryWeight() const
+{
+  if (this->boundaryWeight)
+  {
+    return *this->boundaryWeight;
+  }
+  return this->algorithm == Algorithm::Cluster ? kDefaultClusterBoundaryWeight
+                                               : kDefaultDecimateBoundaryWeight;
+}
+
+const char* CliOption(Parameter p)
+{
+  switch (p)
+  {
+    case Parameter::TargetTriangles:
+      return "--target";
+    case Parameter::TargetReduction:
+      return "--reduction";
+    case Parameter::MaximumError:
+      return "--max-error";
+    case Parameter::LevelsOfDetail:
+      return "--lods";
+    case Parameter::Grid:
+      return "--grid";
+    case Parameter::Bounds:
+      return "--bounds";
+    case Parameter::BoundaryWeight:
+      return "--boundary-weight";
+    case Parameter::WeldDistance:
+      return "--weld";
+    case Parameter::MemoryBudget:
+      return "--memory-mb";
+    default:
+      return "--threads";
+  }
+}
+
+namespace
+{
+std::string Shown(double v)
+{
+  std::ostringstream s;
+  s << v;
+  return s.str();
+}
+
+// The words of each rule (after the parameter's name).
+std::string FiniteInRange(double v, double lo, double hi)
+{
+  if (!std::isfinite(v))
+  {
+    return "must be a finite number, not " + Shown(v);
+  }
+  if (v < lo || v > hi)
+  {
+    return "must be between " + Shown(lo) + " and " + Shown(hi) + ", not " + Shown(v);
+  }
+  return {};
+}
+
+std::string IntegerInRange(long long v, long long lo, long long hi)
+{
+  if (v < lo || v > hi)
+  {
+    return "must be between " + std::to_string(lo) + " and " + std::to_string(hi) + ", not " +
+      std::to_string(v);
+  }
+  return {};
+}
+} // namespace
+
+std::vector<ParameterProblem> Problems(const SimplifyRequest& r)
+{
+  std::vector<ParameterProblem> out;
+  auto check = [&](Parameter p, std::string problem) {
+    if (!problem.empty())
+    {
+      out.push_back({ p, std::move(problem) });
+    }
+  };
+  check(Parameter::MemoryBudget, MemoryBudgetProblem(r.memoryBudgetMB));
+  check(Parameter::TargetReduction, FiniteInRange(r.targetReduction, 0, 1));
+  if (std::isnan(r.maximumError) || r.maximumError < 0)
+  {
+    check(Parameter::MaximumError,
+      "must be a number of at least 0 (infinite: no bound), not " + Shown(r.maximumError));
+  }
+  check(Parameter::LevelsOfDetail, IntegerInRange(r.levelsOfDetail, 1, kMaximumLevelsOfDetail));
+  check(Parameter::Grid, IntegerInRange(r.grid, 0, kMaximumGrid));
+  if (r.bounds)
+  {
+    for (int k = 0; k < 6; ++k)
+    {
+      if (!std::isfinite((*r.bounds)[k]))
+      {
+        check(Parameter::Bounds, "must be finite numbers, not " + Shown((*r.bounds)[k]));
+        break;
+      }
+    }
+  }
+  if (r.boundaryWeight)
+  {
+    check(Parameter::BoundaryWeight, FiniteInRange(*r.boundaryWeight, 0, 1e9));
+  }
+  if (!std::isfinite(r.weldDistance))
+  {
+    check(Parameter::WeldDistance,
+      "must be a finite number (negative: no welding), not " + Shown(r.weldDistance));
+  }
+  check(Parameter::Threads, IntegerInRange(r.threads, 0, kMaximumThreads));
+  return out;
+}
+
+storage::Profile MakeProfile(const SimplifyRequest& r)
+{
+  storage::Profile p;
+  ApplyMemoryBudget(r.memoryBudgetMB, p);
+  p.directories = r.temporaryDirectories;
+  p.policy = r.mode;
+  return p;
+}
+
+namespace
+{
+RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const MeshSource& input,
+  io::MeshSink& output, Progress& progress, const LevelCallback& onLevel)
+{
+  if (r.algorithm == Algorithm::Cluster)
+  {
+    ClusterOptions o;
+    o.maximumGridDimension = r.EffectiveGrid();
+    o.storage = profile;
+    o.boundaryWeight = r.EffectiveBoundaryWeight();
+    o.boundaryQuadrics = o.boundaryWeight > 0;
+    o.threads = r.threads;
+    if (r.bounds)
+    {
+      o.useBounds = true;
+      o.bounds = *r.bounds;
+    }
+    return Cluster(input, output, o, progress);
+  }
+  DecimateOptions o;
+  o.targetTriangles = r.targetTriangles;
+  o.targetReduction = r.targetReduction;
+  o.maximumError = r.maximumError;
+  o.levelsOfDetail = r.levelsOfDetail;
+  o.lockBoundary = r.lockBoundary;
+  o.boundaryWeight = r.EffectiveBoundaryWeight();
+  o.weldDistance = r.weldDistance;
+  o.storage = profile;
+  o.threads = r.threads;
+  if (r.algorithm == Algorithm::Decimate)
+  {
+    return Decimate(input, output, o, progress, onLevel);
+  }
+  TwoStageOptions t;
+  t.gridDimension = r.EffectiveGrid();
+  t.threads = r.threads;
+  t.decimate = o;
+  return TwoStage(input, output, t, progress, onLevel);
+}
+} // namespace
+
+RunStats Simplify(const SimplifyRequest& request, const MeshSource& input, io::MeshSink& output,
+  Progress& progress, const LevelCallback& onLevel)
+{
+  const storage::Profile profile = MakeProfile(request);
+  RunStats stats = TranslateOutOfMemory(
+    progress, profile, [&] { return Run(request, profile, input, output, progress, onLevel); });
+  stats.memoryBudgetBytes = profile.memoryBudget;
+  stats.memoryBudgetOrigin = profile.budgetOrigin;
+  return stats;
+}
+
+} // namespace sipmss::algorithms
