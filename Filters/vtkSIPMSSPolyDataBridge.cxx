@@ -1,7 +1,5 @@
 #include "vtkSIPMSSPolyDataBridge.h"
 
-#include "vtkSIPMSSFilterBase.h"
-
 #include "vtkAlgorithm.h"
 #include "vtkCellArray.h"
 #include "vtkCellArrayIterator.h"

@@ -9,7 +9,6 @@
 class vtkAlgorithm;
 class vtkPointData;
 class vtkPolyData;
-class vtkSIPMSSFilterBase;
 
 namespace vtkSIPMSSPolyDataBridge
 {
