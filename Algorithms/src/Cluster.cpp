@@ -16,6 +16,7 @@
 #include "StoredMesh.h"
 
 #include "sipmss/algorithms/Prefetch.h"
+#include "sipmss/storage/Threads.h"
 
 #include <Eigen/Dense>
 
@@ -1180,8 +1181,7 @@ namespace
 RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
   Progress& progress)
 {
-  const int threads =
-    options.threads > 0 ? options.threads : static_cast<int>(std::thread::hardware_concurrency());
+  const int threads = storage::ResolveThreads(options.threads);
   const MeshSource input = threads > 1 ? Prefetched(source) : source;
   RunStats stats;
   std::optional<DML> own;

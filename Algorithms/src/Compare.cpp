@@ -1,5 +1,6 @@
 // Metro-style mesh comparison; see Compare.h for the method.
 #include "sipmss/algorithms/Compare.h"
+#include "sipmss/storage/Threads.h"
 
 #include <algorithm>
 #include <atomic>
@@ -296,15 +297,7 @@ struct ChunkStats
   double sum = 0, sumSq = 0, max = 0;
 };
 
-int ResolveThreads(int threads)
-{
-  if (threads > 0)
-  {
-    return threads;
-  }
-  const unsigned hw = std::thread::hardware_concurrency();
-  return hw == 0 ? 1 : static_cast<int>(hw);
-}
+using storage::ResolveThreads;
 
 // Runs body(chunk) for chunk in [0, count) on up to `threads` threads (the caller included).
 template <typename Body>

@@ -58,6 +58,7 @@
 // progress is monotonic and about linear in time (Progress::BeginPhase).
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Placement.h"
+#include "sipmss/storage/Threads.h"
 
 #include "StoredMesh.h"
 
@@ -824,8 +825,7 @@ public:
     , hist_(kCostBins, 0)
   {
     this->cosThreshold_ = options.minNormalCosine;
-    this->threads_ = options.threads > 0 ? options.threads
-                                         : int(std::max(1u, std::thread::hardware_concurrency()));
+    this->threads_ = storage::ResolveThreads(options.threads);
     this->threads_ = std::min(this->threads_, 16);
   }
 

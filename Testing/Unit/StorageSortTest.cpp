@@ -5,6 +5,7 @@
 
 #include "sipmss/storage/DML.h"
 #include "sipmss/storage/Sort.h"
+#include "sipmss/storage/Threads.h"
 
 #include <gtest/gtest.h>
 
@@ -14,6 +15,7 @@
 #include <random>
 #include <stdexcept>
 #include <string>
+#include <thread>
 #include <vector>
 
 namespace
@@ -334,3 +336,12 @@ TEST(StorageSort, TooSmallABudgetIsAClearError)
 }
 
 } // namespace
+
+TEST(StorageThreads, OneRuleForTheThreadCount)
+{
+  EXPECT_EQ(sipmss::storage::ResolveThreads(3), 3);
+  EXPECT_EQ(sipmss::storage::ResolveThreads(1), 1);
+  const int cores = static_cast<int>(std::thread::hardware_concurrency());
+  EXPECT_EQ(sipmss::storage::ResolveThreads(0), cores > 0 ? cores : 1);
+  EXPECT_EQ(sipmss::storage::ResolveThreads(-5), sipmss::storage::ResolveThreads(0));
+}

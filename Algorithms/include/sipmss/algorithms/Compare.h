@@ -55,7 +55,7 @@ struct CompareOptions
   // Samples per side. 0: max(1e5, 2 * triangles of the larger mesh), capped at 2e6.
   std::uint64_t samples = 0;
   std::uint64_t seed = 1;
-  int threads = 0; // <= 0: std::thread::hardware_concurrency()
+  int threads = 0; // <= 0: every core (storage::ResolveThreads)
 };
 
 struct CompareResult

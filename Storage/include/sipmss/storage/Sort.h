@@ -16,6 +16,7 @@
 #pragma once
 
 #include "sipmss/storage/DML.h"
+#include "sipmss/storage/Threads.h"
 
 #include <algorithm>
 #include <atomic>
@@ -118,8 +119,7 @@ void SortInMemory(T* data, std::uint64_t n, Less& less, const SortPoll& poll, do
 template <class T, class Less>
 void SortInMemoryParallel(T* data, std::uint64_t n, Less& less, const SortPoll& poll, int threads)
 {
-  if (n < (std::uint64_t(1) << 20) || threads == 1 ||
-    (threads <= 0 && std::thread::hardware_concurrency() < 2))
+  if (n < (std::uint64_t(1) << 20) || ResolveThreads(threads) < 2)
   {
     SortInMemory(data, n, less, poll, 0.0, 1.0);
     return;
