@@ -1,0 +1,985 @@
+// Algorithm I of SIPMSS (the decimation's private header: its state, its types and the map of
+// its passes): a linear-time iterative full edge collapse with quadric error metrics,
+// written against the DML so that it runs in core or out of core with identical results.
+//
+// Stages (paper section 4.1):
+//   read      the source is streamed into DML blocks: positions as doubles relative to the first
+//             vertex (exact for float input), triangles, packed point attributes. Blocks grow
+//             with Resize when the source does not announce its counts (OBJ, STL, gzip), and
+//             vertices and triangles may interleave (OBJ).
+//   [weld]    optional (weldDistance >= 0): a spatial hash in the DML joins close vertices.
+//   rings     one pass over the faces validates them, drops zero-area ones and counts degrees;
+//             a prefix sum gives CSR offsets; a second pass fills the incident face lists.
+//             Faces on one vertex set: copies of one orientation become one face; a double-
+//             sided pair (opposite orientations) cancels where other faces already close its
+//             edges (zero-volume pillows in scans) and keeps the face that matches its neighbour
+//             where cancelling would open a hole (thin parts folded by clustering).
+//   quadrics  area-weighted face plane quadrics (one per face, added to its corners in face
+//             order), boundary constraint quadrics (plane through the edge perpendicular to its
+//             face, weight boundaryWeight * |edge|^2), options.initialQuadric. Vertices on an edge
+//             with > 2 faces, or where several boundary fans meet, are flagged kComplex: their
+//             edges are counted before a collapse; a non-manifold edge collapses like any other
+//             under the link condition (its common neighbours are exactly the vertices opposite
+//             it, and no two of those faces become duplicates).
+//   collapse  passes without a global priority queue. Each pass
+//               1. keeps for every vertex its cheapest collapse (and the second cheapest edge):
+//                  optimal placement from the summed quadric when well conditioned, else the
+//                  best point of the segment, endpoints preferred on ties. Incremental and exact:
+//                  only the survivors of the last pass and vertices whose best and second best
+//                  both pointed at a collapsed pair evaluate their edges (each edge once);
+//               2. orders the cheapest candidates (about twice the collapses the pass needs) by
+//                  a counting sort on the cost's float bits: a cost quantile as threshold, linear
+//                  time, deterministic;
+//               3. collapses them in that order while the pass goal is not met, checking legality
+//                  then (link condition, no tetrahedron collapse, no vanishing component, no
+//                  normal flip or excessive turn, no zero-area face, boundary rules). The two
+//                  endpoints of a collapse are busy for the rest of the pass (the survivor's ring
+//                  list is stale until step 4); a candidate with a busy endpoint is skipped.
+//                  Neighbours stay free: their rings are exact (faces are relabelled in place)
+//                  and their candidates' costs unchanged, and legality is checked against the
+//                  current positions, so collapses of one pass may share faces and a pass
+//                  removes up to about a third of the triangles. Passes that cannot end on a
+//                  level go group by group through fixed vertex chunks: a collapse whose
+//                  endpoints and ring vertices all lie in one chunk touches only that chunk's
+//                  data, so the chunks run at once (in core: on all cores); the others run one
+//                  at a time after each round, in order;
+//               4. compacts the live vertices and faces (in place, order kept), shrinks the
+//                  blocks, rebuilds the rings and calls Reconfigure(): the run moves in core as
+//                  the mesh shrinks.
+//             A pass removes at most passFraction of the triangles (farPassFraction while the
+//             mesh has more than farRatio times the level's) and never goes below the next
+//             level's target, so levels and the final target are met exactly (or one below).
+//             In core, the rings (validation, fill, duplicate search), the quadrics, the sweep,
+//             the step's chunks and compaction (by vertex range or by array) run on all cores;
+//             the output is the same for any thread count and storage mode.
+//   write     the final level is streamed to the output sink.
+// Every loop over many elements ticks the progress (abort within a few milliseconds). Each
+// phase and each step of a pass announces its work (kWork: measured seconds per element) and an
+// estimate of the rest of the run (the remaining passes simulated with the pass schedule): the
+// progress is monotonic and about linear in time (Progress::BeginPhase).
+//
+// Files: this header (the types, the Decimator's members and its per-thread scratch), read and
+// weld (Read.cpp), rings and quadrics (Rings.cpp), the candidate sweep (Sweep.cpp), the collapse
+// step and the passes (Step.cpp), compaction and output (Compact.cpp), the schedule, the run
+// and the entry points (../Decimate.cpp).
+#pragma once
+
+#include "sipmss/algorithms/Decimate.h"
+#include "sipmss/algorithms/Placement.h"
+#include "sipmss/storage/Threads.h"
+
+#include "../StoredMesh.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <ctime>
+#include <limits>
+#include <memory>
+#include <atomic>
+#include <condition_variable>
+#include <exception>
+#include <functional>
+#include <initializer_list>
+#include <mutex>
+#include <string>
+#include <system_error>
+#include <thread>
+#include <vector>
+
+namespace sipmss::algorithms::decimate
+{
+using placement::PlaceLanes;
+using placement::PlaceOut;
+#ifdef SIPMSS_LANES
+using placement::Lanes2;
+#endif
+using storage::Array;
+using storage::BlockId;
+using storage::DML;
+
+constexpr std::uint32_t kNone = 0xffffffffu;
+constexpr int kCostBins = 1 << 15;
+constexpr int kGroups = 4;
+// Step 3 in chunks (StepChunks): by default at most kStepChunks chunks of at least
+// kStepChunkMinSize vertices (measured on Dragon-size: 8192 defers 4x more collapses to the
+// sequential part than 32768), for passes over at least two chunks; the last kStepTail faces of
+// a pass's goal are collapsed one at a time.
+constexpr std::uint64_t kStepChunks = 64;
+constexpr std::uint64_t kStepChunkMinSize = 32768;
+constexpr std::uint64_t kStepTail = 4096;
+// LegalFaces compares every vertex of one ring with every face of the other: above this product
+// of the two rings' face counts (vertices of very high valence), Legal's sorted tables instead.
+constexpr std::size_t kLegalFacesMax = 1024;
+// A collapse whose two vertices have more faces than this in their rings (the lists built at
+// the start of the pass) is not made: legality reads both rings, and a vertex of valence
+// 200,000 (a fan) would cost that much on each of its neighbours' attempts. Its neighbours'
+// collapses bring its valence down until it can collapse too. Scans have rings of 4 to 20.
+constexpr std::uint32_t kMaxCollapseRing = 4096;
+// The face split of the collapse rounds (FaceSplit) is used when at most 1 face in this many is
+// on the wrong side of it.
+constexpr std::uint64_t kSplitWrongShare = 256;
+// BuildRings' passes 1 and 3 run on all cores from this many faces.
+constexpr std::uint64_t kParallelRingsMin = 65536;
+// Compact runs on several threads from this many vertices.
+constexpr std::uint64_t kParallelCompactMin = 65536;
+
+// Per-vertex state bits.
+using State = std::uint16_t;
+constexpr State kRemoved = 1;      // collapsed into another vertex during this pass
+constexpr State kMarked = 2;       // touched by a collapse of this pass
+constexpr State kBoundary = 4;     // has boundary edges
+constexpr State kLocked = 8;       // never collapsed (reserved: nothing sets it at present)
+constexpr State kFixed = 16;       // lockBoundary: never moves, never removed (may absorb)
+constexpr State kNeedsLegal = 32;  // its cheapest collapse was illegal: evaluate with legality
+constexpr State kSurvivor = 64;    // survived a collapse of the last pass: all its edges changed
+constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edges
+constexpr State kCollapsed = 256;  // survived a collapse of this pass
+constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
+constexpr State kPromote = 1024;   // its best partner collapsed: its second best became the best
+constexpr State kDeferred = 2048;  // step 3: its collapse leaves its chunk, it runs after the round
+// An endpoint of a collapse of this pass: its ring in the CSR is stale until Compact.
+constexpr State kBusy = kRemoved | kCollapsed;
+// Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
+inline bool Active(State s)
+{
+  return (s & (kSurvivor | kRecompute)) != 0 && (s & (kNeedsLegal | kLocked)) == 0;
+}
+
+struct Vec3
+{
+  double x, y, z;
+};
+inline Vec3 operator-(const Vec3& a, const Vec3& b)
+{
+  return { a.x - b.x, a.y - b.y, a.z - b.z };
+}
+inline Vec3 operator+(const Vec3& a, const Vec3& b)
+{
+  return { a.x + b.x, a.y + b.y, a.z + b.z };
+}
+inline Vec3 operator*(double s, const Vec3& a)
+{
+  return { s * a.x, s * a.y, s * a.z };
+}
+inline double Dot(const Vec3& a, const Vec3& b)
+{
+  return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+inline Vec3 Cross(const Vec3& a, const Vec3& b)
+{
+  return { a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x };
+}
+
+// The corner after and before corner c of a triangle: (c + 1) % 3 and (c + 2) % 3.
+constexpr int kNextCorner[3] = { 1, 2, 0 };
+constexpr int kPrevCorner[3] = { 2, 0, 1 };
+
+struct Tri
+{
+  std::uint32_t v[3];
+};
+inline bool Alive(const Tri& t)
+{
+  return t.v[0] != kNone;
+}
+inline bool Has(const Tri& t, std::uint32_t x)
+{
+  return t.v[0] == x || t.v[1] == x || t.v[2] == x;
+}
+constexpr Tri kDeadTri = { { kNone, kNone, kNone } };
+// The corner of t that is x (which appears once in a live face); no branches: which corner it is
+// is random, and a mispredicted branch here cost 6% of a run.
+inline int CornerOf(const Tri& t, std::uint32_t x)
+{
+  return int(t.v[1] == x) + 2 * int(t.v[2] == x);
+}
+
+// Symmetric 4x4 quadric, upper triangle row by row:
+// a00 a01 a02 b0 | a11 a12 b1 | a22 b2 | c  ->  E(p) = p^T A p + 2 b.p + c
+struct Quadric
+{
+  double q[10];
+};
+inline void AddTo(Quadric& dst, const Quadric& src)
+{
+  for (int i = 0; i < 10; ++i)
+  {
+    dst.q[i] += src.q[i];
+  }
+}
+inline void AddPlane(Quadric& Q, const Vec3& n, double d, double w)
+{
+  double* q = Q.q;
+  q[0] += w * n.x * n.x;
+  q[1] += w * n.x * n.y;
+  q[2] += w * n.x * n.z;
+  q[3] += w * n.x * d;
+  q[4] += w * n.y * n.y;
+  q[5] += w * n.y * n.z;
+  q[6] += w * n.y * d;
+  q[7] += w * n.z * n.z;
+  q[8] += w * n.z * d;
+  q[9] += w * d * d;
+}
+inline double Eval(const Quadric& Q, const Vec3& p)
+{
+  const double* q = Q.q;
+  return p.x * (q[0] * p.x + 2.0 * (q[1] * p.y + q[2] * p.z + q[3])) +
+    p.y * (q[4] * p.y + 2.0 * (q[5] * p.z + q[6])) + p.z * (q[7] * p.z + 2.0 * q[8]) + q[9];
+}
+inline double Trace(const Quadric& Q)
+{
+  return Q.q[0] + Q.q[4] + Q.q[7];
+}
+
+// One pass's candidate of a vertex: collapse it with `partner` to p; t = position of p along the
+// edge (0: this vertex, 1: partner) for the point data.
+//
+// cost2/partner2: the cheapest of the other edges (the second best), so that a vertex whose best
+// partner collapsed can take it without evaluating all its edges again; cost2 is NaN when not
+// known exactly. t < 0: the placement of the best edge is still to be computed (a promotion).
+// Single precision (32 bytes, two to a cache line): the array is the largest per-vertex one
+// after the quadrics and every pass reads and writes it at random. Costs are rounded to float
+// before any comparison (Apply), so the order of offers still cannot change the outcome; p
+// carries the float precision of the output's coordinates.
+struct Cand
+{
+  float cost;
+  float p[3];
+  std::uint32_t partner;
+  float t;
+  float cost2;
+  std::uint32_t partner2;
+};
+static_assert(sizeof(Cand) == 32, "Cand layout");
+inline bool Before(double a, std::uint32_t pa, double b, std::uint32_t pb)
+{
+  return a < b || (a == b && pa < pb); // false when b is NaN (unknown)
+}
+
+struct Placement
+{
+  double cost;
+  Vec3 p;
+  double t;
+};
+
+// Edges of the candidate sweep waiting for their placement, as lanes: the summed quadric and
+// both endpoints' positions, and where the result goes.
+struct EdgeBatch
+{
+  static constexpr int kLanes = 2;
+  int n = 0;
+  alignas(32) double q[10][kLanes];
+  alignas(32) double pu[3][kLanes];
+  alignas(32) double pv[3][kLanes];
+  std::uint32_t u[kLanes], v[kLanes];
+  bool offerV[kLanes];
+};
+
+// Fast element access: the block's memory when in core, the DML's read/write otherwise.
+// Refresh() after any OpenBlock/Resize/Reconfigure (they may change the mode).
+template <class T>
+class View
+{
+public:
+  View() = default;
+  View(DML& dml, const Array<T>& a)
+    : dml_(&dml)
+    , id_(a.Id())
+  {
+    this->Refresh();
+  }
+  void Refresh() { this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_)); }
+  // Direct pointer to element i when in core, else nullptr.
+  SIPMSS_ALWAYS_INLINE const T* Ptr(std::uint64_t i) const
+  {
+    return this->base_ ? this->base_ + i : nullptr;
+  }
+  SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const
+  {
+    if (this->base_)
+    {
+      return this->base_[i];
+    }
+    T v;
+    this->dml_->Read(this->id_, sizeof(T), i, &v);
+    return v;
+  }
+  SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
+  {
+    if (this->base_)
+    {
+      this->base_[i] = v;
+      return;
+    }
+    this->dml_->Write(this->id_, sizeof(T), i, &v);
+  }
+  void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
+  {
+    if (n == 0)
+    {
+      return;
+    }
+    if (this->base_)
+    {
+      std::memcpy(dst, this->base_ + first, n * sizeof(T));
+      return;
+    }
+    this->dml_->ReadRange(this->id_, first, n, dst);
+  }
+  void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
+  {
+    if (n == 0)
+    {
+      return;
+    }
+    if (this->base_)
+    {
+      std::memcpy(this->base_ + first, src, n * sizeof(T));
+      return;
+    }
+    this->dml_->WriteRange(this->id_, first, n, src);
+  }
+
+private:
+  DML* dml_ = nullptr;
+  BlockId id_ = -1;
+  T* base_ = nullptr;
+};
+
+// The views of one DML over the mesh's blocks: the Decimator's own, or those of a forked DML
+// (an out-of-core helper thread's).
+struct Views
+{
+  View<Vec3> P;
+  View<Quadric> Q;
+  View<std::uint8_t> A;
+  View<State> S;
+  View<Tri> F;
+  View<std::uint32_t> RO, RF;
+  View<Cand> C;
+  View<std::uint32_t> O;
+};
+
+// Fetches the cache lines of element *p: its first and its last byte (a quadric spans two lines,
+// a position or a face straddles two at some indices).
+template <class T>
+inline void Prefetch(const T* p)
+{
+#if defined(__GNUC__)
+  __builtin_prefetch(static_cast<const void*>(p));
+  if constexpr (sizeof(T) > 8)
+  {
+    __builtin_prefetch(reinterpret_cast<const char*>(p) + sizeof(T) - 1);
+  }
+#else
+  (void)p;
+#endif
+}
+
+// The same for element i of an array that a dead face's corner (kNone) may index: the address
+// is computed as an integer (no pointer past the array) and never dereferenced; a prefetch does
+// not fault. Cheaper than testing which faces are dead (random, a mispredicted branch).
+template <class T>
+inline void PrefetchAt(const T* base, std::uint32_t i)
+{
+  Prefetch(reinterpret_cast<const T*>(reinterpret_cast<std::uintptr_t>(base) + std::uintptr_t(i) * sizeof(T)));
+}
+
+template <class T>
+void FillBlock(DML& dml, const Array<T>& a, const T& value)
+{
+  dml.Fill(a.Id(), &value);
+}
+
+// A vertex's ring loaded into memory (bounded by its valence, not by the input).
+struct RingFace
+{
+  std::uint32_t id;
+  Tri t;
+  int corner;          // index of the ring's vertex in t
+  std::uint32_t nb[2]; // nbs index of t.v[(corner + 1) % 3] and of t.v[(corner + 2) % 3]
+};
+struct Nb
+{
+  std::uint32_t v;
+  std::uint32_t count;  // faces of the ring containing the edge
+  std::uint32_t opp[2]; // the third vertices of the first two of them
+  Vec3 p;               // position of v (when loaded with positions)
+};
+struct Ring
+{
+  std::uint32_t x = kNone;
+  Vec3 px{ 0, 0, 0 };
+  std::vector<std::uint32_t> ids;
+  std::vector<RingFace> faces;
+  std::vector<Nb> nbs; // sorted by v
+  std::vector<std::uint64_t> keys;
+
+  const Nb* Find(std::uint32_t v) const
+  {
+    auto it = std::lower_bound(
+      this->nbs.begin(), this->nbs.end(), v, [](const Nb& n, std::uint32_t x) { return n.v < x; });
+    return (it != this->nbs.end() && it->v == v) ? &*it : nullptr;
+  }
+  // Is there a face (x, a, b) in the ring?
+  bool HasFace(std::uint32_t a, std::uint32_t b) const
+  {
+    const Nb* n = this->Find(a);
+    if (!n)
+    {
+      return false;
+    }
+    if (n->count <= 2)
+    {
+      return n->opp[0] == b || (n->count == 2 && n->opp[1] == b);
+    }
+    return this->HasFaceWith(a, b);
+  }
+  // The same from the faces alone (no neighbour table).
+  bool HasFaceWith(std::uint32_t a, std::uint32_t b) const
+  {
+    for (const RingFace& f : this->faces)
+    {
+      if (Has(f.t, a) && Has(f.t, b))
+      {
+        return true;
+      }
+    }
+    return false;
+  }
+  // The corner positions of face `slot`, in the face's order.
+  void Corners(std::size_t slot, Vec3 out[3]) const
+  {
+    const RingFace& f = this->faces[slot];
+    out[f.corner] = this->px;
+    out[(f.corner + 1) % 3] = this->nbs[f.nb[0]].p;
+    out[(f.corner + 2) % 3] = this->nbs[f.nb[1]].p;
+  }
+};
+
+template <class K>
+void SmallSort(K* a, std::size_t n)
+{
+  if (n > 24)
+  {
+    std::sort(a, a + n);
+    return;
+  }
+  for (std::size_t i = 1; i < n; ++i)
+  {
+    K k = a[i];
+    std::size_t j = i;
+    while (j > 0 && k < a[j - 1])
+    {
+      a[j] = a[j - 1];
+      --j;
+    }
+    a[j] = k;
+  }
+}
+
+struct EdgeCand
+{
+  double cost;
+  std::uint32_t v;
+  std::uint32_t nbIndex;
+  Placement pl;
+};
+
+// An offer to a vertex of another thread's range, applied after a barrier.
+struct Deferred
+{
+  std::uint32_t x, partner;
+  bool fromPartner;
+  Placement pl;
+};
+
+// One thread's scratch for the candidate sweep (and the main thread's for the collapses).
+// Scratch vectors keep their capacity from one vertex to the next, except after a ring of a
+// vertex of very high valence: then they are released, so that its memory is not held on.
+template <typename T>
+void ReleaseIfLarge(std::vector<T>& v)
+{
+  if (v.capacity() > 65536)
+  {
+    std::vector<T>().swap(v);
+  }
+}
+
+// Where a vertex's neighbours occur in its ring's next and prev corner lists (the vertex after
+// and before it in each face), answered in log n. The linear scans that small rings use are
+// quadratic for a vertex of high valence (a fan of 200,000 faces); the answers are the same.
+class LinkTally
+{
+public:
+  // Rings with more entries than this use the tally.
+  static constexpr std::size_t kMinEntries = 32;
+
+  void Build(const std::uint32_t* next, const std::uint32_t* prev, std::size_t n)
+  {
+    Fill(this->next_, next, n);
+    Fill(this->prev_, prev, n);
+  }
+  // How many entries of next (inNext) or prev are a.
+  std::size_t Count(bool inNext, std::uint32_t a) const
+  {
+    const std::vector<std::uint64_t>& keys = inNext ? this->next_ : this->prev_;
+    const std::uint64_t lo = std::uint64_t(a) << 32;
+    return std::size_t(std::upper_bound(keys.begin(), keys.end(), lo | 0xffffffffu) -
+      std::lower_bound(keys.begin(), keys.end(), lo));
+  }
+  // Whether entry i of next (inNext) or prev is the first occurrence of its value a there.
+  bool First(bool inNext, std::uint32_t a, std::size_t i) const
+  {
+    const std::vector<std::uint64_t>& keys = inNext ? this->next_ : this->prev_;
+    const std::uint64_t lo = std::uint64_t(a) << 32;
+    const auto it = std::lower_bound(keys.begin(), keys.end(), lo);
+    return it != keys.end() && (*it >> 32) == a && (*it & 0xffffffffu) == i;
+  }
+  void Release()
+  {
+    ReleaseIfLarge(this->next_);
+    ReleaseIfLarge(this->prev_);
+  }
+
+private:
+  static void Fill(std::vector<std::uint64_t>& keys, const std::uint32_t* a, std::size_t n)
+  {
+    keys.resize(n);
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      keys[i] = (std::uint64_t(a[i]) << 32) | i; // (value, index): ascending indices per value
+    }
+    std::sort(keys.begin(), keys.end());
+  }
+
+  std::vector<std::uint64_t> next_, prev_;
+};
+
+struct Scratch
+{
+  Ring ru, rv;
+  LinkTally tally; // Evaluate's, for rings of more than LinkTally::kMinEntries
+  std::vector<EdgeCand> edges;
+  std::vector<std::uint32_t> ids, next = std::vector<std::uint32_t>(64),
+                                  prev = std::vector<std::uint32_t>(64);
+  std::vector<std::uint8_t> abuf, abuf2; // point data of a collapse
+  std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
+  std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
+  EdgeBatch batch;                        // the sweep's edges waiting for their placement
+  Views* w = nullptr; // the views this thread uses; nullptr: the Decimator's
+};
+
+// A reusable barrier for a fixed number of threads (C++17 has none).
+class Barrier
+{
+public:
+  explicit Barrier(int n)
+    : n_(n)
+  {
+  }
+  void Wait()
+  {
+    std::unique_lock<std::mutex> lock(this->m_);
+    const std::uint64_t gen = this->gen_;
+    if (++this->count_ == this->n_)
+    {
+      this->count_ = 0;
+      ++this->gen_;
+      this->cv_.notify_all();
+      return;
+    }
+    this->cv_.wait(lock, [&] { return gen != this->gen_; });
+  }
+  // Wait(), and returns `flag` as the last participant to arrive saw it: the same value for
+  // all of them (a flag read after the barrier may already be set by a participant that went
+  // on, e.g. an abort in the next round: the others would then leave while it waits alone).
+  bool WaitAndAgree(const std::atomic<bool>& flag)
+  {
+    std::unique_lock<std::mutex> lock(this->m_);
+    const std::uint64_t gen = this->gen_;
+    if (++this->count_ == this->n_)
+    {
+      this->count_ = 0;
+      this->agreed_ = flag.load();
+      ++this->gen_;
+      this->cv_.notify_all();
+      return this->agreed_;
+    }
+    this->cv_.wait(lock, [&] { return gen != this->gen_; });
+    return this->agreed_; // (the next generation needs this participant: not overwritten yet)
+  }
+  // One participant leaves for good (a thread that could not be started).
+  void Drop()
+  {
+    std::unique_lock<std::mutex> lock(this->m_);
+    if (--this->n_ > 0 && this->count_ == this->n_)
+    {
+      this->count_ = 0;
+      ++this->gen_;
+      this->cv_.notify_all();
+    }
+  }
+
+private:
+  std::mutex m_;
+  std::condition_variable cv_;
+  int n_;
+  int count_ = 0;
+  std::uint64_t gen_ = 0;
+  bool agreed_ = false;
+};
+
+// Runs work(0) on the calling thread and work(1..T-1) on new ones, and joins them. A thread that
+// cannot be started ends the list: onShort(started) runs before work(0), so that the caller can
+// release those that did start. Returns how many ran. With whileWaiting (which must not throw),
+// the calling thread runs it every 2 ms once work(0) is done and others are still running.
+int RunOnThreads(int T, const std::function<void(int)>& work, const std::function<void(int)>& onShort,
+  const std::function<void()>& whileWaiting = nullptr);
+
+void RethrowFirst(const std::vector<std::exception_ptr>& errors);
+
+// Runs body(t, begin, end, stop) on [0, n) cut into T ranges, range t on thread t (0: the
+// calling one); the ranges of threads that could not be started run on the calling thread
+// afterwards. The bodies must be independent of each other (each writes only its own range's
+// records) and should return early once `stop` is set (another one threw, e.g. an abort). With
+// poll (e.g. Progress::Poll), the calling thread polls while it waits for the others: a range
+// with one costly element (a vertex of valence 2,000,000) is then still stopped by an abort, if
+// the body also checks `stop` inside that element.
+using RangeBody =
+  std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
+void ForRanges(int T, std::uint64_t n, const RangeBody& body,
+  const std::function<void()>& beforeFallback = nullptr, const std::function<void()>& poll = nullptr);
+
+class Decimator;
+
+// Progress weights: seconds per element of each phase, measured in core on one thread on a
+// 2M-triangle scan (docs/architecture.md, "Progress and abort"). Only their ratios matter.
+namespace kWork
+{
+constexpr double kRead = 4.0e-8;     // per input vertex + face
+constexpr double kWeld = 1.0e-7;     // per vertex + face
+constexpr double kRings = 1.1e-7;    // per face
+constexpr double kQuadrics = 2.4e-7; // per face
+constexpr double kSweep = 3.0e-7;    // per vertex of the pass
+constexpr double kOrder = 2.5e-8;    // per vertex of the pass (histogram and order)
+constexpr double kStep = 2.5e-7;     // per candidate the pass takes
+constexpr double kCompact = 3.5e-8;  // per face + vertex of the pass
+constexpr double kWrite = 5.0e-8;    // per output vertex + face
+}
+
+// The sink that streams the source into the DML.
+class Loader final : public io::MeshSink
+{
+public:
+  Loader(Decimator& d, Progress& p)
+    : d_(d)
+    , progress_(p)
+  {
+  }
+  void Begin(const io::MeshHeader& header) override;
+  void Vertices(const io::VertexChunk& chunk) override;
+  void Triangles(const std::uint32_t* indices, std::size_t count) override;
+  void End(const io::ReadStats& stats) override;
+  bool AbortRequested() override
+  {
+    try
+    {
+      this->Tick();
+    }
+    catch (const AbortedError&)
+    {
+      return true;
+    }
+    return false;
+  }
+  bool Aborted() const { return this->aborted_; }
+  void Tick();
+  // Measures the layout of the first faces; an incoherent one throws detail::ReorderNeeded.
+  void MeasureLayout(std::uint64_t vertices)
+  {
+    this->measure_ = true;
+    this->meter_.Start(vertices);
+  }
+  const detail::LayoutMeter& Layout() const { return this->meter_; }
+
+private:
+  void Measured()
+  {
+    this->measure_ = false;
+    if (this->meter_.FarFraction() > detail::kIncoherentFarFraction)
+    {
+      throw detail::ReorderNeeded{};
+    }
+  }
+  Decimator& d_;
+  Progress& progress_;
+  bool aborted_ = false;
+  bool measure_ = false;
+  detail::LayoutMeter meter_;
+};
+
+class Decimator
+{
+public:
+  // The loader measures the input's layout: a run on a DML of its own, layout Automatic.
+  bool MeasuresLayout() const
+  {
+    return !this->opt_.dml && this->opt_.layout == LayoutPolicy::Automatic;
+  }
+  Decimator(const DecimateOptions& options, Progress& progress, RunStats& stats)
+    : opt_(options)
+    , progress_(progress)
+    , stats_(stats)
+    , ownDml_(options.dml ? nullptr : new DML())
+    , dml_(options.dml ? *options.dml : *ownDml_)
+    , hist_(kCostBins, 0)
+  {
+    this->cosThreshold_ = options.minNormalCosine;
+    this->threads_ = storage::ResolveThreads(options.threads);
+    this->threads_ = std::min(this->threads_, 16);
+  }
+
+  void Run(const MeshSource& input, io::MeshSink& output,
+    const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel);
+  // The estimated work of a run on V vertices and F faces (EstimateDecimateWork).
+  double Plan(std::uint64_t V, std::uint64_t F)
+  {
+    this->announcedV_ = V;
+    this->announcedF_ = F;
+    return kWork::kRead * double(V + F) + this->WorkAfterRead(V, F);
+  }
+
+  // Loader callbacks.
+  void BeginInput(const io::MeshHeader& header);
+  void AddVertices(const io::VertexChunk& chunk);
+  void AddTriangles(const std::uint32_t* indices, std::size_t count);
+  void EndInput(const io::ReadStats& stats) { this->readerDropped_ = stats.droppedFaces; }
+  double ReadFraction() const
+  {
+    double total = double(this->announcedV_ + this->announcedF_);
+    return total > 0 ? double(this->nv_ + this->nf_) / total : 0.5;
+  }
+
+private:
+  void Read(const MeshSource& input);
+  void Weld();
+  void BuildRings();
+  void FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal);
+  void CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal,
+    std::uint32_t* spare = nullptr);
+  void BuildQuadrics();
+  // One pass down to `goal` faces; workAfter: the estimated work of the rest of the run.
+  bool Pass(std::uint64_t goal, bool exact, double workAfter);
+  void Compact();
+  void Emit(io::MeshSink& sink);
+
+  void BindViews();
+  void BindViews(Views& w, DML& dml) const;
+  void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
+  // The length of x's face list (its live faces and those that died in this pass).
+  static std::uint32_t RingLength(const Views& w, std::uint32_t x)
+  {
+    return w.RO.Get(x + 1) - w.RO.Get(x);
+  }
+  void LoadFaces(Views& w, std::uint32_t x, Ring& r);
+  void BuildNeighbours(Views& w, Ring& r, bool positions);
+  // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
+  // (nothing reads a survivor's quadric before: it is busy for the rest of the pass), so the
+  // collapse step, which sweeps the vertices once per cost group, does not page the largest
+  // array in and out each time. The same sums either way.
+  bool lazySums_ = false;
+  // The middle chunk boundary of a pass's collapse rounds (StepChunks) also splits the faces
+  // (FaceSplit): a chunk below splitMid_ collapses only faces below splitFace_, one above only
+  // faces at or above it; other collapses are deferred. Out of core, the two halves of the
+  // chunks then write disjoint ranges of every block, and run on two threads (DML::Fork). The
+  // split is used when the faces follow the vertices (scanner order: few faces on the wrong
+  // side), in every mode and for any thread count, so the result does not depend on them.
+  std::uint64_t splitMid_ = 0, splitFace_ = 0;
+  bool splitOn_ = false;
+  void FaceSplit(std::uint64_t nv);
+  bool AllInCore() const
+  {
+    return this->v_.S.Ptr(0) && this->v_.C.Ptr(0) && this->v_.Q.Ptr(0) && this->v_.P.Ptr(0) &&
+      this->v_.F.Ptr(0) && this->v_.RO.Ptr(0) && this->v_.RF.Ptr(0);
+  }
+  void Sweep(std::uint64_t nv);
+  // Out of core on two or more threads: a DML forked for a helper thread that writes only the
+  // elements [mid, nv) of `blocks` (DML::Fork, half of the budget), with `w` bound to it;
+  // nullptr in core, on one thread, for small meshes, or when the budget cannot be shared.
+  std::unique_ptr<DML> ForkHelper(std::uint64_t nv, std::uint64_t mid,
+    std::initializer_list<storage::BlockId> blocks, Views& w,
+    const std::vector<DML::Range>& more = {});
+  void JoinHelper(std::unique_ptr<DML>& fork); // (no-op for nullptr)
+  // Joins a fork on every exit of a scope (there a failing Join is dropped: the scope is
+  // already left by an exception); the normal path joins with JoinHelper and sees its errors.
+  struct ForkGuard
+  {
+    Decimator& d;
+    std::unique_ptr<DML>& fork;
+    ForkGuard(const ForkGuard&) = delete;
+    ForkGuard& operator=(const ForkGuard&) = delete;
+    ~ForkGuard()
+    {
+      try
+      {
+        this->d.JoinHelper(this->fork);
+      }
+      catch (...)
+      {
+      }
+    }
+  };
+  // In core: the faces of an active vertex kAhead ahead in the sweep.
+  void PrefetchSweep(std::uint64_t u, std::uint64_t end) const
+  {
+    constexpr std::uint64_t kAhead = 8;
+    const State* Sp = this->v_.S.Ptr(0);
+    const std::uint32_t* ROp = this->v_.RO.Ptr(0);
+    const std::uint32_t* RFp = this->v_.RF.Ptr(0);
+    const Tri* Fp = this->v_.F.Ptr(0);
+    if (!Sp || !ROp || !RFp || !Fp)
+    {
+      return;
+    }
+    if (u + kAhead < end && Active(Sp[u + kAhead]))
+    {
+      for (std::uint32_t k = ROp[u + kAhead], e = ROp[u + kAhead + 1]; k < e; ++k)
+      {
+        Prefetch(Fp + RFp[k]);
+      }
+    }
+    // (The neighbours' records are fetched by Evaluate once it has the ring: fetching them here
+    // too, for every corner of the ring's faces, cost more than it saved.)
+  }
+  void Evaluate(std::uint32_t u, Scratch& s);
+  // (tally: next and prev's LinkTally for a large ring, else nullptr: they are scanned)
+  void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
+    std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
+    const LinkTally* tally, Scratch& s);
+  void FlushEdges(Scratch& s);
+  void OfferEdge(std::uint32_t u, std::uint32_t v, const Placement& pl, double trace, bool offerV,
+    Scratch& s);
+  void EvaluateFull(std::uint32_t u, State su, Scratch& s);
+  void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner,
+    Scratch& s);
+  void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
+  bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded = false);
+  bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
+  bool FaceOk(Vec3 c[3], int corner, const Vec3& p) const;
+  bool LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m, const std::uint32_t opp[2],
+    const Vec3& p, Scratch& s);
+  Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const;
+  std::uint64_t Collapse(std::uint32_t u, const Cand& c, Scratch& s);
+  void InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s);
+  enum class Try
+  {
+    Skip,
+    Done,
+    Illegal,
+    Defer
+  };
+  Try TryCollapse(std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi,
+    std::uint64_t& removed);
+  struct StepRun
+  {
+    std::uint64_t removed = 0, done = 0, illegal = 0;
+  };
+  std::uint64_t StepChunkSize(std::uint64_t nv) const
+  {
+    return this->opt_.stepChunkSize ? this->opt_.stepChunkSize
+                                    : std::max(kStepChunkMinSize, (nv + kStepChunks - 1) / kStepChunks);
+  }
+  // tickAt >= 0 (the calling thread only): ticks the step's progress at position tickAt +
+  // tickScale * (i - first) of the pass's stepTotal_ candidates every 1024 candidates.
+  std::uint64_t Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo, std::uint32_t hi,
+    std::uint64_t budget, Scratch& s, StepRun& run, std::int64_t tickAt = -1,
+    std::uint64_t tickScale = 1);
+  std::uint64_t stepTotal_ = 1; // the candidates the pass takes (the step's progress unit)
+  void StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
+    std::uint64_t goal, StepRun& total);
+  void EnsureVertexCapacity(std::uint64_t n);
+  void EnsureFaceCapacity(std::uint64_t n);
+  // The levels' targets for F0 faces (the last one is the final target).
+  std::vector<std::uint64_t> Levels(std::uint64_t F0) const;
+  // Progress planning: estimated work of the passes from `faces` live faces at `level` (the
+  // pass schedule of Run simulated, vertices per face as now), and of writing the result.
+  // The face count a pass from T faces aims at, for the level's target (the pass schedule).
+  std::uint64_t PassGoal(std::uint64_t T, std::uint64_t level) const;
+  double PassesWork(std::uint64_t faces, std::size_t level, const std::vector<std::uint64_t>& levels) const;
+  double VerticesPerFace() const
+  {
+    const double v = double(this->nv_ ? this->nv_ : this->announcedV_);
+    const double f = double(this->liveFaces_ ? this->liveFaces_ : (this->nf_ ? this->nf_ : this->announcedF_));
+    return f > 0 ? v / f : 0.5;
+  }
+  // Work after the read: weld, rings, quadrics, the passes and the write, for V and F.
+  double WorkAfterRead(std::uint64_t V, std::uint64_t F) const { return this->RestWork(0, V, F); }
+  // Work of the stages from `stage` on (0 weld, 1 rings, 2 quadrics, 3 passes and write).
+  double RestWork(int stage, std::uint64_t V, std::uint64_t F) const;
+  bool emitsLevels_ = false; // onLevel given: each level is emitted during the passes
+  void Tick(std::uint64_t i, std::uint64_t n)
+  {
+    if ((i & 1023) == 0)
+    {
+      this->progress_.Tick(n ? double(i) / double(n) : 0.0);
+    }
+  }
+
+  const DecimateOptions& opt_;
+  Progress& progress_;
+  RunStats& stats_;
+  double cosThreshold_ = 0.2;
+  int threads_ = 1;
+
+  // The DML: the caller's (options.dml) or our own; declared before every block so that the
+  // blocks close first.
+  std::unique_ptr<DML> ownDml_;
+  DML& dml_;
+
+  // Input description.
+  io::VertexLayout layout_;
+  std::size_t nFloats_ = 0; // normals, texcoords, scalars as floats
+  std::size_t recSize_ = 0; // bytes of one vertex's attribute record
+  std::uint64_t announcedV_ = 0, announcedF_ = 0;
+  bool begun_ = false;
+  Vec3 origin_{ 0, 0, 0 };
+  bool haveOrigin_ = false;
+  std::uint64_t vCap_ = 0, fCap_ = 0;
+  std::uint64_t readerDropped_ = 0, dropped_ = 0;
+
+  // The current mesh.
+  std::uint64_t nv_ = 0, nf_ = 0, liveFaces_ = 0;
+  Array<Vec3> pos_;
+  Array<Quadric> quad_;
+  Array<std::uint8_t> attr_; // nv_ * recSize_ bytes
+  Array<State> state_;
+  Array<Tri> faces_;
+  Array<std::uint32_t> ringOff_;  // nv_ + 1
+  Array<std::uint32_t> ringFace_; // ringOff_[nv_]
+  Array<Cand> cand_;
+  Array<std::uint32_t> order_; // the pass's candidates in processing order (<= nv_ of them)
+  Array<std::uint32_t> remap_; // compaction: old vertex -> new
+
+  Views v_;
+  Views& W(const Scratch& s) { return s.w ? *s.w : this->v_; }
+
+  // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
+  std::vector<Scratch> scratch_ = std::vector<Scratch>(1);
+  std::vector<std::uint32_t> partStart_; // first vertex of each sweep thread's range
+  const Cand none_ = { std::numeric_limits<float>::infinity(), { 0, 0, 0 }, kNone, 0.0f,
+    std::numeric_limits<float>::infinity(), kNone };
+  std::vector<std::uint32_t> hist_;
+  std::vector<std::uint64_t> starts_;
+  std::vector<Vec3> vbuf_;
+  std::vector<std::uint8_t> abuf_;
+  std::vector<Tri> tbuf_;
+};
+
+
+} // namespace sipmss::algorithms::decimate

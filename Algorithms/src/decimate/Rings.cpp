@@ -1,0 +1,781 @@
+// Algorithm I: the vertex rings (face lists per vertex) and the quadrics (the map of the passes: Decimator.h).
+#include "Decimator.h"
+
+namespace sipmss::algorithms::decimate
+{
+// ---------------------------------------------------------------------------------------------
+// rings
+
+// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before). In core on two or
+// more threads with a `spare` array of nv counters: two threads count half of the faces each,
+// the second into `spare`, which is then added. Else by vertex range on `threads` threads in core
+// (each thread scans every face and counts only its own vertices, no atomics; a thread never
+// writes another's counter, not even adding zero), on two threads out of core (the upper half
+// through a forked DML).
+void Decimator::CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase,
+  std::uint64_t tickTotal, std::uint32_t* spare)
+{
+  this->BindViews();
+  const std::uint64_t nv = this->nv_;
+  const Tri* Fp = this->v_.F.Ptr(0);
+  std::uint32_t* ROp = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
+  auto tick = [&](int t, std::uint64_t f, const std::atomic<bool>& stop) {
+    if ((f & 4095) != 0)
+    {
+      return true;
+    }
+    if (stop.load(std::memory_order_relaxed))
+    {
+      return false;
+    }
+    if (t == 0 && tickTotal)
+    {
+      // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
+      this->progress_.Tick(double(tickBase + f) / double(tickTotal));
+    }
+    return true;
+  };
+  if (threads > 1 && Fp && ROp && spare)
+  {
+    ForRanges(2, nf, [&](int t, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+      std::uint32_t* count = t == 0 ? ROp : spare;
+      if (t == 1)
+      {
+        std::fill(spare, spare + nv, 0u);
+      }
+      for (std::uint64_t f = fb; f < fe && tick(t, f, stop); ++f)
+      {
+        const Tri t3 = Fp[f];
+        if (Alive(t3))
+        {
+          ++count[t3.v[0]];
+          ++count[t3.v[1]];
+          ++count[t3.v[2]];
+        }
+      }
+    });
+    ForRanges(2, nv, [&](int, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>&) {
+      for (std::uint64_t v = lo; v < hi; ++v)
+      {
+        ROp[v] += spare[v];
+      }
+    });
+    return;
+  }
+  Views forkViews;
+  std::unique_ptr<DML> fork;
+  ForkGuard joinOnExit{ *this, fork };
+  int T = (Fp && ROp) ? threads : 1;
+  if (T == 1)
+  {
+    fork = this->ForkHelper(nv, nv / 2, { this->ringOff_.Id() }, forkViews);
+    T = fork ? 2 : 1;
+  }
+  auto count = [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    Views& w = (fork && t == 1) ? forkViews : this->v_;
+    for (std::uint64_t f = 0; f < nf && tick(t, f, stop); ++f)
+    {
+      const Tri t3 = Fp ? Fp[f] : w.F.Get(f);
+      if (Alive(t3))
+      {
+        for (int c = 0; c < 3; ++c)
+        {
+          const std::uint32_t x = t3.v[c];
+          if (x >= lo && x < hi)
+          {
+            if (ROp)
+            {
+              ++ROp[x];
+            }
+            else
+            {
+              w.RO.Set(x, w.RO.Get(x) + 1);
+            }
+          }
+        }
+      }
+    }
+  };
+  ForRanges(T, nv, count, [&]() { this->JoinHelper(fork); });
+  this->JoinHelper(fork);
+}
+
+// Fills the incident face lists of faces [0, nf) (dead ones skipped) from the ring offsets, which
+// hold the end of each list: faces in reverse, so each list ends up in increasing face order and
+// RO[v] at its start. In core on all cores, each thread owns a range of vertices and scans every
+// face (the reads are sequential, the writes it splits are not): the same lists.
+void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal)
+{
+  const Tri* F = this->v_.F.Ptr(0);
+  std::uint32_t* RO = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
+  std::uint32_t* RF = const_cast<std::uint32_t*>(this->v_.RF.Ptr(0));
+  const bool inCore = F && RO && RF;
+  const std::uint64_t nv = this->nv_;
+  int T = (nf >= kParallelRingsMin && inCore) ? this->threads_ : 1;
+  // Out of core: the upper half of the vertices (their offsets and lists) on a helper thread
+  // through a forked DML.
+  Views forkViews;
+  const std::uint64_t mid = nv / 2;
+  std::unique_ptr<DML> fork;
+  ForkGuard joinOnExit{ *this, fork };
+  if (T == 1 && mid > 0)
+  {
+    const std::uint64_t rfBegin = this->v_.RO.Get(mid - 1), rfEnd = this->v_.RO.Get(nv);
+    if (rfBegin < rfEnd)
+    {
+      fork = this->ForkHelper(nv, mid, { this->ringOff_.Id() }, forkViews,
+        { { this->ringFace_.Id(), rfBegin, rfEnd - rfBegin } });
+      T = fork ? 2 : 1;
+    }
+  }
+  auto fill = [&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    Views& w = (fork && th == 1) ? forkViews : this->v_;
+    for (std::uint64_t i = nf; i-- > 0;)
+    {
+      if ((i & 4095) == 0)
+      {
+        if (stop.load(std::memory_order_relaxed))
+        {
+          return;
+        }
+        if (th == 0 && tickTotal)
+        {
+          // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
+          this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
+        }
+      }
+      const Tri t = inCore ? F[i] : w.F.Get(i);
+      if (!Alive(t))
+      {
+        continue;
+      }
+      for (int k = 0; k < 3; ++k)
+      {
+        const std::uint32_t x = t.v[k];
+        if (x >= lo && x < hi)
+        {
+          if (inCore)
+          {
+            RF[--RO[x]] = std::uint32_t(i);
+          }
+          else
+          {
+            const std::uint32_t e = w.RO.Get(x) - 1;
+            w.RO.Set(x, e);
+            w.RF.Set(e, std::uint32_t(i));
+          }
+        }
+      }
+    }
+  };
+  ForRanges(T, nv, fill, [&]() { this->JoinHelper(fork); });
+  this->JoinHelper(fork);
+}
+
+void Decimator::BuildRings()
+{
+  PhaseTimer timer(this->stats_, this->dml_, "rings");
+  this->progress_.BeginPhase(
+    "rings", kWork::kRings * double(this->nf_), this->RestWork(2, this->nv_, this->nf_));
+  const std::uint64_t nv = this->nv_, nf = this->nf_;
+  if (3 * nf >= kNone)
+  {
+    throw std::runtime_error("decimate: more than 1.4 billion triangles");
+  }
+  this->ringOff_ = Array<std::uint32_t>(this->dml_, nv + 1);
+  FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
+  View<Tri> F(this->dml_, this->faces_);
+  View<Vec3> P(this->dml_, this->pos_);
+  View<std::uint32_t> RO(this->dml_, this->ringOff_);
+  // In core, passes 1 and 3 run on all cores (each thread on its own faces), the degrees and
+  // pass 2 by vertex range (CountDegrees, FillRings); same result.
+  const int T = (nf >= kParallelRingsMin && F.Ptr(0) && P.Ptr(0) && RO.Ptr(0)) ? this->threads_ : 1;
+  // Pass 1 over the faces: validate, drop zero-area faces, count the degrees. The first bad
+  // face is reported, whatever the threads. Out of core on two threads: the upper half of the
+  // faces through a forked DML, then the degrees (CountDegrees).
+  std::uint64_t live = 0;
+  {
+    Views forkViews;
+    std::unique_ptr<DML> fork =
+      T == 1 ? this->ForkHelper(nf, nf / 2, { this->faces_.Id() }, forkViews) : nullptr;
+    ForkGuard joinOnExit{ *this, fork };
+    const int T1 = fork ? 2 : T;
+    std::vector<std::uint64_t> lives(std::size_t(T1), 0), drops(std::size_t(T1), 0);
+    std::vector<std::uint64_t> bad(std::size_t(T1), ~std::uint64_t(0));
+    auto pass1 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
+      View<Tri>& Fv = (fork && th == 1) ? forkViews.F : F;
+      const View<Vec3>& Pv = (fork && th == 1) ? forkViews.P : P;
+      for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
+      {
+        if (th == 0 && ((f - fb) & 1023) == 0)
+        {
+          this->progress_.Tick(double((f - fb) * T1) / double(4 * nf));
+        }
+        Tri t = Fv.Get(f);
+        if (!Alive(t))
+        {
+          continue;
+        }
+        if (t.v[0] >= nv || t.v[1] >= nv || t.v[2] >= nv)
+        {
+          bad[std::size_t(th)] = std::min(bad[std::size_t(th)], f);
+          break;
+        }
+        Vec3 a = Pv.Get(t.v[0]), b = Pv.Get(t.v[1]), c = Pv.Get(t.v[2]);
+        Vec3 n = Cross(b - a, c - a);
+        if (Dot(n, n) == 0.0)
+        {
+          Fv.Set(f, kDeadTri);
+          ++drops[std::size_t(th)];
+          continue;
+        }
+        if (T1 <= 1)
+        {
+          for (int k = 0; k < 3; ++k)
+          {
+            RO.Set(t.v[k], RO.Get(t.v[k]) + 1);
+          }
+        }
+        ++lives[std::size_t(th)];
+      }
+    };
+    ForRanges(T1, nf, pass1, [&]() { this->JoinHelper(fork); });
+    this->JoinHelper(fork);
+    const std::uint64_t first = *std::min_element(bad.begin(), bad.end());
+    if (first != ~std::uint64_t(0))
+    {
+      const Tri t = F.Get(first);
+      const std::uint32_t v = t.v[0] >= nv ? t.v[0] : (t.v[1] >= nv ? t.v[1] : t.v[2]);
+      throw io::MeshIOError("decimate: triangle " + std::to_string(first) + " has vertex index " +
+        std::to_string(v) + " >= vertex count " + std::to_string(nv));
+    }
+    for (int th = 0; th < T1; ++th)
+    {
+      live += lives[std::size_t(th)];
+      this->dropped_ += drops[std::size_t(th)];
+    }
+    if (T1 > 1)
+    {
+      this->CountDegrees(nf, T, nf, 4 * nf);
+      F.Refresh();
+      P.Refresh();
+      RO.Refresh();
+    }
+  }
+  // Inclusive prefix sums: RO[v] = end of v's list.
+  std::uint32_t sum = 0;
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    sum += RO.Get(v);
+    RO.Set(v, sum);
+  }
+  RO.Set(nv, sum);
+  this->ringFace_ = Array<std::uint32_t>(this->dml_, std::max<std::uint32_t>(sum, 1));
+  F.Refresh();
+  P.Refresh();
+  RO.Refresh();
+  View<std::uint32_t> RF(this->dml_, this->ringFace_);
+  // Pass 2: the incident face lists.
+  this->BindViews();
+  this->FillRings(nf, 2 * nf, 4 * nf);
+  // Faces on the same vertex set: copies of one orientation are one face, and two faces of
+  // opposite orientations cancel (a zero-volume double-sided pair: keeping one of them would
+  // leave three faces on each of its edges). A group is settled by its first live member; the
+  // net orientation decides what survives: nothing, or its first member of that orientation.
+  std::vector<std::uint32_t> ring;
+  auto sameSet = [](const Tri& a, const std::uint32_t s[3]) {
+    std::uint32_t r[3] = { a.v[0], a.v[1], a.v[2] };
+    SmallSort(r, 3);
+    return r[0] == s[0] && r[1] == s[1] && r[2] == s[2];
+  };
+  auto orientation = [](const Tri& a, const Tri& ref) {
+    // +1: a is a rotation of ref, -1: of its reverse
+    for (int k = 0; k < 3; ++k)
+    {
+      if (a.v[0] == ref.v[k])
+      {
+        return a.v[1] == ref.v[(k + 1) % 3] ? 1 : -1;
+      }
+    }
+    return 1;
+  };
+  // The groups of live faces on one vertex set (rare), found per vertex: a face belongs to its
+  // lowest vertex x, and x's faces are sorted by their other two vertices, so each face is read
+  // once and a ring of any size costs n log n (a fan of 200,000 faces around one vertex too).
+  // On all cores in core; on two out of core, the upper half of the vertices through a forked
+  // DML that writes nothing. The mode is taken again here, not from T: opening the ring face
+  // list above may have moved every block out of core, and out of core a DML serves one thread
+  // only (a second one goes through a fork). A group is stored as its size, then its members in
+  // increasing order.
+  const int Tin = (nf >= kParallelRingsMin && F.Ptr(0) && RO.Ptr(0) && RF.Ptr(0))
+    ? this->threads_
+    : 1;
+  Views forkViews;
+  std::unique_ptr<DML> fork =
+    Tin == 1 ? this->ForkHelper(nv, nv / 2, {}, forkViews) : nullptr;
+  ForkGuard joinOnExit{ *this, fork };
+  const int T3 = fork ? 2 : Tin;
+  std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T3));
+  auto pass3 = [&](int th, std::uint64_t vb, std::uint64_t ve, const std::atomic<bool>& stop) {
+    const bool helper = fork && th == 1;
+    const View<Tri>& Fv = helper ? forkViews.F : F;
+    const View<std::uint32_t>& ROv = helper ? forkViews.RO : RO;
+    const View<std::uint32_t>& RFv = helper ? forkViews.RF : RF;
+    std::vector<std::uint32_t> list;
+    std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed; // (other two vertices, face)
+    std::uint64_t work = 0; // ring entries since the last poll
+    for (std::uint64_t x = vb; x < ve && !stop.load(std::memory_order_relaxed); ++x)
+    {
+      if (th == 0 && work >= 4096)
+      {
+        work = 0;
+        this->progress_.Tick(double(3 * nf) / double(4 * nf) +
+          double((x - vb) * std::uint64_t(T3)) / double(4 * std::max<std::uint64_t>(nv, 1)));
+      }
+      const std::uint32_t b = ROv.Get(x), e = ROv.Get(x + 1);
+      work += 1 + (e - b);
+      if (e - b < 2)
+      {
+        continue;
+      }
+      const std::uint32_t* faceIds = RFv.Ptr(b); // in core: the list itself
+      if (!faceIds)
+      {
+        list.resize(e - b);
+        RFv.GetRange(b, e - b, list.data());
+        faceIds = list.data();
+      }
+      keyed.clear();
+      for (std::uint32_t k = 0; k < e - b; ++k)
+      {
+        if ((k & 4095) == 4095)
+        {
+          if (th == 0)
+          {
+            this->progress_.Poll(); // (a vertex of very high valence)
+          }
+          else if (stop.load(std::memory_order_relaxed))
+          {
+            return;
+          }
+        }
+        const Tri t = Fv.Get(faceIds[k]);
+        if (!Alive(t) || std::min(t.v[0], std::min(t.v[1], t.v[2])) != x)
+        {
+          continue;
+        }
+        std::uint32_t a = t.v[0] == x ? t.v[1] : t.v[0];
+        std::uint32_t c = t.v[2] == x ? t.v[1] : t.v[2];
+        if (c < a)
+        {
+          std::swap(a, c);
+        }
+        keyed.push_back({ (std::uint64_t(a) << 32) | c, faceIds[k] });
+      }
+      if (keyed.size() < 2)
+      {
+        continue;
+      }
+      SmallSort(keyed.data(), keyed.size());
+      for (std::size_t i = 0; i < keyed.size();)
+      {
+        std::size_t j = i + 1;
+        while (j < keyed.size() && keyed[j].first == keyed[i].first)
+        {
+          ++j;
+        }
+        if (j - i > 1)
+        {
+          std::vector<std::uint64_t>& out = found[std::size_t(th)];
+          out.push_back(j - i);
+          for (std::size_t k = i; k < j; ++k)
+          {
+            out.push_back(keyed[k].second);
+          }
+        }
+        i = j;
+      }
+      ReleaseIfLarge(keyed);
+      ReleaseIfLarge(list);
+    }
+  };
+  ForRanges(T3, nv, pass3, [&]() { this->JoinHelper(fork); }, [this]() { this->progress_.Poll(); });
+  this->JoinHelper(fork);
+  // The groups in the order of their first members (face order, as a sweep over the faces
+  // would settle them).
+  std::vector<std::uint64_t> members; // the threads' lists, one after the other
+  std::vector<std::pair<std::uint64_t, std::size_t>> groups; // (first member, where)
+  for (const std::vector<std::uint64_t>& list : found)
+  {
+    const std::size_t base = members.size();
+    members.insert(members.end(), list.begin(), list.end());
+    for (std::size_t i = 0; i < list.size(); i += 1 + list[i])
+    {
+      groups.push_back({ list[i + 1], base + i });
+    }
+  }
+  found.clear();
+  std::sort(groups.begin(), groups.end());
+  std::uint64_t work = 0; // faces read since the last poll
+  for (const auto& group : groups)
+  {
+    if (work >= 4096)
+    {
+      work = 0;
+      this->progress_.Tick(1.0);
+    }
+    const std::uint64_t* ids = members.data() + group.second + 1;
+    const std::uint64_t count = ids[-1];
+    const std::uint64_t f = ids[0];
+    work += count;
+    const Tri t = F.Get(f);
+    std::uint32_t s[3] = { t.v[0], t.v[1], t.v[2] };
+    SmallSort(s, 3);
+    int net = 1;
+    for (std::uint64_t k = 1; k < count; ++k)
+    {
+      net += orientation(F.Get(ids[k]), t);
+    }
+    // Keep at most one face: the first member whose orientation has the sign of net.
+    // Net zero (a double-sided pair): cancelling it suits edges that other faces already make
+    // manifold (two more faces each: fins, scans); on edges with one other face it would open a
+    // hole (clustered meshes, where a thin part folds onto itself), and one face of the pair,
+    // oriented like that neighbour, closes them. The edges decide by majority.
+    if (net == 0)
+    {
+      int single = 0, pairs = 0, agree = 0;
+      for (int k = 0; k < 3; ++k)
+      {
+        const std::uint32_t a = t.v[k], c = t.v[(k + 1) % 3];
+        // The edge's faces are in both rings: the shorter one is read.
+        const std::uint32_t ab = RO.Get(a), ae = RO.Get(a + 1);
+        const std::uint32_t cb = RO.Get(c), ce = RO.Get(c + 1);
+        const std::uint32_t rb = ae - ab <= ce - cb ? ab : cb;
+        const std::uint32_t re = ae - ab <= ce - cb ? ae : ce;
+        work += re - rb;
+        ring.resize(re - rb);
+        RF.GetRange(rb, re - rb, ring.data());
+        int others = 0, dir = 0;
+        for (std::uint32_t g : ring)
+        {
+          const Tri u = F.Get(g);
+          if (!Alive(u) || !Has(u, a) || !Has(u, c) || sameSet(u, s))
+          {
+            continue;
+          }
+          ++others;
+          dir = u.v[kNextCorner[CornerOf(u, a)]] == c ? 1 : -1; // +1: it runs a -> c like t
+        }
+        if (others == 1)
+        {
+          ++single;
+          agree += -dir; // a consistent neighbour runs c -> a: t's orientation is right
+        }
+        else if (others == 2)
+        {
+          ++pairs;
+        }
+      }
+      if (single > pairs)
+      {
+        net = agree >= 0 ? 1 : -1;
+      }
+    }
+    bool kept = net > 0; // f itself has orientation +1
+    if (!kept)
+    {
+      F.Set(f, kDeadTri);
+      ++this->dropped_;
+      --live;
+    }
+    for (std::uint64_t k = 1; k < count; ++k)
+    {
+      const std::uint64_t g = ids[k];
+      const Tri u = F.Get(g);
+      if (!kept && net < 0 && orientation(u, t) < 0)
+      {
+        kept = true;
+        continue;
+      }
+      F.Set(g, kDeadTri);
+      ++this->dropped_;
+      --live;
+    }
+  }
+  this->liveFaces_ = live;
+}
+
+// ---------------------------------------------------------------------------------------------
+// rings of single vertices
+
+void Decimator::BindViews()
+{
+  this->BindViews(this->v_, this->dml_);
+}
+
+void Decimator::BindViews(Views& w, DML& dml) const
+{
+  w.P = View<Vec3>(dml, this->pos_);
+  w.Q = this->quad_.IsOpen() ? View<Quadric>(dml, this->quad_) : View<Quadric>();
+  w.A = this->recSize_ ? View<std::uint8_t>(dml, this->attr_) : View<std::uint8_t>();
+  w.S = this->state_.IsOpen() ? View<State>(dml, this->state_) : View<State>();
+  w.F = View<Tri>(dml, this->faces_);
+  w.RO = View<std::uint32_t>(dml, this->ringOff_);
+  w.RF = View<std::uint32_t>(dml, this->ringFace_);
+  w.C = this->cand_.IsOpen() ? View<Cand>(dml, this->cand_) : View<Cand>();
+  w.O = this->order_.IsOpen() ? View<std::uint32_t>(dml, this->order_) : View<std::uint32_t>();
+}
+
+// ---------------------------------------------------------------------------------------------
+// quadrics
+
+void Decimator::BuildQuadrics()
+{
+  PhaseTimer timer(this->stats_, this->dml_, "quadrics");
+  this->progress_.BeginPhase("quadrics", kWork::kQuadrics * double(this->liveFaces_),
+    this->RestWork(3, this->nv_, this->liveFaces_));
+  const std::uint64_t nv = this->nv_;
+  this->quad_ = Array<Quadric>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->state_ = Array<State>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->cand_ = Array<Cand>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->remap_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
+  this->BindViews();
+  // One gather per vertex over its ring (faces in increasing order, so the sums are those of a
+  // scatter in face order, whatever the threads): the area-weighted face plane quadrics, the edge
+  // multiplicities (topology flags, boundary constraint planes), the initial quadric, and the
+  // empty candidate. Every vertex writes only its own records: in core the vertex range is split
+  // among threads (not with initialQuadric, a caller's callback).
+  const double bw = this->opt_.boundaryWeight;
+  auto vertex = [this, bw](Views& w, std::uint32_t u, std::vector<Tri>& tris,
+                  std::vector<std::uint32_t>& next, std::vector<std::uint32_t>& prev,
+                  LinkTally& tally, const std::atomic<bool>& stop, bool caller) {
+    // A vertex of very high valence takes long: the calling thread polls inside it (an abort
+    // throws), another thread stops early when the run is being stopped.
+    auto stopped = [this, &stop, caller](std::size_t i) {
+      if ((i & 4095) != 4095)
+      {
+        return false;
+      }
+      if (caller)
+      {
+        this->progress_.Poll();
+      }
+      return stop.load(std::memory_order_relaxed);
+    };
+    State flags = kRecompute;
+    const std::uint32_t b = w.RO.Get(u), e = w.RO.Get(u + 1);
+    tris.clear();
+    next.clear();
+    prev.clear();
+    Quadric Q = { { 0, 0, 0, 0, 0, 0, 0, 0, 0, 0 } };
+    for (std::uint32_t k = b; k < e; ++k)
+    {
+      if (stopped(k - b))
+      {
+        return;
+      }
+      const Tri t = w.F.Get(w.RF.Get(k));
+      if (!Alive(t))
+      {
+        continue;
+      }
+      const int c = CornerOf(t, u);
+      tris.push_back(t);
+      next.push_back(t.v[kNextCorner[c]]);
+      prev.push_back(t.v[kPrevCorner[c]]);
+      const Vec3 a = w.P.Get(t.v[0]);
+      Vec3 nn = Cross(w.P.Get(t.v[1]) - a, w.P.Get(t.v[2]) - a);
+      const double len = std::sqrt(Dot(nn, nn));
+      if (len > 0)
+      {
+        nn = (1.0 / len) * nn;
+        AddPlane(Q, nn, -Dot(nn, a), 0.5 * len);
+      }
+    }
+    const std::size_t n = tris.size();
+    const bool useTally = n > LinkTally::kMinEntries;
+    if (useTally)
+    {
+      tally.Build(next.data(), prev.data(), n);
+    }
+    auto countIn = [&](bool inNext, std::uint32_t x) {
+      if (useTally)
+      {
+        return tally.Count(inNext, x);
+      }
+      std::size_t m = 0;
+      for (std::uint32_t y : inNext ? next : prev)
+      {
+        m += y == x;
+      }
+      return m;
+    };
+    // Whether entry i of next (inNext) or prev is the first x there.
+    auto first = [&](bool inNext, std::uint32_t x, std::size_t i) {
+      if (useTally)
+      {
+        return tally.First(inNext, x, i);
+      }
+      const std::vector<std::uint32_t>& list = inNext ? next : prev;
+      return std::find(list.begin(), list.begin() + std::ptrdiff_t(i), x) ==
+        list.begin() + std::ptrdiff_t(i);
+    };
+    int boundaryEdges = 0;
+    auto boundaryPlane = [&](std::uint32_t a, std::size_t face) {
+      ++boundaryEdges;
+      if (!(bw > 0))
+      {
+        return;
+      }
+      const Tri& t = tris[face];
+      const Vec3 p0 = w.P.Get(t.v[0]);
+      Vec3 fn = Cross(w.P.Get(t.v[1]) - p0, w.P.Get(t.v[2]) - p0);
+      const Vec3 pu = w.P.Get(u);
+      const Vec3 ev = w.P.Get(a) - pu;
+      Vec3 m = Cross(ev, fn);
+      const double len = std::sqrt(Dot(m, m));
+      if (len > 0)
+      {
+        m = (1.0 / len) * m;
+        AddPlane(Q, m, -Dot(m, pu), bw * Dot(ev, ev));
+      }
+    };
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      if (stopped(i))
+      {
+        return;
+      }
+      const std::uint32_t a = next[i];
+      if (!first(true, a, i))
+      {
+        continue;
+      }
+      const std::size_t m = countIn(true, a) + countIn(false, a);
+      if (m > 2)
+      {
+        flags |= kComplex; // a non-manifold edge: its face count is checked before collapses
+      }
+      else if (m == 1)
+      {
+        boundaryPlane(a, i);
+      }
+    }
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      if (stopped(i))
+      {
+        return;
+      }
+      const std::uint32_t a = prev[i];
+      if (countIn(true, a) > 0 || !first(false, a, i))
+      {
+        continue;
+      }
+      const std::size_t m = countIn(false, a);
+      if (m > 2)
+      {
+        flags |= kComplex;
+      }
+      else if (m == 1)
+      {
+        boundaryPlane(a, i);
+      }
+    }
+    if (boundaryEdges > 0)
+    {
+      flags |= kBoundary;
+      if (boundaryEdges != 2)
+      {
+        flags |= kComplex; // several fans meet here: the link condition keeps them apart
+      }
+      if (this->opt_.lockBoundary)
+      {
+        flags |= kFixed;
+      }
+    }
+    if (this->opt_.initialQuadric)
+    {
+      double iq[10] = { 0 };
+      if (this->opt_.initialQuadric(u, iq))
+      {
+        // World to local coordinates: x = y + o.
+        const Vec3 o = this->origin_;
+        const double ax = iq[0] * o.x + iq[1] * o.y + iq[2] * o.z;
+        const double ay = iq[1] * o.x + iq[4] * o.y + iq[5] * o.z;
+        const double az = iq[2] * o.x + iq[5] * o.y + iq[7] * o.z;
+        Quadric T;
+        std::copy(iq, iq + 10, T.q);
+        T.q[3] = ax + iq[3];
+        T.q[6] = ay + iq[6];
+        T.q[8] = az + iq[8];
+        T.q[9] = o.x * ax + o.y * ay + o.z * az + 2.0 * (iq[3] * o.x + iq[6] * o.y + iq[8] * o.z) +
+          iq[9];
+        AddTo(Q, T);
+      }
+    }
+    w.Q.Set(u, Q);
+    w.S.Set(u, flags);
+    w.C.Set(u, this->none_);
+    if (useTally)
+    {
+      tally.Release();
+      ReleaseIfLarge(tris);
+      ReleaseIfLarge(next);
+      ReleaseIfLarge(prev);
+    }
+  };
+  int T = (this->AllInCore() && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
+  // Out of core: the upper half of the vertices on a helper thread through a forked DML.
+  Views forkViews;
+  std::unique_ptr<DML> fork = (T == 1 && !this->opt_.initialQuadric)
+    ? this->ForkHelper(nv, nv / 2, { this->quad_.Id(), this->state_.Id(), this->cand_.Id() },
+        forkViews)
+    : nullptr;
+  ForkGuard joinOnExit{ *this, fork };
+  if (fork)
+  {
+    T = 2; // ForRanges' halves: [0, nv / 2) and [nv / 2, nv)
+  }
+  ForRanges(
+    T, nv,
+    [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+      Views& w = (fork && t == 1) ? forkViews : this->v_;
+      std::vector<Tri> tris;
+      std::vector<std::uint32_t> next, prev;
+      LinkTally tally;
+      // In core: the faces of the vertices 8 ahead, the corner positions of those 4 ahead.
+      const std::uint32_t* ROp = w.RO.Ptr(0);
+      const std::uint32_t* RFp = w.RF.Ptr(0);
+      const Tri* Fp = w.F.Ptr(0);
+      const Vec3* Pp = w.P.Ptr(0);
+      const bool prefetch = ROp && RFp && Fp && Pp;
+      for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
+      {
+        if (t == 0)
+        {
+          this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
+        }
+        if (prefetch && u + 8 < hi)
+        {
+          for (std::uint32_t k = ROp[u + 8], e = ROp[u + 9]; k < e; ++k)
+          {
+            Prefetch(Fp + RFp[k]);
+          }
+          for (std::uint32_t k = ROp[u + 4], e = ROp[u + 5]; k < e; ++k)
+          {
+            for (const std::uint32_t y : Fp[RFp[k]].v)
+            {
+              PrefetchAt(Pp, y); // (the duplicate search may have killed the face)
+            }
+          }
+        }
+        vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0);
+      }
+    },
+    [&]() { this->JoinHelper(fork); }, [this]() { this->progress_.Poll(); });
+  this->JoinHelper(fork);
+}
+
+} // namespace sipmss::algorithms::decimate

@@ -1,0 +1,1027 @@
+// Algorithm I: the collapse step (legality, collapse, the chunked rounds) and a pass (the map of the passes: Decimator.h).
+#include "Decimator.h"
+
+namespace sipmss::algorithms::decimate
+{
+// x's live faces only (r.faces; no neighbour table, no positions).
+void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
+{
+  r.x = x;
+  r.faces.clear();
+  r.nbs.clear();
+  r.keys.clear();
+  const std::uint32_t b = w.RO.Get(x), e = w.RO.Get(x + 1);
+  const std::uint32_t* ids = w.RF.Ptr(b); // in core: the list itself
+  if (!ids)
+  {
+    r.ids.resize(e - b);
+    w.RF.GetRange(b, e - b, r.ids.data());
+    ids = r.ids.data();
+  }
+  if (const Tri* fp = w.F.Ptr(0))
+  {
+    for (std::uint32_t k = 0; k < e - b; ++k)
+    {
+      Prefetch(fp + ids[k]);
+    }
+  }
+  for (std::uint32_t k = 0; k < e - b; ++k)
+  {
+    const std::uint32_t id = ids[k];
+    const Tri t = w.F.Get(id);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    const int corner = CornerOf(t, x);
+    r.faces.push_back({ id, t, corner, { 0, 0 } });
+  }
+}
+
+void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
+{
+  this->LoadFaces(w, x, r);
+  this->BuildNeighbours(w, r, positions);
+}
+
+// The sorted neighbour table of a ring whose faces are loaded (and their positions).
+void Decimator::BuildNeighbours(Views& w, Ring& r, bool positions)
+{
+  r.nbs.clear();
+  r.keys.clear();
+  for (std::size_t slot = 0; slot < r.faces.size(); ++slot)
+  {
+    // key: neighbour | slot | which (0: next corner, 1: previous corner)
+    const RingFace& f = r.faces[slot];
+    r.keys.push_back((std::uint64_t(f.t.v[kNextCorner[f.corner]]) << 32) | (slot << 1));
+    r.keys.push_back((std::uint64_t(f.t.v[kPrevCorner[f.corner]]) << 32) | (slot << 1) | 1);
+  }
+  SmallSort(r.keys.data(), r.keys.size());
+  for (std::uint64_t key : r.keys)
+  {
+    const std::uint32_t v = std::uint32_t(key >> 32);
+    const std::uint32_t slot = std::uint32_t(key & 0xffffffffu) >> 1;
+    const int which = int(key & 1);
+    RingFace& rf = r.faces[slot];
+    const std::uint32_t opp = rf.t.v[which == 0 ? kPrevCorner[rf.corner] : kNextCorner[rf.corner]];
+    if (r.nbs.empty() || r.nbs.back().v != v)
+    {
+      r.nbs.push_back({ v, 1, { opp, kNone }, { 0, 0, 0 } });
+    }
+    else
+    {
+      Nb& n = r.nbs.back();
+      if (n.count < 2)
+      {
+        n.opp[1] = opp;
+      }
+      ++n.count;
+    }
+    rf.nb[which] = std::uint32_t(r.nbs.size() - 1);
+  }
+  if (positions)
+  {
+    if (const Vec3* pp = w.P.Ptr(0))
+    {
+      for (const Nb& n : r.nbs)
+      {
+        Prefetch(pp + n.v);
+      }
+    }
+    r.px = w.P.Get(r.x);
+    for (Nb& n : r.nbs)
+    {
+      n.p = w.P.Get(n.v);
+    }
+  }
+}
+
+bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
+{
+  Vec3 c[3];
+  r.Corners(slot, c);
+  return this->FaceOk(c, r.faces[slot].corner, p);
+}
+
+// Face with corners c (overwritten) when corner `corner` moves to p.
+bool Decimator::FaceOk(Vec3 c[3], int corner, const Vec3& p) const
+{
+  const Vec3 n0 = Cross(c[1] - c[0], c[2] - c[0]);
+  c[corner] = p;
+  const Vec3 e0 = c[1] - c[0], e1 = c[2] - c[0], e2 = c[2] - c[1];
+  const Vec3 n1 = Cross(e0, e1);
+  const double l1 = Dot(n1, n1);
+  const double maxE = std::max({ Dot(e0, e0), Dot(e1, e1), Dot(e2, e2) });
+  if (!(l1 > 1e-20 * maxE * maxE))
+  {
+    return false; // (nearly) zero area
+  }
+  const double l0 = Dot(n0, n0);
+  if (!(l0 > 0))
+  {
+    return true;
+  }
+  // Flips or turns too much: n0.n1 < cos |n0| |n1|, compared squared (no square root).
+  const double dot = Dot(n0, n1), k = this->cosThreshold_;
+  const double bound2 = k * k * l0 * l1;
+  return k >= 0 ? (dot >= 0 && dot * dot >= bound2) : (dot >= 0 || dot * dot <= bound2);
+}
+
+// Is collapsing u (ring in s.ru, with its neighbour table and positions) and nb.v to p legal?
+// Loads s.rv the same way unless rvLoaded.
+bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded)
+{
+  const std::uint32_t v = nb.v;
+  const std::uint32_t m = nb.count;
+  Ring& ru = s.ru;
+  Ring& rv = s.rv;
+  if (!rvLoaded)
+  {
+    this->LoadRing(this->W(s), v, rv, true);
+  }
+  // The collapse must leave faces (no vanishing component).
+  if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
+  {
+    return false;
+  }
+  // Link condition: the common neighbours are exactly the vertices opposite the edge.
+  std::uint32_t common = 0;
+  {
+    std::size_t i = 0, j = 0;
+    while (i < ru.nbs.size() && j < rv.nbs.size())
+    {
+      const std::uint32_t a = ru.nbs[i].v, b = rv.nbs[j].v;
+      if (a < b)
+      {
+        ++i;
+      }
+      else if (b < a)
+      {
+        ++j;
+      }
+      else
+      {
+        if (a != u && a != v)
+        {
+          ++common;
+        }
+        ++i;
+        ++j;
+      }
+    }
+  }
+  if (common != m)
+  {
+    return false;
+  }
+  // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
+  if (m == 2 && ru.HasFace(nb.opp[0], nb.opp[1]) && rv.HasFace(nb.opp[0], nb.opp[1]))
+  {
+    return false;
+  }
+  if (m > 2)
+  {
+    // A non-manifold edge (m sheets meet on it): the same test for every face of u's ring whose
+    // other two corners are both common neighbours.
+    for (const RingFace& f : ru.faces)
+    {
+      if (Has(f.t, v))
+      {
+        continue;
+      }
+      const std::uint32_t a = f.t.v[(f.corner + 1) % 3], b = f.t.v[(f.corner + 2) % 3];
+      if (rv.HasFace(a, b))
+      {
+        return false;
+      }
+    }
+  }
+  // Geometry of the faces that survive.
+  for (std::size_t s = 0; s < ru.faces.size(); ++s)
+  {
+    if (!Has(ru.faces[s].t, v) && !this->FaceOk(ru, s, p))
+    {
+      return false;
+    }
+  }
+  for (std::size_t s = 0; s < rv.faces.size(); ++s)
+  {
+    if (!Has(rv.faces[s].t, u) && !this->FaceOk(rv, s, p))
+    {
+      return false;
+    }
+  }
+  return true;
+}
+
+// Legal for u and v with their faces loaded (s.ru, s.rv: LoadFaces), when the edge has m <= 2
+// faces, whose third vertices are opp[0..m-1]: the same rules, without neighbour tables. The
+// common neighbours are exactly the opposite vertices when those differ and no other vertex of
+// v's faces without u is a corner of u's faces; positions are read per face.
+bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
+  const std::uint32_t opp[2], const Vec3& p, Scratch& s)
+{
+  const Ring& ru = s.ru;
+  const Ring& rv = s.rv;
+  if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
+  {
+    return false;
+  }
+  if (m == 2 && opp[0] == opp[1])
+  {
+    // Two faces (u, v, o) and (v, u, o): Legal counted o once and could let one more common
+    // neighbour through; neither BuildRings (it settles such pairs) nor a legal collapse makes
+    // them, and the stricter answer is the right one.
+    return false;
+  }
+  const std::uint32_t o1 = m == 2 ? opp[1] : opp[0];
+  bool clash = false; // (no early exits: fixed trip counts instead of mispredicted branches)
+  for (const RingFace& f : rv.faces)
+  {
+    if (Has(f.t, u))
+    {
+      continue;
+    }
+    for (const std::uint32_t a : { f.t.v[kNextCorner[f.corner]], f.t.v[kPrevCorner[f.corner]] })
+    {
+      bool inU = false;
+      for (const RingFace& g : ru.faces)
+      {
+        inU |= (g.t.v[0] == a) | (g.t.v[1] == a) | (g.t.v[2] == a);
+      }
+      clash |= inU & (a != opp[0]) & (a != o1);
+    }
+  }
+  if (clash)
+  {
+    return false;
+  }
+  // A face (u, o1, o2) and a face (v, o1, o2) would become duplicates (tetrahedron).
+  if (m == 2 && ru.HasFaceWith(opp[0], opp[1]) && rv.HasFaceWith(opp[0], opp[1]))
+  {
+    return false;
+  }
+  Views& w = this->W(s);
+  for (const Ring* r : { &ru, &rv })
+  {
+    const std::uint32_t other = r == &ru ? v : u;
+    for (const RingFace& f : r->faces)
+    {
+      if (Has(f.t, other))
+      {
+        continue;
+      }
+      Vec3 c[3] = { w.P.Get(f.t.v[0]), w.P.Get(f.t.v[1]), w.P.Get(f.t.v[2]) };
+      if (!this->FaceOk(c, f.corner, p))
+      {
+        return false;
+      }
+    }
+  }
+  return true;
+}
+
+void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s)
+{
+  Views& w = this->W(s);
+  const std::size_t rec = this->recSize_;
+  if (rec == 0 || t <= 0.0)
+  {
+    return;
+  }
+  s.abuf.resize(rec);
+  s.abuf2.resize(rec);
+  if (t >= 1.0)
+  {
+    w.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf.data());
+    w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+    return;
+  }
+  w.A.GetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+  w.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf2.data());
+  float* a = reinterpret_cast<float*>(s.abuf.data());
+  const float* b = reinterpret_cast<const float*>(s.abuf2.data());
+  for (std::size_t i = 0; i < this->nFloats_; ++i)
+  {
+    a[i] = float(double(a[i]) + t * (double(b[i]) - double(a[i])));
+  }
+  if (this->layout_.normals)
+  {
+    double l = std::sqrt(double(a[0]) * a[0] + double(a[1]) * a[1] + double(a[2]) * a[2]);
+    if (l > 0)
+    {
+      for (int i = 0; i < 3; ++i)
+      {
+        a[i] = float(a[i] / l);
+      }
+    }
+  }
+  if (this->layout_.colors)
+  {
+    std::uint8_t* ca = s.abuf.data() + this->nFloats_ * sizeof(float);
+    const std::uint8_t* cb = s.abuf2.data() + this->nFloats_ * sizeof(float);
+    for (int i = 0; i < 4; ++i)
+    {
+      double x = double(ca[i]) + t * (double(cb[i]) - double(ca[i]));
+      ca[i] = std::uint8_t(std::min(255.0, std::max(0.0, std::floor(x + 0.5))));
+    }
+  }
+  w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+}
+
+// Collapses u and c.partner (their faces loaded in s.ru and s.rv) into u at c.p; returns the
+// number of faces removed.
+std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
+{
+  Views& w = this->W(s);
+  const std::uint32_t v = c.partner;
+  const Ring& ru = s.ru;
+  const Ring& rv = s.rv;
+  const State su = w.S.Get(u), sv = w.S.Get(v);
+  std::uint64_t removed = 0;
+  for (const RingFace& f : ru.faces)
+  {
+    if (Has(f.t, v))
+    {
+      w.F.Set(f.id, kDeadTri);
+      ++removed;
+    }
+  }
+  for (const RingFace& f : rv.faces)
+  {
+    if (!Has(f.t, u))
+    {
+      Tri t = f.t;
+      t.v[f.corner] = u;
+      w.F.Set(f.id, t);
+    }
+  }
+  // Mark every vertex of the faces around u and v (the other two corners of each): no later
+  // collapse of this pass touches them. (u and v are among them; they get their states below.)
+  State* Sp = const_cast<State*>(w.S.Ptr(0));
+  for (const Ring* r : { &ru, &rv })
+  {
+    for (const RingFace& f : r->faces)
+    {
+      const std::uint32_t a = f.t.v[kNextCorner[f.corner]], b = f.t.v[kPrevCorner[f.corner]];
+      if (Sp)
+      {
+        Sp[a] |= kMarked;
+        Sp[b] |= kMarked;
+      }
+      else
+      {
+        w.S.Set(a, State(w.S.Get(a) | kMarked));
+        w.S.Set(b, State(w.S.Get(b) | kMarked));
+      }
+    }
+  }
+  w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
+  if (!this->lazySums_)
+  {
+    Quadric Q = w.Q.Get(u);
+    AddTo(Q, w.Q.Get(v));
+    w.Q.Set(u, Q);
+  }
+  this->InterpolateAttributes(u, v, double(c.t), s);
+  w.S.Set(v, State(kRemoved | kMarked));
+  w.S.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
+  return removed;
+}
+
+inline std::uint32_t CostBin(double cost)
+{
+  float f = float(cost);
+  std::uint32_t bits;
+  std::memcpy(&bits, &f, 4);
+  return bits >> 16; // non-negative floats order like their bits; 15 bits: ~0.8% wide bins
+}
+
+// One candidate of step 3: collapses u with its candidate's partner if both are free and the
+// collapse is legal. With a vertex range [lo, hi) (a chunk), the collapse must stay inside it:
+// u, the partner and every vertex of their rings in the range, else it is deferred. Collapses
+// that stay inside disjoint ranges touch disjoint data (a face they change or a position they
+// move has all its vertices in the range), so chunks can run at the same time.
+Decimator::Try Decimator::TryCollapse(
+  std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi, std::uint64_t& removed)
+{
+  Views& w = this->W(s);
+  const State su = w.S.Get(u);
+  if (su & kBusy)
+  {
+    return Try::Skip;
+  }
+  const Cand c = w.C.Get(u);
+  const std::uint32_t v = c.partner;
+  if (v < lo || v >= hi)
+  {
+    return Try::Defer;
+  }
+  if (w.S.Get(v) & kBusy)
+  {
+    return Try::Skip;
+  }
+  const bool chunked = lo != 0 || hi != kNone;
+  // In a chunk: every vertex of the faces in it (u is), and with the face split on, only faces
+  // on the chunk's side of the split.
+  const bool split = chunked && this->splitOn_;
+  const bool upper = lo >= this->splitMid_;
+  auto outside = [&](const Ring& r) {
+    bool out = false;
+    for (const RingFace& f : r.faces)
+    {
+      for (const std::uint32_t x : f.t.v)
+      {
+        out |= x < lo || x >= hi;
+      }
+      out |= split && ((f.id >= this->splitFace_) != upper);
+    }
+    return out;
+  };
+  if (this->RingLength(w, u) + this->RingLength(w, v) > kMaxCollapseRing)
+  {
+    // Not made (kMaxCollapseRing). In a chunk, deferred: the verdict is the sequential one.
+    if (chunked)
+    {
+      return Try::Defer;
+    }
+    w.S.Set(u, State(su | kNeedsLegal));
+    return Try::Illegal;
+  }
+  // The faces only: the edge's faces and their third vertices come from u's.
+  this->LoadFaces(w, u, s.ru);
+  if (chunked && outside(s.ru))
+  {
+    return Try::Defer;
+  }
+  std::uint32_t m = 0, opp[2] = { kNone, kNone };
+  for (const RingFace& f : s.ru.faces)
+  {
+    if (Has(f.t, v))
+    {
+      if (m < 2)
+      {
+        opp[m] = f.t.v[0] ^ f.t.v[1] ^ f.t.v[2] ^ u ^ v;
+      }
+      ++m;
+    }
+  }
+  if (m > 0)
+  {
+    this->LoadFaces(w, v, s.rv);
+    if (chunked && outside(s.rv))
+    {
+      return Try::Defer;
+    }
+  }
+  const Vec3 p = { c.p[0], c.p[1], c.p[2] };
+  bool legal = false; // (m == 0: v is no neighbour)
+  if (m > 2 || (m > 0 && s.ru.faces.size() * s.rv.faces.size() > kLegalFacesMax))
+  {
+    // A non-manifold edge, or rings too large for LegalFaces' pairwise test: the sorted
+    // neighbour tables.
+    this->BuildNeighbours(w, s.ru, true);
+    this->BuildNeighbours(w, s.rv, true);
+    legal = this->Legal(u, *s.ru.Find(v), p, s, true);
+  }
+  else if (m > 0)
+  {
+    legal = this->LegalFaces(u, v, m, opp, p, s);
+  }
+  if (!legal)
+  {
+    w.S.Set(u, State(su | kNeedsLegal));
+    return Try::Illegal;
+  }
+  removed += this->Collapse(u, c, s);
+  return Try::Done;
+}
+
+// Runs TryCollapse on the candidates at positions [first, last) of the order until `budget`
+// faces are removed; deferred ones get kDeferred (no list: the footprint stays in the DML).
+// Returns where it stopped.
+std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo,
+  std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run, std::int64_t tickAt,
+  std::uint64_t tickScale)
+{
+  Views& w = this->W(s);
+  // In core: prefetch the data of the candidates ahead, in stages, each reading what the one
+  // before fetched: their state, candidate and ring offsets; for those still free, the
+  // partner's, the ring's face ids and both positions; the ring's faces and the partner's face
+  // ids; the positions of the ring's vertices and the partner's faces; the positions of the
+  // partner's ring vertices and the states of both rings' vertices (the legality check reads
+  // the positions, the collapse marks the states).
+  const std::uint32_t* Op = w.O.Ptr(0);
+  const State* Sp = w.S.Ptr(0);
+  const Cand* Cp = w.C.Ptr(0);
+  const std::uint32_t* ROp = w.RO.Ptr(0);
+  const std::uint32_t* RFp = w.RF.Ptr(0);
+  const Vec3* Pp = w.P.Ptr(0);
+  const Tri* Fp = w.F.Ptr(0);
+  const Quadric* Qp = this->lazySums_ ? nullptr : w.Q.Ptr(0);
+  const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
+  constexpr std::uint64_t kAhead = 16;
+  // (The loops over a ring's corners below are written out: through a shared generic lambda,
+  // GCC 12 emitted half of these prefetches and the step ran 3-5% slower.)
+  auto prefetchList = [&](std::uint32_t y) { // its face ids: the first and the last line
+    const std::uint32_t b = ROp[y], e = ROp[y + 1];
+    Prefetch(RFp + b);
+    if (e > b)
+    {
+      Prefetch(RFp + e - 1);
+    }
+  };
+  auto freePair = [&](std::uint32_t w, std::uint32_t& x) {
+    x = Cp[w].partner;
+    return !(Sp[w] & kBusy) && x >= lo && x < hi && !(Sp[x] & kBusy);
+  };
+  std::uint64_t i = first;
+  for (; i < last && run.removed < budget; ++i)
+  {
+    if (tickAt >= 0 && ((i - first) & 1023) == 0)
+    {
+      this->progress_.Tick(
+        double(std::uint64_t(tickAt) + tickScale * (i - first)) / double(this->stepTotal_));
+    }
+    if (prefetch)
+    {
+      std::uint32_t x;
+      if (i + 2 * kAhead < last)
+      {
+        const std::uint32_t w = Op[i + 2 * kAhead];
+        Prefetch(Sp + w);
+        Prefetch(Cp + w);
+        Prefetch(ROp + w);
+      }
+      if (i + kAhead < last)
+      {
+        const std::uint32_t w = Op[i + kAhead];
+        x = Cp[w].partner;
+        if (!(Sp[w] & kBusy) && x >= lo && x < hi)
+        {
+          Prefetch(Sp + x);
+          Prefetch(ROp + x);
+          prefetchList(w);
+          Prefetch(Pp + w);
+          Prefetch(Pp + x);
+        }
+      }
+      if (i + kAhead / 2 < last)
+      {
+        const std::uint32_t w = Op[i + kAhead / 2];
+        if (freePair(w, x))
+        {
+          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
+          {
+            Prefetch(Fp + RFp[k]);
+          }
+          prefetchList(x);
+        }
+      }
+      if (i + kAhead / 4 < last)
+      {
+        const std::uint32_t w = Op[i + kAhead / 4];
+        if (freePair(w, x))
+        {
+          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
+          {
+            for (const std::uint32_t y : Fp[RFp[k]].v)
+            {
+              PrefetchAt(Pp, y);
+            }
+          }
+          for (std::uint32_t k = ROp[x], e = ROp[x + 1]; k < e; ++k)
+          {
+            Prefetch(Fp + RFp[k]);
+          }
+          if (Qp)
+          {
+            // The collapse adds the partner's quadric to w's (80 bytes: two cache lines each).
+            for (const std::uint32_t y : { w, x })
+            {
+              Prefetch(Qp + y);
+            }
+          }
+        }
+      }
+      if (i + kAhead / 8 < last)
+      {
+        const std::uint32_t w = Op[i + kAhead / 8];
+        if (freePair(w, x))
+        {
+          for (std::uint32_t k = ROp[x], e = ROp[x + 1]; k < e; ++k)
+          {
+            for (const std::uint32_t y : Fp[RFp[k]].v)
+            {
+              PrefetchAt(Pp, y);
+              PrefetchAt(Sp, y);
+            }
+          }
+          for (std::uint32_t k = ROp[w], e = ROp[w + 1]; k < e; ++k)
+          {
+            for (const std::uint32_t y : Fp[RFp[k]].v)
+            {
+              PrefetchAt(Sp, y);
+            }
+          }
+        }
+      }
+    }
+    const std::uint32_t u = w.O.Get(i);
+    switch (this->TryCollapse(u, s, lo, hi, run.removed))
+    {
+      case Try::Done:
+        ++run.done;
+        break;
+      case Try::Illegal:
+        ++run.illegal;
+        break;
+      case Try::Defer:
+        w.S.Set(u, State(w.S.Get(u) | kDeferred));
+        break;
+      case Try::Skip:
+        break;
+    }
+  }
+  return i;
+}
+
+// One scan of the faces: the split point with the fewest faces on the wrong side (faces whose
+// vertices all lie below the middle chunk boundary but sit at or after it, or all at or above
+// it and before), in one pass: that count is (below faces) + min over f of (above faces before
+// f - below faces before f).
+void Decimator::FaceSplit(std::uint64_t nv)
+{
+  this->splitOn_ = false;
+  const std::uint64_t size = this->StepChunkSize(nv);
+  const std::uint64_t n = (nv + size - 1) / size;
+  if (n < 2)
+  {
+    return;
+  }
+  const std::uint64_t mid = n / 2 * size;
+  std::int64_t diff = 0, best = 0;
+  std::uint64_t below = 0, bestAt = 0;
+  for (std::uint64_t f = 0; f < this->nf_; ++f)
+  {
+    const Tri t = this->v_.F.Get(f);
+    if (!Alive(t))
+    {
+      continue;
+    }
+    if (t.v[0] < mid && t.v[1] < mid && t.v[2] < mid)
+    {
+      ++below;
+      --diff;
+    }
+    else if (t.v[0] >= mid && t.v[1] >= mid && t.v[2] >= mid)
+    {
+      ++diff;
+    }
+    else
+    {
+      continue;
+    }
+    if (diff < best)
+    {
+      best = diff;
+      bestAt = f + 1;
+    }
+  }
+  const std::uint64_t wrong = std::uint64_t(std::int64_t(below) + best);
+  this->splitMid_ = mid;
+  this->splitFace_ = bestAt;
+  this->splitOn_ = wrong <= this->liveFaces_ / kSplitWrongShare;
+}
+
+// Step 3 for the candidates at positions [groupBegin, groupEnd) of the order, which are in
+// vertex order. The vertices are cut into fixed chunks (their size depends on nv only). In
+// rounds: every chunk runs its candidates up to a quota (a share of the faces still to remove
+// this pass, by its candidates left), keeping only collapses inside the chunk (the chunks in
+// parallel when in core, else one after the other: the same result); then the deferred ones run
+// in order, one at a time, up to the pass's goal. Near the goal, the rest runs one at a time.
+// Neither the thread count nor the storage mode changes the result.
+void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
+  std::uint64_t goal, StepRun& total)
+{
+  const std::uint64_t size = this->StepChunkSize(nv);
+  const std::size_t n = std::size_t((nv + size - 1) / size);
+  // The chunk boundaries in the group (it is in vertex order).
+  std::vector<std::uint64_t> cursor(n + 1);
+  for (std::size_t c = 0; c <= n; ++c)
+  {
+    const std::uint64_t vb = std::min<std::uint64_t>(nv, c * size);
+    std::uint64_t l = groupBegin, h = groupEnd;
+    while (l < h)
+    {
+      const std::uint64_t m = l + (h - l) / 2;
+      if (this->v_.O.Get(m) < vb)
+      {
+        l = m + 1;
+      }
+      else
+      {
+        h = m;
+      }
+    }
+    cursor[c] = l;
+  }
+  std::vector<std::uint64_t> end(cursor.begin() + 1, cursor.end());
+  cursor.pop_back();
+  const int T = (this->AllInCore() && (!this->recSize_ || this->v_.A.Ptr(0))) ? this->threads_ : 1;
+  // Out of core: the two halves of the chunks on two threads (the second through a forked
+  // DML) while the faces split with the vertices at the middle chunk boundary (FaceSplit).
+  const std::size_t half = n / 2;
+  const bool forkable =
+    T == 1 && this->splitOn_ && half > 0 && std::uint64_t(half) * size == this->splitMid_;
+  if (this->scratch_.size() < std::size_t(std::max(T, 2)))
+  {
+    this->scratch_.resize(std::size_t(std::max(T, 2)));
+  }
+  std::vector<std::uint64_t> roundStart(n);
+  std::vector<StepRun> runs(n);
+  // Progress: the step's position is that of the candidates consumed (those of the earlier
+  // groups, whose rest is dropped when a group ends, then this group's).
+  const std::uint64_t at = groupBegin;
+  std::uint64_t done = 0;
+  std::vector<std::uint64_t> quota(n);
+  while (this->liveFaces_ > goal)
+  {
+    std::uint64_t left = 0;
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      left += end[c] - cursor[c];
+    }
+    const std::uint64_t R = this->liveFaces_ - goal;
+    if (left == 0)
+    {
+      return;
+    }
+    if (R < kStepTail)
+    {
+      // The rest one at a time, in order.
+      StepRun run;
+      for (std::size_t c = 0; c < n && run.removed < R; ++c)
+      {
+        const std::uint64_t from = cursor[c];
+        cursor[c] = this->Step(
+          cursor[c], end[c], 0, kNone, R, this->scratch_[0], run, std::int64_t(at + done));
+        done += cursor[c] - from;
+      }
+      this->liveFaces_ -= run.removed;
+      total.done += run.done;
+      total.illegal += run.illegal;
+      return;
+    }
+    // A: the chunks, each up to its quota (9/10 of R shared by candidates left).
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      quota[c] = (end[c] - cursor[c]) * (R - R / 10) / left;
+      runs[c] = StepRun();
+      roundStart[c] = cursor[c];
+    }
+    // Progress (the calling thread): the candidates of its own chunks as it goes, everyone's
+    // at the end of the round.
+    std::uint64_t mine = 0;
+    std::atomic<std::size_t> next{ 0 };
+    std::atomic<bool> stop{ false };
+    std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
+    auto work = [&](int t) {
+      Scratch& s = this->scratch_[std::size_t(t)];
+      try
+      {
+        for (std::size_t c; !stop.load(std::memory_order_relaxed) && (c = next++) < n;)
+        {
+          const std::uint32_t lo = std::uint32_t(c * size);
+          const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+          // progress and abort: the calling thread only
+          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
+            t == 0 ? std::int64_t(at + done + mine) : -1);
+          if (t == 0)
+          {
+            mine += cursor[c] - roundStart[c];
+          }
+        }
+      }
+      catch (...)
+      {
+        errors[std::size_t(t)] = std::current_exception();
+        stop = true;
+      }
+    };
+    Views forkViews;
+    std::unique_ptr<DML> fork;
+    ForkGuard joinOnExit{ *this, fork };
+    if (forkable)
+    {
+      const std::uint64_t mid = this->splitMid_;
+      std::vector<DML::Range> more;
+      more.push_back({ this->faces_.Id(), this->splitFace_,
+        this->faces_.Size() - std::min(this->splitFace_, this->faces_.Size()) });
+      if (this->recSize_)
+      {
+        more.push_back({ this->attr_.Id(), mid * this->recSize_,
+          this->attr_.Size() - mid * this->recSize_ });
+      }
+      fork =
+        this->ForkHelper(nv, mid, { this->state_.Id(), this->pos_.Id() }, forkViews, more);
+    }
+    if (fork)
+    {
+      // Each thread runs its half of the chunks in order (the same collapses as one after the
+      // other: a chunk's collapses touch only its own vertices and faces).
+      this->scratch_[1].w = &forkViews;
+      ForRanges(
+        2, 2,
+        [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>& halt) {
+          for (std::uint64_t g = gb; g < ge; ++g)
+          {
+            Scratch& s = this->scratch_[std::size_t(t)];
+            for (std::size_t c = g ? half : 0; c < (g ? n : half); ++c)
+            {
+              if (halt.load(std::memory_order_relaxed))
+              {
+                return;
+              }
+              const std::uint32_t lo = std::uint32_t(c * size);
+              const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+              cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
+                t == 0 ? std::int64_t(at + done + mine) : -1);
+              if (t == 0)
+              {
+                mine += cursor[c] - roundStart[c];
+              }
+            }
+          }
+        },
+        [&]() { this->JoinHelper(fork); });
+      this->JoinHelper(fork);
+    }
+    // Chunks are taken from a shared counter: if a thread cannot start, the others take its share.
+    else if (T > 1)
+    {
+      RunOnThreads(T, work, nullptr);
+    }
+    else
+    {
+      work(0);
+    }
+    RethrowFirst(errors);
+    // B: the deferred ones, in order, one at a time. Each chunk's are moved to the front of
+    // the part of the order it ran this round (done with), their flags cleared (all of them,
+    // also past the goal), and go through Step (which prefetches ahead).
+    StepRun b;
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      done += cursor[c] - roundStart[c];
+    }
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      this->liveFaces_ -= runs[c].removed;
+      total.done += runs[c].done;
+      total.illegal += runs[c].illegal;
+    }
+    for (std::size_t c = 0; c < n; ++c)
+    {
+      std::uint64_t k = roundStart[c];
+      for (std::uint64_t i = roundStart[c]; i < cursor[c]; ++i)
+      {
+        const std::uint32_t u = this->v_.O.Get(i);
+        const State su = this->v_.S.Get(u);
+        if (su & kDeferred)
+        {
+          this->v_.S.Set(u, State(su & ~kDeferred));
+          this->v_.O.Set(k++, u);
+        }
+      }
+      if (this->liveFaces_ > goal + b.removed)
+      {
+        this->Step(roundStart[c], k, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], b,
+          std::int64_t(at + done), 0); // (polls only: these candidates were counted)
+      }
+    }
+    this->liveFaces_ -= std::min(b.removed, this->liveFaces_);
+    total.done += b.done;
+    total.illegal += b.illegal;
+  }
+}
+
+bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
+{
+  const std::uint64_t nv = this->nv_;
+  this->BindViews();
+  // Progress: the pass's steps by their work (kWork), then the rest of the run.
+  const double wantGuess = double(2 * (this->liveFaces_ - std::min(goal, this->liveFaces_)) + 16);
+  const double wStep = kWork::kStep * wantGuess;
+  const double wCompact = kWork::kCompact * double(this->nf_ + nv);
+  const double wOrder = kWork::kOrder * double(nv);
+  // 1. Every vertex's cheapest collapse.
+  this->progress_.BeginPhase(
+    "collapse", kWork::kSweep * double(nv), wOrder + wStep + wCompact + workAfter);
+  this->Sweep(nv);
+  // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
+  // about four times the collapses the goal needs (a collapse removes 2 faces, and both
+  // endpoints may propose it). Ties in order of vertex index.
+  this->progress_.BeginPhase("collapse", wOrder, wStep + wCompact + workAfter);
+  std::fill(this->hist_.begin(), this->hist_.end(), 0u);
+  std::uint64_t candidates = 0;
+  for (std::uint64_t u = 0; u < nv; ++u)
+  {
+    this->Tick(u, 2 * nv);
+    const Cand c = this->v_.C.Get(u);
+    if (c.partner != kNone)
+    {
+      ++this->hist_[CostBin(c.cost)];
+      ++candidates;
+    }
+  }
+  if (candidates == 0)
+  {
+    return false;
+  }
+  const std::uint64_t want = 2 * (this->liveFaces_ - goal) + 16;
+  std::uint64_t taken = 0;
+  std::uint32_t lastBin = 0;
+  for (std::uint32_t b = 0; b < std::uint32_t(kCostBins); ++b)
+  {
+    taken += this->hist_[b];
+    lastBin = b;
+    if (taken >= want)
+    {
+      break;
+    }
+  }
+  // Processing order. A pass that may end on a level (or the final target) goes in exact cost
+  // order (bins 0.8% wide, ties by vertex index), so that the last collapses are the cheapest.
+  // Other passes take the ordered candidates in kGroups cost quantiles, each in vertex order: a
+  // forward sweep over the blocks (cache and page friendly, which matters out of core) with the
+  // same quality in tests against a strict order.
+  const int groups = exact ? 0 : kGroups;
+  const std::size_t keys = groups ? std::size_t(groups) : std::size_t(lastBin) + 1;
+  std::vector<std::uint64_t>& start = this->starts_; // start of each key (group or bin)
+  start.assign(keys, 0);
+  std::uint64_t cum = 0;
+  for (std::uint32_t b = 0; b <= lastBin; ++b)
+  {
+    const std::uint64_t n = this->hist_[b];
+    const std::uint32_t key = std::uint32_t(
+      groups ? std::min<std::uint64_t>(groups - 1, cum * std::uint64_t(groups) / taken) : b);
+    this->hist_[b] = key; // bin -> key
+    start[key] += n;
+    cum += n;
+  }
+  std::uint64_t sum = 0;
+  for (std::uint64_t& x : start)
+  {
+    const std::uint64_t n = x;
+    x = sum;
+    sum += n;
+  }
+  this->BindViews();
+  for (std::uint64_t u = 0; u < nv; ++u)
+  {
+    this->Tick(nv + u, 2 * nv);
+    const Cand c = this->v_.C.Get(u);
+    if (c.partner == kNone)
+    {
+      continue;
+    }
+    const std::uint32_t b = CostBin(c.cost);
+    if (b <= lastBin)
+    {
+      this->v_.O.Set(start[this->hist_[b]]++, std::uint32_t(u));
+    }
+  }
+  // 3. Collapse in cost order, endpoints of earlier collapses excluded. Legality is checked
+  // here, on the current faces and positions (the costs of pairs with no busy endpoint are as in
+  // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
+  // in the next passes. A pass that may end on a level goes strictly in order, one collapse at
+  // a time; the others go group by group through StepChunks (in parallel when in core).
+  this->stepTotal_ = std::max<std::uint64_t>(taken, 1);
+  this->progress_.BeginPhase("collapse", kWork::kStep * double(taken), wCompact + workAfter);
+  this->lazySums_ = !this->AllInCore(); // (the mode does not change before Compact)
+  StepRun run;
+  if (groups && nv >= 2 * this->StepChunkSize(nv))
+  {
+    this->FaceSplit(nv);
+    for (std::size_t g = 0; g < keys && this->liveFaces_ > goal; ++g)
+    {
+      this->StepChunks(g ? start[g - 1] : 0, start[g], nv, goal, run);
+    }
+    this->splitOn_ = false;
+  }
+  else
+  {
+    this->Step(0, taken, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], run, 0);
+    this->liveFaces_ -= run.removed;
+  }
+  const std::uint64_t done = run.done, illegal = run.illegal;
+  // 4. Compact into fresh blocks.
+  this->progress_.BeginPhase("collapse", wCompact, workAfter);
+  this->Compact();
+  // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
+  // as long as some candidate exists.
+  return done > 0 || illegal > 0;
+}
+
+} // namespace sipmss::algorithms::decimate
