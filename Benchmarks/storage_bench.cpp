@@ -284,47 +284,6 @@ void BM_RawFileSequentialRead(benchmark::State& state)
 }
 BENCHMARK(BM_RawFileSequentialRead)->Arg(64 << 10)->Arg(1 << 20)->Unit(benchmark::kMillisecond);
 
-// --- variable-length records: per-vertex incident-face lists (Algorithm I) -----------------------
-// A face pass appends each face to its three vertices' lists (about 6 faces per vertex), then
-// every list is read back once. Arg: budget in MiB (0: unbounded, in core).
-void BM_ListFacePass(benchmark::State& state)
-{
-  constexpr std::uint32_t kListVertices = 1 << 20;
-  constexpr std::uint32_t kListFaces = 2 * kListVertices;
-  const std::uint64_t budget = static_cast<std::uint64_t>(state.range(0)) << 20;
-  std::uint64_t misses = 0;
-  for (auto _ : state)
-  {
-    DML dml;
-    Profile p = OocProfile(budget);
-    p.policy = budget == 0 ? ModePolicy::Automatic : ModePolicy::OutOfCore;
-    dml.Config(p);
-    const BlockId lists = dml.OpenListBlock(4, kListVertices);
-    std::mt19937 rng(11);
-    for (std::uint32_t f = 0; f < kListFaces; ++f)
-    {
-      const std::uint32_t front = f / 2;
-      for (int k = 0; k < 3; ++k)
-      {
-        const std::uint32_t v = std::min<std::uint32_t>(front + rng() % 64, kListVertices - 1);
-        dml.Append(lists, v, &f);
-      }
-    }
-    std::vector<unsigned char> out;
-    std::uint64_t total = 0;
-    for (std::uint32_t v = 0; v < kListVertices; ++v)
-    {
-      out.clear();
-      total += dml.ReadList(lists, v, out);
-    }
-    benchmark::DoNotOptimize(total);
-    misses = dml.GetStats().misses;
-  }
-  state.SetItemsProcessed(state.iterations() * kListFaces * 3);
-  state.counters["misses"] = static_cast<double>(misses);
-}
-BENCHMARK(BM_ListFacePass)->Arg(0)->Arg(16)->Unit(benchmark::kMillisecond);
-
 // --- replacement policies on a mesh-like trace --------------------------------------------------
 // A face pass over an indexed mesh: faces are read in order; each face reads the positions of
 // its three vertices and updates their quadrics. Vertex indices follow the faces with locality

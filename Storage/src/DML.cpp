@@ -88,7 +88,6 @@ void detail::Accountant::Charge(std::uint64_t n)
 DML::Impl::Impl(std::unique_ptr<FileBackend> b)
   : backend(std::move(b))
   , blocks(detail::Counted<Block>(&this->acc))
-  , lists(detail::Counted<detail::ListInfo>(&this->acc))
   , dirs(detail::Counted<detail::PrivateDir>(&this->acc))
   , bases(detail::Counted<void*>(&this->acc))
   , fast(detail::Counted<FastPage>(&this->acc))
@@ -746,17 +745,6 @@ void DML::Impl::CloseRaw(BlockId id)
 {
   this->CheckUnforked("CloseBlock");
   Block& b = this->blocks[static_cast<std::size_t>(id)];
-  if (b.kind == Kind::List)
-  {
-    detail::ListInfo& L = this->lists[static_cast<std::size_t>(b.list)];
-    const BlockId heads = L.heads;
-    const BlockId pool = L.pool;
-    L = detail::ListInfo{};
-    b = Block{};
-    this->CloseRaw(heads);
-    this->CloseRaw(pool);
-    return;
-  }
   if (b.mem)
   {
     std::free(b.mem);
@@ -825,11 +813,6 @@ void DML::Impl::ResizeRaw(BlockId id, std::uint64_t count)
 {
   this->CheckUnforked("Resize");
   Block* b = &this->blocks[static_cast<std::size_t>(id)];
-  if (b->kind == Kind::List)
-  {
-    this->ResizeList(*b, count);
-    return;
-  }
   const std::uint64_t newBytes = CheckedBytes(count, b->elementSize);
   if (b->mem)
   {
@@ -963,7 +946,7 @@ std::uint64_t DML::Impl::CostInCore() const
   std::uint64_t c = this->acc.held - this->CacheCost();
   for (const auto& b : this->blocks)
   {
-    if (b.kind == Kind::Plain || b.kind == Kind::Internal)
+    if (b.kind == Kind::Plain)
     {
       c += HeapCost(std::max<std::uint64_t>(b.Bytes(), 1));
       if (b.mem)
@@ -983,8 +966,7 @@ void DML::Impl::SwitchTo(Mode target)
     this->stats.usedOutOfCore = true;
     for (std::size_t i = 0; i < this->blocks.size(); ++i)
     {
-      if (this->blocks[i].mem &&
-        (this->blocks[i].kind == Kind::Plain || this->blocks[i].kind == Kind::Internal))
+      if (this->blocks[i].mem && this->blocks[i].kind == Kind::Plain)
       {
         this->SpillBlock(static_cast<BlockId>(i));
       }
@@ -1305,8 +1287,7 @@ void DML::CloseBlock(BlockId id)
   Impl& I = *this->impl_;
   detail::BaseSync sync(I);
   if (id < 0 || static_cast<std::size_t>(id) >= I.blocks.size() ||
-    (I.blocks[static_cast<std::size_t>(id)].kind != Kind::Plain &&
-      I.blocks[static_cast<std::size_t>(id)].kind != Kind::List))
+    I.blocks[static_cast<std::size_t>(id)].kind != Kind::Plain)
   {
     throw std::invalid_argument("sipmss::storage: invalid block id " + std::to_string(id));
   }
@@ -1317,12 +1298,6 @@ void DML::Resize(BlockId id, std::uint64_t count)
 {
   Impl& I = *this->impl_;
   detail::BaseSync sync(I);
-  if (id >= 0 && static_cast<std::size_t>(id) < I.blocks.size() &&
-    I.blocks[static_cast<std::size_t>(id)].kind == Kind::List)
-  {
-    I.ResizeRaw(id, count);
-    return;
-  }
   I.Get(id, Kind::Plain);
   I.ResizeRaw(id, count);
 }
@@ -1330,22 +1305,12 @@ void DML::Resize(BlockId id, std::uint64_t count)
 std::uint64_t DML::Count(BlockId id) const
 {
   const Impl& I = *this->impl_;
-  if (id >= 0 && static_cast<std::size_t>(id) < I.blocks.size() &&
-    I.blocks[static_cast<std::size_t>(id)].kind == Kind::List)
-  {
-    return I.blocks[static_cast<std::size_t>(id)].count;
-  }
   return I.Get(id, Kind::Plain).count;
 }
 
 std::size_t DML::ElementSize(BlockId id) const
 {
   const Impl& I = *this->impl_;
-  if (id >= 0 && static_cast<std::size_t>(id) < I.blocks.size() &&
-    I.blocks[static_cast<std::size_t>(id)].kind == Kind::List)
-  {
-    return I.blocks[static_cast<std::size_t>(id)].elementSize;
-  }
   return I.Get(id, Kind::Plain).elementSize;
 }
 

@@ -4,7 +4,6 @@
 //   FileBackend.cpp  StorageError, the POSIX backend, private/stale directory handling
 //   DML.cpp          public primitives, block descriptors, in-core storage, mode switches
 //   PageCache.cpp    out-of-core page cache: frames, WSClock/LRU, quotas, write-back
-//   Lists.cpp        variable-length records on top of two internal blocks
 #pragma once
 
 #include "sipmss/storage/DML.h"
@@ -139,9 +138,7 @@ std::string DefaultDirectory();
 enum class Kind : std::uint8_t
 {
   Closed,
-  Plain,    // an element block opened by the user
-  List,     // a list block: a descriptor over two internal blocks
-  Internal  // heads or pool of a list block (not usable through the public API)
+  Plain // an element block opened by the user
 };
 
 struct Block
@@ -182,8 +179,6 @@ struct Block
   std::uint64_t ghostHits = 0; // misses on recently evicted pages in this epoch (Adaptive)
   double score = 0.0;          // smoothed ghost hits (Adaptive)
 
-  std::int32_t list = -1; // Kind::List: index into Impl::lists
-
   // While forked (DML::Fork): the elements [forkFirst, forkEnd) the child writes. The child
   // writes back only those, the parent only the others.
   std::uint64_t forkFirst = 0, forkEnd = 0;
@@ -191,27 +186,6 @@ struct Block
   bool InCore() const { return this->mem != nullptr; }
   bool OnFile() const { return this->fd >= 0; }
   std::uint64_t Bytes() const { return this->count * this->elementSize; }
-};
-
-// A list block: heads[i] = {offset, size, capacity} into a pool of elements. Chunks have a
-// power-of-two capacity (minCap << k); freed chunks go to a per-class free list whose links are
-// stored in the first 8 bytes of the free chunk itself.
-struct ListHead
-{
-  std::uint64_t offset = 0;
-  std::uint32_t size = 0;
-  std::uint32_t capacity = 0;
-};
-static_assert(sizeof(ListHead) == 16, "ListHead is stored as a 16-byte element");
-
-struct ListInfo
-{
-  static constexpr int kClasses = 40;
-  BlockId heads = -1;
-  BlockId pool = -1;
-  std::uint32_t minCap = 1;     // smallest chunk, >= 8 bytes so a free link fits
-  std::uint64_t poolUsed = 0;   // bump pointer into the pool (elements)
-  std::uint64_t freeHead[kClasses] = {}; // offset + 1 of the first free chunk; 0: empty
 };
 
 // One page frame of the out-of-core cache.
@@ -279,7 +253,6 @@ struct DML::Impl
   Replacement replacement = Replacement::WSClock;
 
   detail::CVector<detail::Block> blocks;
-  detail::CVector<detail::ListInfo> lists;
   detail::CVector<detail::PrivateDir> dirs;
   // Mirror of the in-core base pointers read by the inline DML::BasePointer(); its capacity
   // follows blocks' capacity so SyncBases() never allocates.
@@ -372,14 +345,6 @@ struct DML::Impl
   std::uint64_t PageBytes(const detail::Block& b) const { return b.perPage * b.elementSize; }
   std::int32_t PinPage(BlockId id, detail::Block& b, std::uint64_t page, bool write);
   void UnpinPage(BlockId id, std::uint64_t page);
-
-  // --- Lists.cpp
-  detail::ListHead ReadHead(detail::ListInfo& L, std::uint64_t list);
-  void WriteHead(detail::ListInfo& L, std::uint64_t list, const detail::ListHead& h);
-  std::uint64_t AllocChunk(detail::ListInfo& L, std::uint32_t cap);
-  void FreeChunk(detail::ListInfo& L, std::uint64_t offset, std::uint32_t cap);
-  void CopyPool(detail::ListInfo& L, std::uint64_t from, std::uint64_t to, std::uint64_t n);
-  void ResizeList(detail::Block& b, std::uint64_t listCount);
 };
 
 namespace detail

@@ -68,7 +68,7 @@ std::size_t DML::Impl::ChoosePageSize() const
   std::size_t maxElement = 1;
   for (const auto& b : this->blocks)
   {
-    if (b.kind == Kind::Plain || b.kind == Kind::Internal)
+    if (b.kind == Kind::Plain)
     {
       maxElement = std::max(maxElement, b.elementSize);
     }

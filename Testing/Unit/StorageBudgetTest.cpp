@@ -145,8 +145,6 @@ TEST(StorageBudget, ManyLargeBlocksStayWithinBudget)
   profile.memoryBudget = B;
   profile.structures = { { "blocks", 8, 8 * 512 * 1024, 0.0 } };
   std::vector<std::uint64_t> buf(20000);   // made before the baseline
-  std::vector<unsigned char> listOut;
-  listOut.reserve(1 << 16);
   std::int64_t worstOverAccounted = 0; // real - accounted after each call
   HeapMeter m;
   m.Start();
@@ -163,7 +161,6 @@ TEST(StorageBudget, ManyLargeBlocksStayWithinBudget)
       ids[b] = dml.OpenBlock(8, 512 * 1024, b == 0 ? 4.0 : 0.0); // 4 MiB each
       check();
     }
-    const BlockId lists = dml.OpenListBlock(4, 100000);
     std::mt19937_64 rng(3);
     for (int round = 0; round < 3; ++round)
     {
@@ -183,8 +180,6 @@ TEST(StorageBudget, ManyLargeBlocksStayWithinBudget)
         std::uint64_t v = 0;
         dml.Read(ids[b], 8, i, &v);
         ASSERT_EQ(v, i * 8 + b + round);
-        const std::uint32_t f = static_cast<std::uint32_t>(k);
-        dml.Append(lists, rng() % 100000, &f);
       }
       check();
       dml.ReadRange(ids[round], 1000, buf.size(), buf.data());
@@ -194,7 +189,6 @@ TEST(StorageBudget, ManyLargeBlocksStayWithinBudget)
       dml.Unpin(ids[7], s);
       check();
     }
-    dml.ReadList(lists, 5, listOut);
     dml.Resize(ids[0], 4 * 1024 * 1024); // grow to 32 MiB (sparse)
     dml.Resize(ids[1], 10);
     check();
@@ -264,21 +258,22 @@ TEST(StorageBudget, InCoreGrowthSwitchesInsteadOfExceeding)
     DML dml;
     ASSERT_EQ(dml.Config(profile), Mode::InCore);
     const BlockId a = dml.OpenBlock(4, 100000);
-    const BlockId l = dml.OpenListBlock(4, 1000);
-    for (std::uint32_t k = 0; k < 200000; ++k) // the list pool grows until it must spill
+    const BlockId g = dml.OpenBlock(4, 0);
+    for (std::uint32_t k = 0; k < 200000; k += 1000) // both grow until they must spill
     {
-      dml.Append(l, k % 1000, &k);
-      if (k % 1000 == 0)
+      dml.Resize(g, k + 1000);
+      for (std::uint32_t i = k; i < k + 1000; ++i)
       {
-        dml.Resize(a, dml.Count(a) + 1000);
+        dml.Write(g, 4, i, &i);
       }
+      dml.Resize(a, dml.Count(a) + 1000);
     }
     EXPECT_EQ(dml.GetMode(), Mode::OutOfCore);
     EXPECT_GE(dml.GetStats().reconfigurations, 1u);
     EXPECT_LE(dml.GetStats().peakBytes, B);
-    std::vector<unsigned char> out;
-    out.reserve(1 << 12);
-    EXPECT_EQ(dml.ReadList(l, 7, out), 200u);
+    std::uint32_t v = 0;
+    dml.Read(g, 4, 123457, &v);
+    EXPECT_EQ(v, 123457u);
   }
   EXPECT_LE(m.Peak(), static_cast<std::int64_t>(B));
 }

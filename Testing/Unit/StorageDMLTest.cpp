@@ -1,4 +1,4 @@
-// Functional tests of the DML: both modes, lists, pins, mode switches, big sparse files, and a
+// Functional tests of the DML: both modes, pins, mode switches, big sparse files, and a
 // randomized workload compared against a plain std::vector model under several budgets.
 #include "StorageTestUtil.h"
 
@@ -444,22 +444,15 @@ TEST(StorageDML, ConfigWithOpenBlocksMovesThem)
   DML dml;
   dml.Config(MakeProfile(tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
   Array<std::uint64_t> a(dml, 100000);
-  const BlockId l = dml.OpenListBlock(8, 1000);
   for (std::uint64_t i = 0; i < 100000; ++i)
   {
     a.Set(i, i * i);
-    dml.Append(l, i % 1000, &i);
   }
   const auto check = [&] {
     for (std::uint64_t i = 0; i < 100000; i += 37)
     {
       ASSERT_EQ(a.Get(i), i * i);
     }
-    std::vector<unsigned char> out;
-    ASSERT_EQ(dml.ReadList(l, 999, out), 100u);
-    std::uint64_t last = 0;
-    std::memcpy(&last, out.data() + 99 * 8, 8);
-    ASSERT_EQ(last, 99999u);
   };
   EXPECT_EQ(dml.Config(MakeProfile(tmp.Path(), 0, ModePolicy::Automatic)), Mode::InCore);
   EXPECT_NE(dml.BasePointer(a.Id()), nullptr);
@@ -497,64 +490,6 @@ TEST(StorageDML, BlocksSpreadOverDirectories)
   }
   EXPECT_TRUE(ListDir(d1.Path()).empty());
   EXPECT_TRUE(ListDir(d2.Path()).empty());
-}
-
-TEST(StorageDML, ListsBothModes)
-{
-  TempDir tmp;
-  for (const ModePolicy policy : { ModePolicy::InCore, ModePolicy::OutOfCore })
-  {
-    DML dml;
-    dml.Config(MakeProfile(tmp.Path(), policy == ModePolicy::InCore ? 0 : 64 * 1024, policy));
-    const BlockId L = dml.OpenListBlock(4, 10000);
-    EXPECT_EQ(dml.Count(L), 10000u);
-    EXPECT_EQ(dml.ElementSize(L), 4u);
-    for (std::uint32_t f = 0; f < 20000; ++f) // a face pass: 3 appends per face
-    {
-      for (std::uint32_t k = 0; k < 3; ++k)
-      {
-        const std::uint32_t v = (f * 7 + k * 3331) % 10000;
-        dml.Append(L, v, &f);
-      }
-    }
-    std::uint64_t total = 0;
-    std::vector<unsigned char> out;
-    for (std::uint64_t v = 0; v < 10000; ++v)
-    {
-      out.clear();
-      const std::uint64_t n = dml.ReadList(L, v, out);
-      ASSERT_EQ(n, dml.ListSize(L, v));
-      ASSERT_EQ(out.size(), n * 4);
-      total += n;
-      for (std::uint64_t i = 0; i < n; ++i)
-      {
-        std::uint32_t f = 0;
-        std::memcpy(&f, out.data() + 4 * i, 4);
-        bool ok = false;
-        for (std::uint32_t k = 0; k < 3; ++k)
-        {
-          ok = ok || (f * 7 + k * 3331) % 10000 == v;
-        }
-        ASSERT_TRUE(ok);
-      }
-    }
-    EXPECT_EQ(total, 60000u);
-    const std::uint32_t repl[2] = { 42, 43 };
-    dml.SetList(L, 5, repl, 2);
-    out.clear();
-    EXPECT_EQ(dml.ReadList(L, 5, out), 2u);
-    std::uint32_t back[2];
-    std::memcpy(back, out.data(), 8);
-    EXPECT_EQ(back[0], 42u);
-    EXPECT_EQ(back[1], 43u);
-    dml.Resize(L, 10);
-    dml.Resize(L, 20);
-    EXPECT_EQ(dml.ListSize(L, 15), 0u);
-    EXPECT_EQ(dml.ListSize(L, 5), 2u);
-    EXPECT_THROW(dml.ListSize(L, 20), std::out_of_range);
-    dml.CloseBlock(L);
-  }
-  EXPECT_TRUE(ListDir(tmp.Path()).empty());
 }
 
 TEST(StorageDML, SparseFileBeyond4GiB)
@@ -658,8 +593,6 @@ public:
       m.data.assign(m.es * counts[i], 0);
       this->blocks_.push_back(std::move(m));
     }
-    this->list_ = dml.OpenListBlock(4, 20000);
-    this->lists_.assign(20000, {});
   }
 
   void Step(int step)
@@ -728,28 +661,14 @@ public:
         std::memcpy(m.data.data() + i * m.es, e.data(), m.es);
       }
     }
-    else if (op < 87) // append (skewed to low list numbers, like vertex valences)
+    else if (n > 0) // read a range back
     {
-      const std::uint64_t l = this->rng_() % 4 == 0 ? this->rng_() % 20000 : this->rng_() % 500;
-      const std::uint32_t v = static_cast<std::uint32_t>(this->rng_());
-      this->dml_.Append(this->list_, l, &v);
-      this->lists_[l].push_back(v);
-    }
-    else if (op < 91) // set a list
-    {
-      const std::uint64_t l = this->rng_() % 20000;
-      std::vector<std::uint32_t> v(this->rng_() % 40);
-      for (auto& x : v)
-      {
-        x = static_cast<std::uint32_t>(this->rng_());
-      }
-      this->dml_.SetList(this->list_, l, v.data(), v.size());
-      this->lists_[l] = v;
-    }
-    else // read a list
-    {
-      const std::uint64_t l = this->rng_() % 600;
-      this->CheckList(l, step);
+      const std::uint64_t first = this->rng_() % n;
+      const std::uint64_t count = std::min<std::uint64_t>(n - first, 1 + this->rng_() % 64);
+      std::vector<unsigned char> e(count * m.es);
+      this->dml_.ReadRange(m.id, first, count, e.data());
+      ASSERT_TRUE(std::memcmp(e.data(), m.data.data() + first * m.es, e.size()) == 0)
+        << "step " << step << " block " << m.id;
     }
   }
 
@@ -777,10 +696,6 @@ public:
       this->dml_.ReadRange(m.id, 0, n, e.data());
       ASSERT_TRUE(e == m.data) << "block " << m.id;
     }
-    for (std::uint64_t l = 0; l < this->lists_.size(); ++l)
-    {
-      this->CheckList(l, -1);
-    }
   }
 
 private:
@@ -794,20 +709,9 @@ private:
     return e;
   }
 
-  void CheckList(std::uint64_t l, int step)
-  {
-    std::vector<unsigned char> out;
-    const std::uint64_t c = this->dml_.ReadList(this->list_, l, out);
-    ASSERT_EQ(c, this->lists_[l].size()) << "step " << step << " list " << l;
-    ASSERT_TRUE(out.empty() || std::memcmp(out.data(), this->lists_[l].data(), out.size()) == 0)
-      << "step " << step << " list " << l;
-  }
-
   DML& dml_;
   std::mt19937_64 rng_;
   std::vector<Model> blocks_;
-  BlockId list_ = -1;
-  std::vector<std::vector<std::uint32_t>> lists_;
 };
 
 struct RandomCase

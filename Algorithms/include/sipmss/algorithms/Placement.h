@@ -1,5 +1,6 @@
 // The placement of a quadric edge collapse (Algorithm I), as a kernel over "lanes": one edge
-// (V = double) or two at a time (V = Lanes2). Used by the decimation's sweep (decimate/Sweep.cpp); public for its exact test.
+// (V = double) or two at a time (V = Lanes2). Used by the decimation's sweep
+// (decimate/Sweep.cpp); public for its exact test.
 #pragma once
 
 #include <cstdint>

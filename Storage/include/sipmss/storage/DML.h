@@ -209,20 +209,11 @@ public:
   // --- zero-copy access for hot loops
   // In core: the block's memory (valid until the next Config/Reconfigure/Resize/OpenBlock that
   // changes the mode, or CloseBlock of this block). Out of core: nullptr.
-  // Note: a Resize of this block may move it even in core (realloc), and the list calls that
-  // grow a list's pool (OpenListBlock/Append/SetList) may switch the mode like OpenBlock.
+  // Note: a Resize of this block may move it even in core (realloc).
   void* BasePointer(BlockId id) const;
   // Pin the page holding `index`; the span runs to the end of that page (or block).
   Span Pin(BlockId id, std::uint64_t index, Access access);
   void Unpin(BlockId id, const Span& span);
-
-  // --- variable-length records: one list of fixed-size elements per index
-  BlockId OpenListBlock(std::size_t elementSize, std::uint64_t listCount, double weight = 0.0);
-  void Append(BlockId id, std::uint64_t list, const void* element);
-  std::uint64_t ListSize(BlockId id, std::uint64_t list);
-  // Appends the list's elements to out (elementSize bytes each); returns the element count.
-  std::uint64_t ReadList(BlockId id, std::uint64_t list, std::vector<unsigned char>& out);
-  void SetList(BlockId id, std::uint64_t list, const void* elements, std::uint64_t count);
 
   // --- a second page cache for a helper thread (out of core)
   // Fork lends `bytes` of this DML's budget to a new DML, the child, which serves the element
