@@ -28,7 +28,8 @@ PROXIES = [("filters", "SIPMSSCluster"), ("filters", "SIPMSSDecimate"),
            ("sources", "SIPMSSClusterFileReader"), ("sources", "SIPMSSDecimateFileReader")]
 STORAGE = ["MemoryBudgetMB", "TemporaryDirectories", "OperationMode", "NumberOfThreads"]
 STATISTICS = ["UsedOutOfCore", "MemoryBudgetBytes", "PeakStorageBytes", "PeakTemporaryFileBytes",
-              "InputTriangles", "OutputTriangles", "AchievedReduction", "ElapsedSeconds"]
+              "InputTriangles", "OutputTriangles", "AchievedReduction", "ElapsedSeconds",
+              "LayoutFarFraction", "Reordered"]
 
 pxm = servermanager.ProxyManager()
 errors = []
