@@ -16,6 +16,7 @@
 #include "StoredMesh.h"
 
 #include "sipmss/algorithms/Prefetch.h"
+#include "sipmss/algorithms/Quadric.h"
 #include "sipmss/storage/Threads.h"
 
 #include <Eigen/Dense>
@@ -77,7 +78,7 @@ struct VertexRec
 
 struct CellRec
 {
-  double q[10]; // a2 ab ac b2 bc c2 ad bd cd d2 (plane quadric sums)
+  Quadric q; // the cell's plane quadric sums (Quadric.h)
   double sum[3];
   float first[3]; // first vertex seen in the cell (the paper's fallback)
   std::uint32_t count;
@@ -675,7 +676,7 @@ public:
       this->Representative(rec, p);
       if (this->options_.exportQuadric)
       {
-        this->options_.exportQuadric(first + xyz.size() / 3, rec.q);
+        this->options_.exportQuadric(first + xyz.size() / 3, rec.q.q);
       }
       xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
       if (this->attrStride_)
@@ -949,16 +950,10 @@ private:
     n[2] /= len;
     const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
     const double w = this->options_.boundaryWeight * el2;
-    const double q[10] = { w * n[0] * n[0], w * n[0] * n[1], w * n[0] * n[2], w * n[1] * n[1],
-      w * n[1] * n[2], w * n[2] * n[2], w * n[0] * d, w * n[1] * d, w * n[2] * d, w * d * d };
+    const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
     for (std::uint32_t cell : { a.cell, b.cell })
     {
-      this->UpdateCell(cell, [&q](CellRec& rec) {
-        for (int k = 0; k < 10; ++k)
-        {
-          rec.q[k] += q[k];
-        }
-      });
+      this->UpdateCell(cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
     }
   }
 
@@ -993,17 +988,11 @@ private:
       n[2] /= len;
       const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
       const double w = 0.5 * len; // area
-      const double q[10] = { w * n[0] * n[0], w * n[0] * n[1], w * n[0] * n[2], w * n[1] * n[1],
-        w * n[1] * n[2], w * n[2] * n[2], w * n[0] * d, w * n[1] * d, w * n[2] * d, w * d * d };
+      const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
       const std::uint32_t cs[3] = { a.cell, b.cell, c.cell };
       for (std::uint32_t cell : cs)
       {
-        this->UpdateCell(cell, [&q](CellRec& rec) {
-          for (int k = 0; k < 10; ++k)
-          {
-            rec.q[k] += q[k];
-          }
-        });
+        this->UpdateCell(cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
       }
     }
     if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
@@ -1024,8 +1013,9 @@ private:
     const double inv = 1.0 / double(std::max<std::uint32_t>(rec.count, 1));
     const Eigen::Vector3d mean(rec.sum[0] * inv, rec.sum[1] * inv, rec.sum[2] * inv);
     Eigen::Matrix3d A;
-    A << rec.q[0], rec.q[1], rec.q[2], rec.q[1], rec.q[3], rec.q[4], rec.q[2], rec.q[4], rec.q[5];
-    const Eigen::Vector3d b(rec.q[6], rec.q[7], rec.q[8]);
+    const double* q = rec.q.q;
+    A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
+    const Eigen::Vector3d b(q[3], q[6], q[8]);
     Eigen::Vector3d x = mean;
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(A);
     const Eigen::Vector3d ev = es.eigenvalues();

@@ -1,4 +1,5 @@
 #include "sipmss/algorithms/TwoStage.h"
+#include "sipmss/algorithms/Quadric.h"
 
 #include "StoredMesh.h"
 
@@ -12,11 +13,6 @@ namespace
 {
 using storage::Array;
 using storage::DML;
-
-struct Quadric
-{
-  double q[10];
-};
 
 // Carries a stage's progress into the run's: the stage's [0,1] maps to [begin, end] of the
 // run. The first stage's end is set from the stages' estimated work once the input's size is
@@ -177,14 +173,9 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
       {
         return false;
       }
-      // Cluster exports a2 ab ac b2 bc c2 ad bd cd d2; Decimate takes the 4x4 upper triangle by
-      // rows: a2 ab ac ad b2 bc bd c2 cd d2.
+      // (both in the one layout of Quadric.h)
       const Quadric r = quadrics.Get(v);
-      static constexpr int kFromCluster[10] = { 0, 1, 2, 6, 3, 4, 7, 5, 8, 9 };
-      for (int k = 0; k < 10; ++k)
-      {
-        q[k] = r.q[kFromCluster[k]];
-      }
+      std::copy_n(r.q, 10, q);
       return true;
     };
   }

@@ -66,6 +66,7 @@
 
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Placement.h"
+#include "sipmss/algorithms/Quadric.h"
 #include "sipmss/storage/Threads.h"
 
 #include "../StoredMesh.h"
@@ -199,30 +200,9 @@ inline int CornerOf(const Tri& t, std::uint32_t x)
 
 // Symmetric 4x4 quadric, upper triangle row by row:
 // a00 a01 a02 b0 | a11 a12 b1 | a22 b2 | c  ->  E(p) = p^T A p + 2 b.p + c
-struct Quadric
-{
-  double q[10];
-};
-inline void AddTo(Quadric& dst, const Quadric& src)
-{
-  for (int i = 0; i < 10; ++i)
-  {
-    dst.q[i] += src.q[i];
-  }
-}
 inline void AddPlane(Quadric& Q, const Vec3& n, double d, double w)
 {
-  double* q = Q.q;
-  q[0] += w * n.x * n.x;
-  q[1] += w * n.x * n.y;
-  q[2] += w * n.x * n.z;
-  q[3] += w * n.x * d;
-  q[4] += w * n.y * n.y;
-  q[5] += w * n.y * n.z;
-  q[6] += w * n.y * d;
-  q[7] += w * n.z * n.z;
-  q[8] += w * n.z * d;
-  q[9] += w * d * d;
+  AddTo(Q, PlaneQuadric(n.x, n.y, n.z, d, w));
 }
 inline double Eval(const Quadric& Q, const Vec3& p)
 {

@@ -45,7 +45,7 @@ struct ClusterOptions
   std::function<void()> sourceConsumed;
   // The layout step for incoherent inputs (only for a run on a DML of its own).
   LayoutPolicy layout = LayoutPolicy::Automatic;
-  // Optional: called for each output vertex with its cell's quadric (a2 ab ac b2 bc c2 ad bd cd d2).
+  // Optional: called for each output vertex with its cell's quadric (the layout of Quadric.h).
   std::function<void(std::uint64_t vertex, const double quadric[10])> exportQuadric;
 };
 

@@ -27,10 +27,8 @@ struct DecimateOptions
   // with the run's structures.
   storage::DML* dml = nullptr;
   // Initial per-vertex quadrics, e.g. the cell quadrics of a clustering stage (two-stage).
-  // Called for each input vertex index; return false to use the face quadrics only. Layout: the
-  // upper triangle of the symmetric 4x4 matrix by rows: a2 ab ac ad b2 bc bd c2 cd d2.
-  // Quadric layout: the upper triangle of the symmetric 4x4 row by row,
-  // a00 a01 a02 b0 a11 a12 b1 a22 b2 c (E(p) = p^T A p + 2 b.p + c), in input coordinates.
+  // Called for each input vertex index; return false to use the face quadrics only. Layout:
+  // that of Quadric.h (a00 a01 a02 b0 a11 a12 b1 a22 b2 c), in input coordinates.
   std::function<bool(std::uint64_t vertex, double quadric[10])> initialQuadric;
   // Called once the source and initialQuadric are no longer needed (before the collapse
   // passes): a caller that keeps the input in the same DML frees it there, so that the run can
