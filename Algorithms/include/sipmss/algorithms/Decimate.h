@@ -44,7 +44,7 @@ struct DecimateOptions
   // ... and this fraction while the mesh has more than farRatio times the next level's
   // triangles (a pass takes every candidate it can when >= 0.5). Measured (docs/benchmarks.md):
   // Lucy-size to 10K 31 s -> 21 s in core, RMS +1%; Dragon-size (81x its target) +0.6%.
-  // farRatio 20 instead (sixth session, A/B): Dragon-size -3% time and RMS -0.3%, David-size -6%
+  // farRatio 20 instead (A/B): Dragon-size -3% time and RMS -0.3%, David-size -6%
   // and RMS +1.0%, Lucy-size no faster (in core +2%, at 8 MB +3%) and RMS +0.9%: not taken.
   double farPassFraction = 0.5;
   double farRatio = 50.0;
