@@ -2,6 +2,8 @@
 #include "sipmss/algorithms/Compare.h"
 #include "sipmss/storage/Threads.h"
 
+#include "ThreadRunner.h"
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -304,33 +306,17 @@ template <typename Body>
 void ParallelChunks(std::uint64_t count, int threads, const Body& body)
 {
   std::atomic<std::uint64_t> next{ 0 };
-  auto worker = [&]() {
+  auto worker = [&](int) {
     for (std::uint64_t c = next.fetch_add(1, std::memory_order_relaxed); c < count;
          c = next.fetch_add(1, std::memory_order_relaxed))
     {
       body(c);
     }
   };
-  const std::uint64_t extra =
-    std::min<std::uint64_t>(count, static_cast<std::uint64_t>(std::max(threads, 1))) - 1;
-  std::vector<std::thread> pool;
-  pool.reserve(extra);
-  for (std::uint64_t i = 0; i < extra; ++i)
-  {
-    try
-    {
-      pool.emplace_back(worker);
-    }
-    catch (const std::system_error&)
-    {
-      break; // no more threads: the others share the work
-    }
-  }
-  worker();
-  for (auto& t : pool)
-  {
-    t.join();
-  }
+  // (a thread that cannot be started leaves its chunks to the others)
+  detail::RunOnThreads(
+    static_cast<int>(std::min<std::uint64_t>(count, static_cast<std::uint64_t>(std::max(threads, 1)))),
+    worker);
 }
 
 struct Sums

@@ -70,6 +70,7 @@
 #include "sipmss/storage/Threads.h"
 
 #include "../StoredMesh.h"
+#include "../ThreadRunner.h"
 
 #include <algorithm>
 #include <cmath>
@@ -615,14 +616,9 @@ private:
   bool agreed_ = false;
 };
 
-// Runs work(0) on the calling thread and work(1..T-1) on new ones, and joins them. A thread that
-// cannot be started ends the list: onShort(started) runs before work(0), so that the caller can
-// release those that did start. Returns how many ran. With whileWaiting (which must not throw),
-// the calling thread runs it every 2 ms once work(0) is done and others are still running.
-int RunOnThreads(int T, const std::function<void(int)>& work, const std::function<void(int)>& onShort,
-  const std::function<void()>& whileWaiting = nullptr);
-
-void RethrowFirst(const std::vector<std::exception_ptr>& errors);
+// (the cores' thread runner: ../ThreadRunner.h)
+using detail::RethrowFirst;
+using detail::RunOnThreads;
 
 // Runs body(t, begin, end, stop) on [0, n) cut into T ranges, range t on thread t (0: the
 // calling one); the ranges of threads that could not be started run on the calling thread
