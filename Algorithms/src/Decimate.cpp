@@ -4,9 +4,17 @@
 // (a pipeline of the passes) and the entry points.
 #include "decimate/Decimator.h"
 
+// The passes (one translation unit with this file: decimate/Decimator.h says why).
+#include "decimate/Read.inl"
+#include "decimate/Rings.inl"
+#include "decimate/Sweep.inl"
+#include "decimate/Step.inl"
+#include "decimate/Compact.inl"
+#include "decimate/Threads.inl"
+
 namespace sipmss::algorithms
 {
-namespace decimate
+namespace
 {
 // ---------------------------------------------------------------------------------------------
 
@@ -170,12 +178,10 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
   this->stats_.storage = this->dml_.GetStats();
 }
 
-} // namespace decimate
+} // namespace
 
 namespace
 {
-using namespace decimate;
-
 // The bytes of a decimation's structures on V vertices and F faces (without point data): the
 // table Decimator declares (Loader::Begin).
 double DecimateBytes(std::uint64_t V, std::uint64_t F)

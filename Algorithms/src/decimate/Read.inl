@@ -1,7 +1,8 @@
-// Algorithm I: reading the input into the DML, and the optional weld (the map of the passes: Decimator.h).
-#include "Decimator.h"
-
-namespace sipmss::algorithms::decimate
+// Algorithm I: reading the input into the DML, and the optional weld.
+// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+namespace sipmss::algorithms
+{
+namespace
 {
 void Loader::Tick()
 {
@@ -413,4 +414,5 @@ void Decimator::Weld()
   }
 }
 
-} // namespace sipmss::algorithms::decimate
+} // namespace
+} // namespace sipmss::algorithms

@@ -1,7 +1,8 @@
-// Algorithm I: the candidate sweep (each vertex's cheapest collapse) and the placement (the map of the passes: Decimator.h).
-#include "Decimator.h"
-
-namespace sipmss::algorithms::decimate
+// Algorithm I: the candidate sweep (each vertex's cheapest collapse) and the placement.
+// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+namespace sipmss::algorithms
+{
+namespace
 {
 // ---------------------------------------------------------------------------------------------
 // collapse
@@ -660,4 +661,5 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
   }
 }
 
-} // namespace sipmss::algorithms::decimate
+} // namespace
+} // namespace sipmss::algorithms

@@ -1,7 +1,8 @@
-// Algorithm I: the collapse step (legality, collapse, the chunked rounds) and a pass (the map of the passes: Decimator.h).
-#include "Decimator.h"
-
-namespace sipmss::algorithms::decimate
+// Algorithm I: the collapse step (legality, collapse, the chunked rounds) and a pass.
+// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+namespace sipmss::algorithms
+{
+namespace
 {
 // x's live faces only (r.faces; no neighbour table, no positions).
 void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
@@ -1024,4 +1025,5 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
   return done > 0 || illegal > 0;
 }
 
-} // namespace sipmss::algorithms::decimate
+} // namespace
+} // namespace sipmss::algorithms

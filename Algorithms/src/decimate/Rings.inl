@@ -1,7 +1,8 @@
-// Algorithm I: the vertex rings (face lists per vertex) and the quadrics (the map of the passes: Decimator.h).
-#include "Decimator.h"
-
-namespace sipmss::algorithms::decimate
+// Algorithm I: the vertex rings (face lists per vertex) and the quadrics.
+// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+namespace sipmss::algorithms
+{
+namespace
 {
 // ---------------------------------------------------------------------------------------------
 // rings
@@ -778,4 +779,5 @@ void Decimator::BuildQuadrics()
   this->JoinHelper(fork);
 }
 
-} // namespace sipmss::algorithms::decimate
+} // namespace
+} // namespace sipmss::algorithms

@@ -1,7 +1,8 @@
-// Algorithm I: compaction after a pass, and the output (the map of the passes: Decimator.h).
-#include "Decimator.h"
-
-namespace sipmss::algorithms::decimate
+// Algorithm I: compaction after a pass, and the output.
+// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+namespace sipmss::algorithms
+{
+namespace
 {
 // Renumbers the live vertices and faces after a pass, in place: compaction keeps the order, so
 // every element moves to an index <= its own and ascending loops never overwrite what they still
@@ -432,4 +433,5 @@ void Decimator::Emit(io::MeshSink& sink)
   sink.End(rs);
 }
 
-} // namespace sipmss::algorithms::decimate
+} // namespace
+} // namespace sipmss::algorithms

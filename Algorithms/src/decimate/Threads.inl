@@ -1,7 +1,8 @@
-// Algorithm I: its phases cut into ranges of elements, one per thread (Decimator.h).
-#include "Decimator.h"
-
-namespace sipmss::algorithms::decimate
+// Algorithm I: its phases cut into ranges of elements, one per thread.
+// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+namespace sipmss::algorithms
+{
+namespace
 {
 void ForRanges(int T, std::uint64_t n, const RangeBody& body,
   const std::function<void()>& beforeFallback, const std::function<void()>& poll)
@@ -50,4 +51,5 @@ void ForRanges(int T, std::uint64_t n, const RangeBody& body,
   }
 }
 
-} // namespace sipmss::algorithms::decimate
+} // namespace
+} // namespace sipmss::algorithms
