@@ -1,0 +1,402 @@
+// Algorithm II: its progress weights, the records and structures of its blocks (vertices,
+// cells, the cell map, the candidate triangles, boundary edges), their page windows, and the
+// bounds pass. (Part of Cluster.cpp's translation unit, as Algorithm I's passes are of
+// Decimate.cpp: everything stays internal and inlinable.)
+namespace sipmss::algorithms
+{
+namespace
+{
+using storage::Array;
+using storage::DML;
+
+// Progress weights: seconds per element of each phase, measured in core on one thread on a
+// 2M-triangle scan at grid 300 (docs/architecture.md, "Progress and abort"). Only their ratios
+// matter.
+namespace kWork
+{
+constexpr double kBounds = 1.2e-8;     // per input vertex (a vertices-only read)
+constexpr double kCluster = 2.3e-7;    // per input vertex + face
+constexpr double kBoundaries = 1.0e-7; // per input face (its three edges)
+constexpr double kTriangles = 1.8e-7;  // per candidate triangle + occupied cell
+constexpr double kOutput = 1.9e-7;     // per occupied cell + output triangle
+// Before the clustering pass: a surface occupies about kSurfaceCells * m^2 cells of a grid of
+// maximum dimension m, and there are about kCandidatesPerCell candidate triangles per cell.
+constexpr double kSurfaceCells = 3.0;
+constexpr double kCandidatesPerCell = 2.0;
+}
+
+double EstimatedCells(std::uint64_t V, int m)
+{
+  return std::min(double(V), kWork::kSurfaceCells * double(m) * double(m));
+}
+
+// The work after the clustering pass's read, for the (estimated or counted) occupied cells and
+// candidate triangles.
+double ClusterWorkAfter(double cells, double candidates, std::uint64_t F, const ClusterOptions& o)
+{
+  return (o.boundaryQuadrics ? kWork::kBoundaries * double(F) : 0.0) +
+    kWork::kTriangles * (candidates + cells) + kWork::kOutput * (cells + candidates);
+}
+
+double ClusterWorkAfterRead(std::uint64_t V, std::uint64_t F, int m, const ClusterOptions& o)
+{
+  const double cells = EstimatedCells(V, m);
+  return ClusterWorkAfter(cells, std::min(double(F), kWork::kCandidatesPerCell * cells), F, o);
+}
+
+struct VertexRec
+{
+  float x, y, z;
+  std::uint32_t cell;
+};
+
+struct CellRec
+{
+  Quadric q; // the cell's plane quadric sums (Quadric.h)
+  double sum[3];
+  float first[3]; // first vertex seen in the cell (the paper's fallback)
+  std::uint32_t count;
+  std::uint64_t triangles; // candidate output triangles whose smallest cell is this one; later
+                           // the end of its bucket
+};
+
+struct KeySlot
+{
+  std::uint64_t key; // grid key + 1; 0 = empty
+  std::uint64_t cell;
+};
+
+struct EdgeRec
+{
+  std::uint32_t a, b;  // a < b
+  std::uint32_t third; // the face's third vertex (to rebuild the face's plane)
+  std::uint32_t flip;  // 1 when the face runs b -> a
+};
+
+struct TriSlot
+{
+  std::uint32_t v[3]; // canonical rotation (smallest first), orientation kept
+  std::uint32_t used; // 0 = empty
+};
+
+// The structures of a clustering run on V vertices and F faces over a grid of gridCells cells
+// (the paper's Config table).
+void AddClusterStructures(
+  storage::Profile& profile, std::uint64_t V, std::uint64_t F, std::uint64_t gridCells)
+{
+  const std::uint64_t maxCells = std::min<std::uint64_t>(V, gridCells);
+  profile.structures.push_back({ "vertices", sizeof(VertexRec), V, 0.0 });
+  profile.structures.push_back({ "cells", sizeof(CellRec), maxCells, 0.0 });
+  profile.structures.push_back({ "cell map", sizeof(KeySlot), 2 * maxCells, 0.0 });
+  profile.structures.push_back({ "candidate triangles", sizeof(TriSlot), F, 0.0 });
+}
+
+// A few pinned pages of one block kept across element accesses (out of core), so that runs of
+// nearby accesses cost one page lookup instead of one per element. In core it is a plain pointer.
+// Release() before anything that may move or resize the block.
+template <class T>
+class PinWindow
+{
+public:
+  PinWindow(DML& dml, storage::Access access)
+    : dml_(dml)
+    , access_(access)
+  {
+  }
+  ~PinWindow() { this->Release(); }
+  PinWindow(const PinWindow&) = delete;
+  PinWindow& operator=(const PinWindow&) = delete;
+
+  T& At(storage::BlockId id, std::uint64_t i)
+  {
+    if (void* base = this->dml_.BasePointer(id))
+    {
+      return static_cast<T*>(base)[i];
+    }
+    if (id != this->id_)
+    {
+      this->Release();
+      this->id_ = id;
+    }
+    for (std::size_t k = 0; k < this->used_; ++k)
+    {
+      const storage::Span& s = this->spans_[k];
+      if (i >= s.first && i < s.first + s.count)
+      {
+        return static_cast<T*>(s.data)[i - s.first];
+      }
+    }
+    std::size_t k = this->used_ < kWays ? this->used_++ : (this->next_++ % kWays);
+    if (this->spans_[k].data && k < this->used_ && this->used_ == kWays && this->pinned_[k])
+    {
+      this->dml_.Unpin(this->id_, this->spans_[k]);
+    }
+    this->spans_[k] = this->dml_.Pin(id, i, this->access_);
+    this->pinned_[k] = true;
+    return static_cast<T*>(this->spans_[k].data)[i - this->spans_[k].first];
+  }
+  void Release()
+  {
+    for (std::size_t k = 0; k < this->used_; ++k)
+    {
+      if (this->pinned_[k])
+      {
+        this->dml_.Unpin(this->id_, this->spans_[k]);
+        this->pinned_[k] = false;
+      }
+      this->spans_[k] = storage::Span{};
+    }
+    this->used_ = 0;
+    this->next_ = 0;
+  }
+
+private:
+  static constexpr std::size_t kWays = 2;
+  DML& dml_;
+  storage::Access access_;
+  storage::BlockId id_ = -1;
+  storage::Span spans_[kWays];
+  bool pinned_[kWays] = { false, false };
+  std::size_t used_ = 0, next_ = 0;
+};
+
+inline std::uint64_t Mix(std::uint64_t k)
+{
+  k ^= k >> 33;
+  k *= 0xff51afd7ed558ccdULL;
+  k ^= k >> 33;
+  k *= 0xc4ceb9fe1a85ec53ULL;
+  k ^= k >> 33;
+  return k;
+}
+
+constexpr std::uint32_t kNoCell = std::numeric_limits<std::uint32_t>::max();
+
+// Hash map grid key -> dense cell id in a DML block; doubles when half full.
+class CellMap
+{
+public:
+  CellMap(DML& dml, Progress& progress)
+    : dml_(dml)
+    , slots_(dml, 1u << 12)
+    , progress_(progress)
+  {
+  }
+  // Returns the cell of `key`, inserting it as `next` if absent (then *inserted = true).
+  std::uint32_t FindOrInsert(std::uint64_t key, std::uint32_t next, bool* inserted)
+  {
+    if ((this->size_ + 1) * 2 > this->slots_.Size())
+    {
+      this->Grow();
+    }
+    const std::uint64_t mask = this->slots_.Size() - 1;
+    std::uint64_t i = this->Home(key, this->slots_.Size());
+    for (;;)
+    {
+      KeySlot s = this->slots_.Get(i);
+      if (s.key == 0)
+      {
+        this->slots_.Set(i, KeySlot{ key + 1, next });
+        ++this->size_;
+        *inserted = true;
+        return next;
+      }
+      if (s.key == key + 1)
+      {
+        *inserted = false;
+        return static_cast<std::uint32_t>(s.cell);
+      }
+      i = (i + 1) & mask;
+    }
+  }
+  void Release() { this->slots_.Close(); }
+
+private:
+  static std::uint64_t Home(std::uint64_t key, std::uint64_t capacity)
+  {
+    return Mix(key) & (capacity - 1);
+  }
+  void Grow()
+  {
+    Array<KeySlot> bigger(this->dml_, this->slots_.Size() * 2);
+    const std::uint64_t mask = bigger.Size() - 1;
+    const std::uint64_t n = this->slots_.Size();
+    this->slots_.ForEachChunk(0, n, storage::Access::Read,
+      [&](KeySlot* data, std::uint64_t, std::uint64_t count) {
+        for (std::uint64_t j = 0; j < count; ++j)
+        {
+          if ((j & 4095) == 4095)
+          {
+            this->progress_.Poll();
+          }
+          if (data[j].key == 0)
+          {
+            continue;
+          }
+          std::uint64_t i = this->Home(data[j].key - 1, mask + 1);
+          while (bigger.Get(i).key != 0)
+          {
+            i = (i + 1) & mask;
+          }
+          bigger.Set(i, data[j]);
+        }
+      });
+    this->slots_ = std::move(bigger);
+  }
+
+  DML& dml_;
+  Array<KeySlot> slots_;
+  Progress& progress_; // polled while the table grows
+  std::uint64_t size_ = 0;
+};
+
+// Output triangles. Candidates (faces over three distinct cells) are appended as they come;
+// after the read they are bucketed by their smallest cell (a counting sort over the dense cell
+// ids, which follow the input's order, so both passes touch the DML page by page) and each
+// bucket is deduplicated on its own. Linear time, no random-access hash set over all triangles.
+class TriangleSet
+{
+public:
+  explicit TriangleSet(DML& dml)
+    : dml_(dml)
+    , candidates_(dml, 1u << 10)
+  {
+  }
+  // a < b and a < c must hold (the caller rotates the smallest cell first, keeping orientation)
+  void Append(std::uint32_t a, std::uint32_t b, std::uint32_t c)
+  {
+    if (this->numCandidates_ == this->candidates_.Size())
+    {
+      this->candidates_.Resize(this->candidates_.Size() * 2);
+    }
+    this->candidates_.Set(this->numCandidates_++, TriSlot{ { a, b, c }, 1 });
+  }
+
+  // cells[i].triangles holds the number of candidates whose smallest cell is i. Fills Order()
+  // with the distinct triangles, sorted by (smallest cell, second, third).
+  void Finish(Array<CellRec>& cells, std::uint32_t numCells, Progress& progress)
+  {
+    // bucket ends by prefix sums
+    std::uint64_t total = 0;
+    for (std::uint32_t c = 0; c < numCells; ++c)
+    {
+      CellRec r = cells.Get(c);
+      total += r.triangles;
+      r.triangles = total; // end of the bucket; decremented while scattering
+      cells.Set(c, r);
+    }
+    Array<TriSlot> buckets(this->dml_, std::max<std::uint64_t>(total, 1));
+    const std::uint64_t n = this->numCandidates_;
+    this->candidates_.ForEachChunk(0, n, storage::Access::Read,
+      [&](TriSlot* d, std::uint64_t first, std::uint64_t count) {
+        for (std::uint64_t j = 0; j < count; ++j)
+        {
+          if (((first + j) & 4095) == 0)
+          {
+            progress.Tick(0.5 * double(first + j) / double(std::max<std::uint64_t>(n, 1)));
+          }
+          CellRec r = cells.Get(d[j].v[0]);
+          buckets.Set(--r.triangles, d[j]);
+          cells.Set(d[j].v[0], r);
+        }
+      });
+    this->candidates_.Close();
+    // each bucket [begin, end) now starts at cells[c].triangles; dedup within it
+    this->order_ = Array<TriSlot>(this->dml_, std::max<std::uint64_t>(total, 1));
+    std::vector<TriSlot> bucket;
+    for (std::uint32_t c = 0; c < numCells; ++c)
+    {
+      const std::uint64_t begin = cells.Get(c).triangles;
+      const std::uint64_t end = c + 1 < numCells ? cells.Get(c + 1).triangles : total;
+      if (begin == end)
+      {
+        continue;
+      }
+      bucket.resize(end - begin);
+      buckets.Read(begin, end - begin, bucket.data());
+      std::sort(bucket.begin(), bucket.end(), [](const TriSlot& x, const TriSlot& y) {
+        return x.v[1] != y.v[1] ? x.v[1] < y.v[1] : x.v[2] < y.v[2];
+      });
+      for (std::size_t k = 0; k < bucket.size(); ++k)
+      {
+        if (k == 0 || bucket[k].v[1] != bucket[k - 1].v[1] || bucket[k].v[2] != bucket[k - 1].v[2])
+        {
+          this->order_.Set(this->size_++, bucket[k]);
+        }
+      }
+      if ((c & 1023) == 0)
+      {
+        progress.Tick(0.5 + 0.5 * double(c) / double(numCells));
+      }
+    }
+  }
+  std::uint64_t Size() const { return this->size_; }
+  std::uint64_t Candidates() const { return this->numCandidates_; }
+  Array<TriSlot>& Order() { return this->order_; }
+
+private:
+  DML& dml_;
+  Array<TriSlot> candidates_;
+  std::uint64_t numCandidates_ = 0;
+  Array<TriSlot> order_;
+  std::uint64_t size_ = 0;
+};
+
+// Bounds pass: a vertices-only read.
+class BoundsSink final : public io::MeshSink
+{
+public:
+  BoundsSink(Progress& p, std::function<double(std::uint64_t, std::uint64_t)> afterBounds)
+    : progress_(p)
+    , afterBounds_(std::move(afterBounds))
+  {
+  }
+  std::uint64_t Faces() const { return this->faces_; }
+  std::uint64_t VerticesSeen() const { return this->seen_; }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->expected_ = h.vertexCount;
+    this->faces_ = h.faceCount;
+    this->meter_.Start(h.vertexCount);
+    if (h.vertexCount)
+    {
+      this->progress_.Sized(h.vertexCount, h.faceCount);
+      this->progress_.BeginPhase("bounds", kWork::kBounds * double(h.vertexCount),
+        this->afterBounds_(h.vertexCount, h.faceCount));
+    }
+  }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    detail::ExtendBounds(this->b, c.xyz, c.count);
+    this->seen_ += c.count;
+    this->progress_.Tick(this->expected_ ? double(this->seen_) / double(this->expected_) : 0.0);
+  }
+  // With MeasureLayout, the read goes on past the vertices until kProbeFaces faces are measured
+  // (then the sink throws detail::ProbeDone) or the input ends.
+  void MeasureLayout() { this->measure_ = true; }
+  const detail::LayoutMeter& Layout() const { return this->meter_; }
+  void Triangles(const std::uint32_t* idx, std::size_t count) override
+  {
+    if (this->meter_.Chunk(idx, count))
+    {
+      throw detail::ProbeDone{};
+    }
+  }
+  void End(const io::ReadStats&) override {}
+  bool AbortRequested() override { return this->progress_.Aborted(); }
+  bool Measures() const { return this->measure_; }
+
+  std::array<double, 6> b{ std::numeric_limits<double>::max(), -std::numeric_limits<double>::max(),
+    std::numeric_limits<double>::max(), -std::numeric_limits<double>::max(),
+    std::numeric_limits<double>::max(), -std::numeric_limits<double>::max() };
+
+private:
+  Progress& progress_;
+  std::function<double(std::uint64_t, std::uint64_t)> afterBounds_;
+  std::uint64_t expected_ = 0, seen_ = 0, faces_ = 0;
+  bool measure_ = false;
+  detail::LayoutMeter meter_;
+};
+
+} // namespace
+} // namespace sipmss::algorithms
