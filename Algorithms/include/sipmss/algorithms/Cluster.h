@@ -16,7 +16,7 @@ enum class ClusterFallback : std::uint8_t
 
 struct ClusterOptions
 {
-  int maximumGridDimension = 50; // cells along the longest bounding-box axis (the paper's m.g.d.)
+  int maximumGridDimension = kDefaultClusterGrid; // cells along the longest bounding-box axis (the paper's m.g.d.)
   bool useBounds = false;        // true: `bounds` is the grid's box, no bounds pass is made
   std::array<double, 6> bounds{}; // xmin xmax ymin ymax zmin zmax
   ClusterFallback fallback = ClusterFallback::Mean;

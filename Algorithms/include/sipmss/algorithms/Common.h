@@ -120,6 +120,18 @@ double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOpti
 // The bytes of a clustering's structures on V vertices and F faces (what it declares to the DML).
 double EstimateClusterBytes(std::uint64_t V, std::uint64_t F, const ClusterOptions& options);
 
+// Defaults and ranges shared by every front end (SimplifyRequest, Simplify.h) and the cores'
+// option structs.
+constexpr int kDefaultClusterGrid = 50;   // cluster: cells along the longest axis
+constexpr int kDefaultTwoStageGrid = 300; // two-stage: stage 1's grid
+constexpr int kMaximumGrid = 65535;
+constexpr double kDefaultTargetReduction = 0.9;
+constexpr double kDefaultClusterBoundaryWeight = 0;    // off
+constexpr double kDefaultDecimateBoundaryWeight = 100; // decimate, two-stage
+constexpr double kNoWeld = -1;
+constexpr int kMaximumLevelsOfDetail = 64;
+constexpr int kMaximumThreads = 256;
+
 // A progress that reports nothing and never aborts.
 class NullProgress final : public Progress
 {

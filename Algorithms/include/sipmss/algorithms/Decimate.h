@@ -13,14 +13,14 @@ namespace sipmss::algorithms
 struct DecimateOptions
 {
   std::uint64_t targetTriangles = 0; // > 0: stop at or below this many triangles
-  double targetReduction = 0.9;      // used when targetTriangles == 0: fraction to remove
+  double targetReduction = kDefaultTargetReduction; // used when targetTriangles == 0: fraction to remove
   double maximumError = std::numeric_limits<double>::infinity(); // stop when the cheapest
                                      // collapse costs more (quadric error, squared distance:
                                      // the area-weighted cost divided by the quadric's weight)
   int levelsOfDetail = 1;            // > 1: emit that many levels, evenly spaced in log(count)
   bool lockBoundary = false;         // boundary vertices never move
-  double boundaryWeight = 100.0;     // weight of the boundary constraint quadrics
-  double weldDistance = -1.0;        // >= 0: weld input vertices closer than this first
+  double boundaryWeight = kDefaultDecimateBoundaryWeight; // weight of the boundary constraint quadrics
+  double weldDistance = kNoWeld;    // >= 0: weld input vertices closer than this first
   storage::Profile storage;          // memory budget, directories, mode policy
   // Optional: run on this DML (already configured by the caller, e.g. the two-stage method that
   // keeps the clustered mesh in it). Default: a DML of the run's own, configured from `storage`

@@ -26,16 +26,8 @@ enum class Algorithm : std::uint8_t
 };
 const char* ToString(Algorithm a); // "cluster", "decimate", "two-stage"
 
-// Defaults and ranges shared by every front end.
-constexpr int kDefaultClusterGrid = 50;   // cluster: cells along the longest axis
-constexpr int kDefaultTwoStageGrid = 300; // two-stage: stage 1's grid
-constexpr int kMaximumGrid = 65535;
-constexpr double kDefaultTargetReduction = 0.9;
-constexpr double kDefaultClusterBoundaryWeight = 0;    // off
-constexpr double kDefaultDecimateBoundaryWeight = 100; // decimate, two-stage
-constexpr double kNoWeld = -1;
-constexpr int kMaximumLevelsOfDetail = 64;
-constexpr int kMaximumThreads = 256;
+// (The defaults and ranges shared by every front end, kDefaultClusterGrid and the others, are in
+// Common.h: the cores' option structs start from them too.)
 
 // Everything a run of any algorithm can be asked. A field that does not apply to the algorithm
 // is ignored here; the CLI refuses to be given one (a usage error), the filters have none.

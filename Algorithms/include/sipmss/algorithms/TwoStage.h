@@ -12,7 +12,7 @@ namespace sipmss::algorithms
 
 struct TwoStageOptions
 {
-  int gridDimension = 300;     // stage 1: maximum grid dimension
+  int gridDimension = kDefaultTwoStageGrid; // stage 1: maximum grid dimension
   // Stage 2 starts from the cell quadrics of stage 1. Off: since non-manifold edges collapse it
   // measures worse (Lucy-size to 10K: RMS 1.66e-4 with, 1.50e-4 without; David-size 1.60e-4 /
   // 1.46e-4; Dragon-size 3.32e-4 / 3.25e-4).
