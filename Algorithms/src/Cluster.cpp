@@ -18,6 +18,7 @@
 
 #include "sipmss/algorithms/Prefetch.h"
 #include "sipmss/algorithms/Quadric.h"
+#include "sipmss/storage/Access.h"
 #include "sipmss/storage/Threads.h"
 
 #include <Eigen/Dense>

@@ -2,7 +2,7 @@
 #include "sipmss/algorithms/Compare.h"
 #include "sipmss/storage/Threads.h"
 
-#include "ThreadRunner.h"
+#include "sipmss/storage/Parallel.h"
 
 #include <algorithm>
 #include <atomic>
@@ -314,7 +314,7 @@ void ParallelChunks(std::uint64_t count, int threads, const Body& body)
     }
   };
   // (a thread that cannot be started leaves its chunks to the others)
-  detail::RunOnThreads(
+  storage::RunOnThreads(
     static_cast<int>(std::min<std::uint64_t>(count, static_cast<std::uint64_t>(std::max(threads, 1)))),
     worker);
 }

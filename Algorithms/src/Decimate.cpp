@@ -10,7 +10,6 @@
 #include "decimate/Sweep.inl"
 #include "decimate/Step.inl"
 #include "decimate/Compact.inl"
-#include "decimate/Threads.inl"
 
 namespace sipmss::algorithms
 {

@@ -364,12 +364,12 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         std::uint64_t q[3];
         for (int k = 0; k < 3; ++k)
         {
-          const double t = std::floor((double(p[i].v[k]) - lo[k]) * scale);
+          const double t = std::floor((double(p[i][k]) - lo[k]) * scale);
           q[k] = t <= 0 ? 0 : (t >= double((1u << 21) - 1) ? (1u << 21) - 1 : std::uint64_t(t));
         }
         recs[i].key = Spread21(q[0]) | Spread21(q[1]) << 1 | Spread21(q[2]) << 2;
         recs[i].old = static_cast<std::uint32_t>(first + i);
-        std::memcpy(recs[i].p, p[i].v, 12);
+        std::memcpy(recs[i].p, &p[i], 12);
       }
       keys.Write(first, n, recs.data());
     });
@@ -383,7 +383,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       map.resize(static_cast<std::size_t>(n));
       for (std::uint64_t i = 0; i < n; ++i)
       {
-        std::memcpy(pts[i].v, r[i].p, 12);
+        std::memcpy(&pts[i], r[i].p, 12);
         map[i] = OldNew{ r[i].old, static_cast<std::uint32_t>(first + i) };
         if (newOf)
         {

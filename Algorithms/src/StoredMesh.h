@@ -4,6 +4,7 @@
 #pragma once
 
 #include "sipmss/algorithms/Common.h"
+#include "sipmss/algorithms/Vector.h"
 #include "sipmss/storage/DML.h"
 
 #include <algorithm>
@@ -177,10 +178,6 @@ public:
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options);
 
 private:
-  struct Float3
-  {
-    float v[3];
-  };
   struct Triangle
   {
     std::uint32_t v[3];

@@ -91,74 +91,7 @@ void AddClusterStructures(
   profile.structures.push_back({ "candidate triangles", sizeof(TriSlot), F, 0.0 });
 }
 
-// A few pinned pages of one block kept across element accesses (out of core), so that runs of
-// nearby accesses cost one page lookup instead of one per element. In core it is a plain pointer.
-// Release() before anything that may move or resize the block.
-template <class T>
-class PinWindow
-{
-public:
-  PinWindow(DML& dml, storage::Access access)
-    : dml_(dml)
-    , access_(access)
-  {
-  }
-  ~PinWindow() { this->Release(); }
-  PinWindow(const PinWindow&) = delete;
-  PinWindow& operator=(const PinWindow&) = delete;
-
-  T& At(storage::BlockId id, std::uint64_t i)
-  {
-    if (void* base = this->dml_.BasePointer(id))
-    {
-      return static_cast<T*>(base)[i];
-    }
-    if (id != this->id_)
-    {
-      this->Release();
-      this->id_ = id;
-    }
-    for (std::size_t k = 0; k < this->used_; ++k)
-    {
-      const storage::Span& s = this->spans_[k];
-      if (i >= s.first && i < s.first + s.count)
-      {
-        return static_cast<T*>(s.data)[i - s.first];
-      }
-    }
-    std::size_t k = this->used_ < kWays ? this->used_++ : (this->next_++ % kWays);
-    if (this->spans_[k].data && k < this->used_ && this->used_ == kWays && this->pinned_[k])
-    {
-      this->dml_.Unpin(this->id_, this->spans_[k]);
-    }
-    this->spans_[k] = this->dml_.Pin(id, i, this->access_);
-    this->pinned_[k] = true;
-    return static_cast<T*>(this->spans_[k].data)[i - this->spans_[k].first];
-  }
-  void Release()
-  {
-    for (std::size_t k = 0; k < this->used_; ++k)
-    {
-      if (this->pinned_[k])
-      {
-        this->dml_.Unpin(this->id_, this->spans_[k]);
-        this->pinned_[k] = false;
-      }
-      this->spans_[k] = storage::Span{};
-    }
-    this->used_ = 0;
-    this->next_ = 0;
-  }
-
-private:
-  static constexpr std::size_t kWays = 2;
-  DML& dml_;
-  storage::Access access_;
-  storage::BlockId id_ = -1;
-  storage::Span spans_[kWays];
-  bool pinned_[kWays] = { false, false };
-  std::size_t used_ = 0, next_ = 0;
-};
+using storage::PinWindow;
 
 inline std::uint64_t Mix(std::uint64_t k)
 {

@@ -17,17 +17,13 @@ void Decimator::Compact()
   this->remap_.Resize(std::max<std::uint64_t>(nv, 1));
   this->BindViews();
   View<std::uint32_t> R(this->dml_, this->remap_);
-  // In core on several threads: the degrees (CountDegrees), the rings by vertex range (each
+  // On several threads (Workers): the degrees (CountDegrees), the rings by vertex range (each
   // thread scans all faces and writes only its own vertices), the moves (in place, downwards)
   // one array group per thread. Same result either way.
-  const int T = (nv >= kParallelCompactMin && this->AllInCore() && R.Ptr(0) &&
-                  (!this->recSize_ || this->v_.A.Ptr(0)))
-    ? this->threads_
-    : 1;
   // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with);
   // the candidate order is free until the next pass: CountDegrees' second counter array.
   FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
-  this->CountDegrees(nf, T, 0, total, const_cast<std::uint32_t*>(this->v_.O.Ptr(0)));
+  this->CountDegrees(nf, kParallelCompactMin, 0, total, &this->order_);
   // 2. New vertex numbers; RO[k] = end of k's ring (k <= v: RO[k] was read already). R holds the
   // new number, with the top bit for the survivors of this pass (their old state is overwritten
   // below before their neighbours look at it).
@@ -60,9 +56,10 @@ void Decimator::Compact()
   const std::uint64_t nv2 = k;
   this->v_.RO.Set(nv2, end);
   // 3. Vertex data, and the candidates carried to the next pass.
-  auto carry = [this, kTop](Views& wv, const View<std::uint32_t>& R, std::uint64_t v, State& flags,
-                 Cand& c) {
-    const State sv = wv.S.Get(v);
+  // (S, C, R: access of either kind, see WithAccess)
+  auto carry = [this, kTop](const auto& S, const auto& C, const auto& R, std::uint64_t v,
+                 State& flags, Cand& c) {
+    const State sv = S.Get(v);
     flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
     c = this->none_;
     if (sv & kCollapsed)
@@ -79,7 +76,7 @@ void Decimator::Compact()
       // edges to the collapsed pairs (the survivors offer the new ones): its best and second
       // best stay exact unless they pointed at one of them. A lost best is replaced by the
       // second best when that one is known and still valid.
-      c = wv.C.Get(v);
+      c = C.Get(v);
       auto valid = [&R, kTop](std::uint32_t partner, std::uint32_t& mapped) {
         mapped = partner == kNone ? kNone : R.Get(partner);
         return partner == kNone || (mapped != kNone && !(mapped & kTop));
@@ -129,179 +126,124 @@ void Decimator::Compact()
   };
   const std::size_t rec = this->recSize_;
   std::uint64_t f2 = 0;
-  // 4. Faces, ascending: new index f2 <= f (in core on several threads: on the quadrics'
-  // thread, below; out of core on the calling thread, after the quadrics).
-  auto moveFaces = [&]() {
+  // 4. Faces, ascending: new index f2 <= f (they read only R and the faces).
+  auto moveFaces = [&](Views& wv, const View<std::uint32_t>& RR, bool tick) {
     for (std::uint64_t f = 0; f < nf; ++f)
     {
-      this->Tick(nf + 2 * nv + f, total);
-      Tri t = this->v_.F.Get(f);
+      if (tick)
+      {
+        this->Tick(nf + 2 * nv + f, total);
+      }
+      Tri t = wv.F.Get(f);
       if (!Alive(t))
       {
         continue;
       }
       for (int c = 0; c < 3; ++c)
       {
-        t.v[c] = R.Get(t.v[c]) & ~kTop;
+        t.v[c] = RR.Get(t.v[c]) & ~kTop;
       }
-      this->v_.F.Set(f2++, t);
+      wv.F.Set(f2++, t);
     }
   };
-  bool facesMoved = T > 1;
-  if (T > 1)
-  {
-    // In place and downwards (carry reads only the vertex's own records and R): the arrays are
-    // independent, so one thread moves the quadrics and another carries the states and
-    // candidates and moves them, the positions and the point data (memory-bound: one thread per
-    // stream).
-    const std::uint32_t* Rp = R.Ptr(0);
-    Quadric* Qp = const_cast<Quadric*>(this->v_.Q.Ptr(0));
-    Vec3* Pp = const_cast<Vec3*>(this->v_.P.Ptr(0));
-    State* Sp = const_cast<State*>(this->v_.S.Ptr(0));
-    Cand* Cp = const_cast<Cand*>(this->v_.C.Ptr(0));
-    std::uint8_t* Ap = rec ? const_cast<std::uint8_t*>(this->v_.A.Ptr(0)) : nullptr;
-    // Group 0 runs on the calling thread, which ticks the progress (and so checks for an abort;
-    // the other group then finishes its loop before the exception is passed on).
-    ForRanges(std::min(T, 2), 2, [&](int, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
-      for (std::uint64_t g = gb; g < ge; ++g)
-      {
+  // The quadrics, in place and downwards.
+  auto moveQuadrics = [&](Views& wv, const View<std::uint32_t>& RR, bool tick, bool poll) {
+    WithAccess(
+      [&](auto Q, auto RA) {
         for (std::uint64_t v = 0; v < nv; ++v)
         {
-          const std::uint32_t rv = Rp[v];
-          const std::uint64_t w = rv & ~kTop;
-          if (g == 0 && (v & 4095) == 0)
+          if (tick)
           {
-            this->progress_.Tick(double(nf + nv + v) / double(total));
+            this->Tick(nf + nv + v, total);
           }
+          else if (poll && (v & 4095) == 0)
+          {
+            this->progress_.Poll();
+          }
+          const std::uint32_t rv = RA.Get(v);
+          const std::uint64_t w = rv & ~kTop;
+          if (rv != kNone && w != v)
+          {
+            Q.Set(w, Q.Get(v));
+          }
+        }
+      },
+      wv.Q, RR);
+  };
+  // The states and candidates (carried), the positions and the point data, in place and
+  // downwards (carry reads only the vertex's own records and R).
+  auto moveRest = [&](Views& wv, const View<std::uint32_t>& RR, bool tick) {
+    std::vector<std::uint8_t> buf(rec);
+    WithAccess(
+      [&](auto S, auto C, auto P, auto A, auto RA) {
+        for (std::uint64_t v = 0; v < nv; ++v)
+        {
+          if (tick)
+          {
+            this->Tick(nf + nv + v, total);
+          }
+          const std::uint32_t rv = RA.Get(v);
           if (rv == kNone)
           {
             continue;
           }
-          if (g == 0)
-          {
-            if (w != v)
-            {
-              Qp[w] = Qp[v];
-            }
-            continue;
-          }
+          const std::uint64_t w = rv & ~kTop;
           State flags;
           Cand c;
-          carry(this->v_, R, v, flags, c); // (reads v's records: not in place)
-          Sp[w] = flags;
-          Cp[w] = c;
-          if (w == v)
+          carry(S, C, RA, v, flags, c); // (reads v's records: not in place)
+          S.Set(w, flags);
+          C.Set(w, c);
+          if (w != v)
           {
-            continue;
-          }
-          Pp[w] = Pp[v];
-          if (Ap)
-          {
-            std::memcpy(Ap + w * rec, Ap + v * rec, rec);
+            P.Set(w, P.Get(v));
+            if (rec)
+            {
+              A.GetRange(v * rec, rec, buf.data());
+              A.SetRange(w * rec, rec, buf.data());
+            }
           }
         }
-        if (g == 0)
-        {
-          moveFaces(); // step 4 too (it reads only R and the faces)
-        }
-      }
-    });
-  }
-  else
+      },
+      wv.S, wv.C, wv.P, wv.A, RR);
+  };
+  // The arrays are independent: on two threads one moves the quadrics and then the faces, the
+  // other carries and moves the rest (memory-bound: one thread per stream; out of core the
+  // second through a forked DML).
+  storage::Phase phase;
+  phase.elements = nv;
+  phase.threads = std::min(this->threads_, 2);
+  phase.inCoreMin = kParallelCompactMin;
+  phase.helperFirst = 0; // (the second task writes every vertex of its blocks)
+  phase.writes = { this->state_.Id(), this->cand_.Id(), this->pos_.Id() };
+  if (rec)
   {
-    // Out of core, on two threads when the budget can be shared: this thread moves the
-    // quadrics and then the faces, a helper carries and moves the states, candidates, positions
-    // and point data through a forked DML (the same two groups as in core).
-    Views forkViews;
-    std::vector<DML::Range> attrRange;
-    if (rec)
+    phase.helperWrites.push_back({ this->attr_.Id(), 0, nv * rec });
+  }
+  phase.mainWrites = { this->quad_.Id(), this->faces_.Id() };
+  Workers workers(this->dml_, phase);
+  // (Progress: on one thread the quadrics only poll, the rest ticks, then the faces.)
+  const bool split = workers.Count() > 1;
+  workers.RunTasks(2, [&](int t, int task, const std::atomic<bool>&) {
+    Views wv;
+    this->BindViews(wv, workers, t);
+    const View<std::uint32_t> RR = workers.Bind(t, this->remap_);
+    if (task == 0)
     {
-      attrRange.push_back({ this->attr_.Id(), 0, nv * rec });
-    }
-    std::unique_ptr<DML> fork = this->ForkHelper(
-      nv, 0, { this->state_.Id(), this->cand_.Id(), this->pos_.Id() }, forkViews, attrRange);
-    ForkGuard joinOnExit{ *this, fork };
-    auto moveRest = [&](Views& wv, const View<std::uint32_t>& RR, std::vector<std::uint8_t>& buf,
-                      bool moveQ, bool tick) {
-      buf.resize(rec);
-      for (std::uint64_t v = 0; v < nv; ++v)
+      moveQuadrics(wv, RR, t == 0 && split, t == 0);
+      if (split)
       {
-        if (tick)
-        {
-          this->Tick(nf + nv + v, total);
-        }
-        const std::uint32_t rv = RR.Get(v);
-        if (rv == kNone)
-        {
-          continue;
-        }
-        const std::uint64_t w = rv & ~kTop;
-        State flags;
-        Cand c;
-        carry(wv, RR, v, flags, c);
-        wv.S.Set(w, flags);
-        wv.C.Set(w, c);
-        if (w != v)
-        {
-          wv.P.Set(w, wv.P.Get(v));
-          if (moveQ)
-          {
-            wv.Q.Set(w, wv.Q.Get(v));
-          }
-          if (rec)
-          {
-            wv.A.GetRange(v * rec, rec, buf.data());
-            wv.A.SetRange(w * rec, rec, buf.data());
-          }
-        }
+        moveFaces(wv, RR, t == 0);
       }
-    };
-    if (!fork)
-    {
-      moveRest(this->v_, R, this->abuf_, true, true);
     }
     else
     {
-      const View<std::uint32_t> forkR(*fork, this->remap_);
-      ForRanges(
-        2, 2,
-        [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>&) {
-          for (std::uint64_t g = gb; g < ge; ++g)
-          {
-            if (g == 0)
-            {
-              // The quadrics, then the faces (which read only R and the faces).
-              for (std::uint64_t v = 0; v < nv; ++v)
-              {
-                this->Tick(nf + nv + v, total);
-                const std::uint32_t rv = R.Get(v);
-                const std::uint64_t w = rv & ~kTop;
-                if (rv != kNone && w != v)
-                {
-                  this->v_.Q.Set(w, this->v_.Q.Get(v));
-                }
-              }
-              moveFaces();
-            }
-            else if (fork && t == 1)
-            {
-              std::vector<std::uint8_t> buf;
-              moveRest(forkViews, forkR, buf, false, false);
-            }
-            else
-            {
-              moveRest(this->v_, R, this->abuf_, false, false); // (the helper did not start)
-            }
-          }
-        },
-        [&]() { this->JoinHelper(fork); });
-      this->JoinHelper(fork);
-      facesMoved = true;
+      moveRest(wv, RR, t == 0 && !split);
     }
-  }
-  if (!facesMoved)
+  });
+  if (!split)
   {
-    moveFaces();
+    this->BindViews();
+    moveFaces(this->v_, R, true);
   }
   // 5. Shrink, then the rings (faces in reverse: each list ascending, RO[k] ends at its start).
   const std::uint64_t nvb = std::max<std::uint64_t>(nv2, 1);

@@ -71,10 +71,12 @@
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Placement.h"
 #include "sipmss/algorithms/Quadric.h"
+#include "sipmss/algorithms/Vector.h"
+#include "sipmss/storage/Access.h"
+#include "sipmss/storage/Parallel.h"
 #include "sipmss/storage/Threads.h"
 
 #include "../StoredMesh.h"
-#include "../ThreadRunner.h"
 
 #include <algorithm>
 #include <cmath>
@@ -107,6 +109,14 @@ using placement::Lanes2;
 using storage::Array;
 using storage::BlockId;
 using storage::DML;
+using storage::ForRanges;
+using storage::RangeBody;
+using storage::RethrowFirst;
+using storage::RunOnThreads;
+using storage::View;
+using storage::WithAccess;
+using storage::Workers;
+
 
 constexpr std::uint32_t kNone = 0xffffffffu;
 constexpr int kCostBins = 1 << 15;
@@ -154,31 +164,6 @@ constexpr State kBusy = kRemoved | kCollapsed;
 inline bool Active(State s)
 {
   return (s & (kSurvivor | kRecompute)) != 0 && (s & (kNeedsLegal | kLocked)) == 0;
-}
-
-struct Vec3
-{
-  double x, y, z;
-};
-inline Vec3 operator-(const Vec3& a, const Vec3& b)
-{
-  return { a.x - b.x, a.y - b.y, a.z - b.z };
-}
-inline Vec3 operator+(const Vec3& a, const Vec3& b)
-{
-  return { a.x + b.x, a.y + b.y, a.z + b.z };
-}
-inline Vec3 operator*(double s, const Vec3& a)
-{
-  return { s * a.x, s * a.y, s * a.z };
-}
-inline double Dot(const Vec3& a, const Vec3& b)
-{
-  return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-inline Vec3 Cross(const Vec3& a, const Vec3& b)
-{
-  return { a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x };
 }
 
 // The corner after and before corner c of a triangle: (c + 1) % 3 and (c + 2) % 3.
@@ -265,77 +250,6 @@ struct EdgeBatch
   alignas(32) double pv[3][kLanes];
   std::uint32_t u[kLanes], v[kLanes];
   bool offerV[kLanes];
-};
-
-// Fast element access: the block's memory when in core, the DML's read/write otherwise.
-// Refresh() after any OpenBlock/Resize/Reconfigure (they may change the mode).
-template <class T>
-class View
-{
-public:
-  View() = default;
-  View(DML& dml, const Array<T>& a)
-    : dml_(&dml)
-    , id_(a.Id())
-  {
-    this->Refresh();
-  }
-  void Refresh() { this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_)); }
-  // Direct pointer to element i when in core, else nullptr.
-  SIPMSS_ALWAYS_INLINE const T* Ptr(std::uint64_t i) const
-  {
-    return this->base_ ? this->base_ + i : nullptr;
-  }
-  SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const
-  {
-    if (this->base_)
-    {
-      return this->base_[i];
-    }
-    T v;
-    this->dml_->Read(this->id_, sizeof(T), i, &v);
-    return v;
-  }
-  SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
-  {
-    if (this->base_)
-    {
-      this->base_[i] = v;
-      return;
-    }
-    this->dml_->Write(this->id_, sizeof(T), i, &v);
-  }
-  void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
-  {
-    if (n == 0)
-    {
-      return;
-    }
-    if (this->base_)
-    {
-      std::memcpy(dst, this->base_ + first, n * sizeof(T));
-      return;
-    }
-    this->dml_->ReadRange(this->id_, first, n, dst);
-  }
-  void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
-  {
-    if (n == 0)
-    {
-      return;
-    }
-    if (this->base_)
-    {
-      std::memcpy(this->base_ + first, src, n * sizeof(T));
-      return;
-    }
-    this->dml_->WriteRange(this->id_, first, n, src);
-  }
-
-private:
-  DML* dml_ = nullptr;
-  BlockId id_ = -1;
-  T* base_ = nullptr;
 };
 
 // The views of one DML over the mesh's blocks: the Decimator's own, or those of a forked DML
@@ -562,6 +476,20 @@ struct Scratch
   Views* w = nullptr; // the views this thread uses; nullptr: the Decimator's
 };
 
+// A worker's views for the scratch it uses, for the scope of its range.
+struct ScratchViews
+{
+  Scratch& s;
+  ScratchViews(Scratch& scratch, Views& views)
+    : s(scratch)
+  {
+    scratch.w = &views;
+  }
+  ~ScratchViews() { this->s.w = nullptr; }
+  ScratchViews(const ScratchViews&) = delete;
+  ScratchViews& operator=(const ScratchViews&) = delete;
+};
+
 // A reusable barrier for a fixed number of threads (C++17 has none).
 class Barrier
 {
@@ -621,22 +549,6 @@ private:
   std::uint64_t gen_ = 0;
   bool agreed_ = false;
 };
-
-// (the cores' thread runner: ../ThreadRunner.h)
-using detail::RethrowFirst;
-using detail::RunOnThreads;
-
-// Runs body(t, begin, end, stop) on [0, n) cut into T ranges, range t on thread t (0: the
-// calling one); the ranges of threads that could not be started run on the calling thread
-// afterwards. The bodies must be independent of each other (each writes only its own range's
-// records) and should return early once `stop` is set (another one threw, e.g. an abort). With
-// poll (e.g. Progress::Poll), the calling thread polls while it waits for the others: a range
-// with one costly element (a vertex of valence 2,000,000) is then still stopped by an abort, if
-// the body also checks `stop` inside that element.
-using RangeBody =
-  std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
-void ForRanges(int T, std::uint64_t n, const RangeBody& body,
-  const std::function<void()>& beforeFallback = nullptr, const std::function<void()>& poll = nullptr);
 
 class Decimator;
 
@@ -753,8 +665,8 @@ private:
   void Weld();
   void BuildRings();
   void FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal);
-  void CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase, std::uint64_t tickTotal,
-    std::uint32_t* spare = nullptr);
+  void CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::uint64_t tickBase,
+    std::uint64_t tickTotal, const Array<std::uint32_t>* spare = nullptr);
   void BuildQuadrics();
   // One pass down to `goal` faces; workAfter: the estimated work of the rest of the run.
   bool Pass(std::uint64_t goal, bool exact, double workAfter);
@@ -763,6 +675,8 @@ private:
 
   void BindViews();
   void BindViews(Views& w, DML& dml) const;
+  // Worker t's views of a parallel phase: through its DML, restricted to its write ranges.
+  void BindViews(Views& w, const Workers& workers, int t) const;
   void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
   // The length of x's face list (its live faces and those that died in this pass).
   static std::uint32_t RingLength(const Views& w, std::uint32_t x)
@@ -785,59 +699,34 @@ private:
   std::uint64_t splitMid_ = 0, splitFace_ = 0;
   bool splitOn_ = false;
   void FaceSplit(std::uint64_t nv);
-  bool AllInCore() const
-  {
-    return this->v_.S.Ptr(0) && this->v_.C.Ptr(0) && this->v_.Q.Ptr(0) && this->v_.P.Ptr(0) &&
-      this->v_.F.Ptr(0) && this->v_.RO.Ptr(0) && this->v_.RF.Ptr(0);
-  }
   void Sweep(std::uint64_t nv);
-  // Out of core on two or more threads: a DML forked for a helper thread that writes only the
-  // elements [mid, nv) of `blocks` (DML::Fork, half of the budget), with `w` bound to it;
-  // nullptr in core, on one thread, for small meshes, or when the budget cannot be shared.
-  std::unique_ptr<DML> ForkHelper(std::uint64_t nv, std::uint64_t mid,
-    std::initializer_list<storage::BlockId> blocks, Views& w,
-    const std::vector<DML::Range>& more = {});
-  void JoinHelper(std::unique_ptr<DML>& fork); // (no-op for nullptr)
-  // Joins a fork on every exit of a scope (there a failing Join is dropped: the scope is
-  // already left by an exception); the normal path joins with JoinHelper and sees its errors.
-  struct ForkGuard
+  // In core: the faces of an active vertex kAhead ahead in the sweep (out of core there is
+  // nothing to prefetch: a template over the access kind, see WithAccess).
+  template <class SA, class ROA, class RFA, class FA>
+  static void PrefetchSweep(
+    const SA& S, const ROA& RO, const RFA& RF, const FA& F, std::uint64_t u, std::uint64_t end)
   {
-    Decimator& d;
-    std::unique_ptr<DML>& fork;
-    ForkGuard(const ForkGuard&) = delete;
-    ForkGuard& operator=(const ForkGuard&) = delete;
-    ~ForkGuard()
+    if constexpr (SA::kInCore)
     {
-      try
+      constexpr std::uint64_t kAhead = 8;
+      const State* Sp = S.Data();
+      const std::uint32_t* ROp = RO.Data();
+      const std::uint32_t* RFp = RF.Data();
+      const Tri* Fp = F.Data();
+      if (u + kAhead < end && Active(Sp[u + kAhead]))
       {
-        this->d.JoinHelper(this->fork);
+        for (std::uint32_t k = ROp[u + kAhead], e = ROp[u + kAhead + 1]; k < e; ++k)
+        {
+          Prefetch(Fp + RFp[k]);
+        }
       }
-      catch (...)
-      {
-      }
+      // (The neighbours' records are fetched by Evaluate once it has the ring: fetching them
+      // here too, for every corner of the ring's faces, cost more than it saved.)
     }
-  };
-  // In core: the faces of an active vertex kAhead ahead in the sweep.
-  void PrefetchSweep(std::uint64_t u, std::uint64_t end) const
-  {
-    constexpr std::uint64_t kAhead = 8;
-    const State* Sp = this->v_.S.Ptr(0);
-    const std::uint32_t* ROp = this->v_.RO.Ptr(0);
-    const std::uint32_t* RFp = this->v_.RF.Ptr(0);
-    const Tri* Fp = this->v_.F.Ptr(0);
-    if (!Sp || !ROp || !RFp || !Fp)
+    else
     {
-      return;
+      (void)S, (void)RO, (void)RF, (void)F, (void)u, (void)end;
     }
-    if (u + kAhead < end && Active(Sp[u + kAhead]))
-    {
-      for (std::uint32_t k = ROp[u + kAhead], e = ROp[u + kAhead + 1]; k < e; ++k)
-      {
-        Prefetch(Fp + RFp[k]);
-      }
-    }
-    // (The neighbours' records are fetched by Evaluate once it has the ring: fetching them here
-    // too, for every corner of the ring's faces, cost more than it saved.)
   }
   void Evaluate(std::uint32_t u, Scratch& s);
   // (tally: next and prev's LinkTally for a large ring, else nullptr: they are scanned)

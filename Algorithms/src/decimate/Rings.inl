@@ -7,19 +7,16 @@ namespace
 // ---------------------------------------------------------------------------------------------
 // rings
 
-// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before). In core on two or
-// more threads with a `spare` array of nv counters: two threads count half of the faces each,
-// the second into `spare`, which is then added. Else by vertex range on `threads` threads in core
-// (each thread scans every face and counts only its own vertices, no atomics; a thread never
-// writes another's counter, not even adding zero), on two threads out of core (the upper half
-// through a forked DML).
-void Decimator::CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBase,
-  std::uint64_t tickTotal, std::uint32_t* spare)
+// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before), on the workers
+// of a phase over the vertices (from parallelMin vertices in core): each worker scans every face
+// and counts only its own vertices (no atomics; a worker never writes another's counter, not
+// even adding zero). With a `spare` block of nv counters and workers that share memory, two of
+// them count half of the faces each instead, the second into `spare`, which is then added.
+void Decimator::CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::uint64_t tickBase,
+  std::uint64_t tickTotal, const Array<std::uint32_t>* spare)
 {
   this->BindViews();
   const std::uint64_t nv = this->nv_;
-  const Tri* Fp = this->v_.F.Ptr(0);
-  std::uint32_t* ROp = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
   auto tick = [&](int t, std::uint64_t f, const std::atomic<bool>& stop) {
     if ((f & 4095) != 0)
     {
@@ -36,69 +33,88 @@ void Decimator::CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBa
     }
     return true;
   };
-  if (threads > 1 && Fp && ROp && spare)
+  if (spare)
   {
-    ForRanges(2, nf, [&](int t, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
-      std::uint32_t* count = t == 0 ? ROp : spare;
-      if (t == 1)
-      {
-        std::fill(spare, spare + nv, 0u);
-      }
-      for (std::uint64_t f = fb; f < fe && tick(t, f, stop); ++f)
-      {
-        const Tri t3 = Fp[f];
-        if (Alive(t3))
-        {
-          ++count[t3.v[0]];
-          ++count[t3.v[1]];
-          ++count[t3.v[2]];
-        }
-      }
-    });
-    ForRanges(2, nv, [&](int, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>&) {
-      for (std::uint64_t v = lo; v < hi; ++v)
-      {
-        ROp[v] += spare[v];
-      }
-    });
-    return;
-  }
-  Views forkViews;
-  std::unique_ptr<DML> fork;
-  ForkGuard joinOnExit{ *this, fork };
-  int T = (Fp && ROp) ? threads : 1;
-  if (T == 1)
-  {
-    fork = this->ForkHelper(nv, nv / 2, { this->ringOff_.Id() }, forkViews);
-    T = fork ? 2 : 1;
-  }
-  auto count = [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-    Views& w = (fork && t == 1) ? forkViews : this->v_;
-    for (std::uint64_t f = 0; f < nf && tick(t, f, stop); ++f)
+    storage::Phase halves;
+    halves.elements = nv;
+    halves.threads = std::min(this->threads_, 2);
+    halves.inCoreMin = parallelMin;
+    halves.helper = false;
+    halves.helperFirst = 0; // (worker 1 writes all of the spare counters)
+    halves.writes = { spare->Id() };
+    halves.mainWrites = { this->ringOff_.Id() };
+    Workers workers(this->dml_, halves);
+    if (workers.Shared())
     {
-      const Tri t3 = Fp ? Fp[f] : w.F.Get(f);
-      if (Alive(t3))
-      {
-        for (int c = 0; c < 3; ++c)
-        {
-          const std::uint32_t x = t3.v[c];
-          if (x >= lo && x < hi)
-          {
-            if (ROp)
+      workers.RunTasks(2, [&](int t, int task, const std::atomic<bool>& stop) {
+        const View<Tri> F = workers.Bind(t, this->faces_);
+        const View<std::uint32_t> counts =
+          workers.Bind(t, task == 0 ? this->ringOff_ : *spare);
+        WithAccess(
+          [&](auto Fa, auto Ca) {
+            if (task == 1)
             {
-              ++ROp[x];
+              for (std::uint64_t v = 0; v < nv; ++v)
+              {
+                Ca.Set(v, 0u);
+              }
             }
-            else
+            for (std::uint64_t f = task == 0 ? 0 : nf / 2; f < (task == 0 ? nf / 2 : nf) &&
+                 tick(t, f, stop); ++f)
             {
-              w.RO.Set(x, w.RO.Get(x) + 1);
+              const Tri t3 = Fa.Get(f);
+              if (Alive(t3))
+              {
+                for (int c = 0; c < 3; ++c)
+                {
+                  Ca.Set(t3.v[c], Ca.Get(t3.v[c]) + 1);
+                }
+              }
+            }
+          },
+          F, counts);
+      });
+      const View<std::uint32_t> RO(this->dml_, this->ringOff_), extra(this->dml_, *spare);
+      WithAccess(
+        [&](auto ROa, auto Ea) {
+          for (std::uint64_t v = 0; v < nv; ++v)
+          {
+            ROa.Set(v, ROa.Get(v) + Ea.Get(v));
+          }
+        },
+        RO, extra);
+      return;
+    }
+  }
+  storage::Phase phase;
+  phase.elements = nv;
+  phase.threads = this->threads_;
+  phase.inCoreMin = parallelMin;
+  phase.writes = { this->ringOff_.Id() };
+  Workers workers(this->dml_, phase);
+  workers.Run([&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    const View<Tri> F = workers.Bind(t, this->faces_);
+    const View<std::uint32_t> RO = workers.Bind(t, this->ringOff_);
+    WithAccess(
+      [&](auto Fa, auto ROa) {
+        for (std::uint64_t f = 0; f < nf && tick(t, f, stop); ++f)
+        {
+          const Tri t3 = Fa.Get(f);
+          if (Alive(t3))
+          {
+            for (int c = 0; c < 3; ++c)
+            {
+              const std::uint32_t x = t3.v[c];
+              if (x >= lo && x < hi)
+              {
+                ROa.Set(x, ROa.Get(x) + 1);
+              }
             }
           }
         }
-      }
-    }
-  };
-  ForRanges(T, nv, count, [&]() { this->JoinHelper(fork); });
-  this->JoinHelper(fork);
+      },
+      F, RO);
+  });
 }
 
 // Fills the incident face lists of faces [0, nf) (dead ones skipped) from the ring offsets, which
@@ -107,70 +123,59 @@ void Decimator::CountDegrees(std::uint64_t nf, int threads, std::uint64_t tickBa
 // face (the reads are sequential, the writes it splits are not): the same lists.
 void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal)
 {
-  const Tri* F = this->v_.F.Ptr(0);
-  std::uint32_t* RO = const_cast<std::uint32_t*>(this->v_.RO.Ptr(0));
-  std::uint32_t* RF = const_cast<std::uint32_t*>(this->v_.RF.Ptr(0));
-  const bool inCore = F && RO && RF;
   const std::uint64_t nv = this->nv_;
-  int T = (nf >= kParallelRingsMin && inCore) ? this->threads_ : 1;
   // Out of core: the upper half of the vertices (their offsets and lists) on a helper thread
   // through a forked DML.
-  Views forkViews;
   const std::uint64_t mid = nv / 2;
-  std::unique_ptr<DML> fork;
-  ForkGuard joinOnExit{ *this, fork };
-  if (T == 1 && mid > 0)
-  {
-    const std::uint64_t rfBegin = this->v_.RO.Get(mid - 1), rfEnd = this->v_.RO.Get(nv);
-    if (rfBegin < rfEnd)
-    {
-      fork = this->ForkHelper(nv, mid, { this->ringOff_.Id() }, forkViews,
-        { { this->ringFace_.Id(), rfBegin, rfEnd - rfBegin } });
-      T = fork ? 2 : 1;
-    }
-  }
-  auto fill = [&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-    Views& w = (fork && th == 1) ? forkViews : this->v_;
-    for (std::uint64_t i = nf; i-- > 0;)
-    {
-      if ((i & 4095) == 0)
-      {
-        if (stop.load(std::memory_order_relaxed))
+  const std::uint64_t rfBegin = mid > 0 ? this->v_.RO.Get(mid - 1) : 0;
+  const std::uint64_t rfEnd = mid > 0 ? this->v_.RO.Get(nv) : 0;
+  storage::Phase phase;
+  phase.elements = nv;
+  phase.threads = this->threads_;
+  phase.inCoreThreads = nf >= kParallelRingsMin;
+  phase.helper = rfBegin < rfEnd;
+  phase.writes = { this->ringOff_.Id() };
+  phase.helperWrites = { { this->ringFace_.Id(), rfBegin, rfEnd - rfBegin } };
+  Workers workers(this->dml_, phase);
+  workers.Run([&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    const View<Tri> F = workers.Bind(th, this->faces_);
+    const View<std::uint32_t> RO = workers.Bind(th, this->ringOff_);
+    const View<std::uint32_t> RF = workers.Bind(th, this->ringFace_);
+    WithAccess(
+      [&](auto Fa, auto ROa, auto RFa) {
+        for (std::uint64_t i = nf; i-- > 0;)
         {
-          return;
-        }
-        if (th == 0 && tickTotal)
-        {
-          // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
-          this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
-        }
-      }
-      const Tri t = inCore ? F[i] : w.F.Get(i);
-      if (!Alive(t))
-      {
-        continue;
-      }
-      for (int k = 0; k < 3; ++k)
-      {
-        const std::uint32_t x = t.v[k];
-        if (x >= lo && x < hi)
-        {
-          if (inCore)
+          if ((i & 4095) == 0)
           {
-            RF[--RO[x]] = std::uint32_t(i);
+            if (stop.load(std::memory_order_relaxed))
+            {
+              return;
+            }
+            if (th == 0 && tickTotal)
+            {
+              // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
+              this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
+            }
           }
-          else
+          const Tri t = Fa.Get(i);
+          if (!Alive(t))
           {
-            const std::uint32_t e = w.RO.Get(x) - 1;
-            w.RO.Set(x, e);
-            w.RF.Set(e, std::uint32_t(i));
+            continue;
+          }
+          for (int k = 0; k < 3; ++k)
+          {
+            const std::uint32_t x = t.v[k];
+            if (x >= lo && x < hi)
+            {
+              const std::uint32_t e = ROa.Get(x) - 1;
+              ROa.Set(x, e);
+              RFa.Set(e, std::uint32_t(i));
+            }
           }
         }
-      }
-    }
-  };
-  ForRanges(T, nv, fill, [&]() { this->JoinHelper(fork); });
-  this->JoinHelper(fork);
+      },
+      F, RO, RF);
+  });
 }
 
 void Decimator::BuildRings()
@@ -188,24 +193,25 @@ void Decimator::BuildRings()
   View<Tri> F(this->dml_, this->faces_);
   View<Vec3> P(this->dml_, this->pos_);
   View<std::uint32_t> RO(this->dml_, this->ringOff_);
-  // In core, passes 1 and 3 run on all cores (each thread on its own faces), the degrees and
+  // Passes 1 and 3 run on the workers of a phase (each on its own faces), the degrees and
   // pass 2 by vertex range (CountDegrees, FillRings); same result.
-  const int T = (nf >= kParallelRingsMin && F.Ptr(0) && P.Ptr(0) && RO.Ptr(0)) ? this->threads_ : 1;
   // Pass 1 over the faces: validate, drop zero-area faces, count the degrees. The first bad
-  // face is reported, whatever the threads. Out of core on two threads: the upper half of the
-  // faces through a forked DML, then the degrees (CountDegrees).
+  // face is reported, whatever the threads. On several workers the degrees are counted after
+  // (CountDegrees).
   std::uint64_t live = 0;
   {
-    Views forkViews;
-    std::unique_ptr<DML> fork =
-      T == 1 ? this->ForkHelper(nf, nf / 2, { this->faces_.Id() }, forkViews) : nullptr;
-    ForkGuard joinOnExit{ *this, fork };
-    const int T1 = fork ? 2 : T;
+    storage::Phase phase;
+    phase.elements = nf;
+    phase.threads = this->threads_;
+    phase.inCoreThreads = nf >= kParallelRingsMin;
+    phase.writes = { this->faces_.Id() };
+    Workers workers(this->dml_, phase);
+    const int T1 = workers.Count();
     std::vector<std::uint64_t> lives(std::size_t(T1), 0), drops(std::size_t(T1), 0);
     std::vector<std::uint64_t> bad(std::size_t(T1), ~std::uint64_t(0));
     auto pass1 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
-      View<Tri>& Fv = (fork && th == 1) ? forkViews.F : F;
-      const View<Vec3>& Pv = (fork && th == 1) ? forkViews.P : P;
+      View<Tri> Fv = workers.Bind(th, this->faces_);
+      const View<Vec3> Pv = workers.Bind(th, this->pos_);
       for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
       {
         if (th == 0 && ((f - fb) & 1023) == 0)
@@ -240,8 +246,10 @@ void Decimator::BuildRings()
         ++lives[std::size_t(th)];
       }
     };
-    ForRanges(T1, nf, pass1, [&]() { this->JoinHelper(fork); });
-    this->JoinHelper(fork);
+    workers.Run(pass1);
+    F.Refresh();
+    P.Refresh();
+    RO.Refresh();
     const std::uint64_t first = *std::min_element(bad.begin(), bad.end());
     if (first != ~std::uint64_t(0))
     {
@@ -257,7 +265,7 @@ void Decimator::BuildRings()
     }
     if (T1 > 1)
     {
-      this->CountDegrees(nf, T, nf, 4 * nf);
+      this->CountDegrees(nf, 0, nf, 4 * nf);
       F.Refresh();
       P.Refresh();
       RO.Refresh();
@@ -308,20 +316,17 @@ void Decimator::BuildRings()
   // list above may have moved every block out of core, and out of core a DML serves one thread
   // only (a second one goes through a fork). A group is stored as its size, then its members in
   // increasing order.
-  const int Tin = (nf >= kParallelRingsMin && F.Ptr(0) && RO.Ptr(0) && RF.Ptr(0))
-    ? this->threads_
-    : 1;
-  Views forkViews;
-  std::unique_ptr<DML> fork =
-    Tin == 1 ? this->ForkHelper(nv, nv / 2, {}, forkViews) : nullptr;
-  ForkGuard joinOnExit{ *this, fork };
-  const int T3 = fork ? 2 : Tin;
+  storage::Phase phase3;
+  phase3.elements = nv;
+  phase3.threads = this->threads_;
+  phase3.inCoreThreads = nf >= kParallelRingsMin;
+  Workers workers3(this->dml_, phase3);
+  const int T3 = workers3.Count();
   std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T3));
   auto pass3 = [&](int th, std::uint64_t vb, std::uint64_t ve, const std::atomic<bool>& stop) {
-    const bool helper = fork && th == 1;
-    const View<Tri>& Fv = helper ? forkViews.F : F;
-    const View<std::uint32_t>& ROv = helper ? forkViews.RO : RO;
-    const View<std::uint32_t>& RFv = helper ? forkViews.RF : RF;
+    const View<Tri> Fv = workers3.Bind(th, this->faces_);
+    const View<std::uint32_t> ROv = workers3.Bind(th, this->ringOff_);
+    const View<std::uint32_t> RFv = workers3.Bind(th, this->ringFace_);
     std::vector<std::uint32_t> list;
     std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed; // (other two vertices, face)
     std::uint64_t work = 0; // ring entries since the last poll
@@ -339,13 +344,7 @@ void Decimator::BuildRings()
       {
         continue;
       }
-      const std::uint32_t* faceIds = RFv.Ptr(b); // in core: the list itself
-      if (!faceIds)
-      {
-        list.resize(e - b);
-        RFv.GetRange(b, e - b, list.data());
-        faceIds = list.data();
-      }
+      const std::uint32_t* faceIds = RFv.Run(b, e - b, list);
       keyed.clear();
       for (std::uint32_t k = 0; k < e - b; ++k)
       {
@@ -400,8 +399,7 @@ void Decimator::BuildRings()
       ReleaseIfLarge(list);
     }
   };
-  ForRanges(T3, nv, pass3, [&]() { this->JoinHelper(fork); }, [this]() { this->progress_.Poll(); });
-  this->JoinHelper(fork);
+  workers3.Run(pass3, [this]() { this->progress_.Poll(); });
   // The groups in the order of their first members (face order, as a sweep over the faces
   // would settle them).
   std::vector<std::uint64_t> members; // the threads' lists, one after the other
@@ -514,17 +512,36 @@ void Decimator::BindViews()
   this->BindViews(this->v_, this->dml_);
 }
 
+// (bind(array) makes one view; blocks not open, or attributes absent, get an unbound one)
+template <class Bind>
+void BindEach(Views& w, const Bind& bind, const Array<Vec3>& pos, const Array<Quadric>& quad,
+  const Array<std::uint8_t>& attr, bool attributes, const Array<State>& state,
+  const Array<Tri>& faces, const Array<std::uint32_t>& ringOff,
+  const Array<std::uint32_t>& ringFace, const Array<Cand>& cand, const Array<std::uint32_t>& order)
+{
+  w.P = bind(pos);
+  w.Q = quad.IsOpen() ? bind(quad) : View<Quadric>();
+  w.A = attributes ? bind(attr) : View<std::uint8_t>();
+  w.S = state.IsOpen() ? bind(state) : View<State>();
+  w.F = bind(faces);
+  w.RO = bind(ringOff);
+  w.RF = bind(ringFace);
+  w.C = cand.IsOpen() ? bind(cand) : View<Cand>();
+  w.O = order.IsOpen() ? bind(order) : View<std::uint32_t>();
+}
+
 void Decimator::BindViews(Views& w, DML& dml) const
 {
-  w.P = View<Vec3>(dml, this->pos_);
-  w.Q = this->quad_.IsOpen() ? View<Quadric>(dml, this->quad_) : View<Quadric>();
-  w.A = this->recSize_ ? View<std::uint8_t>(dml, this->attr_) : View<std::uint8_t>();
-  w.S = this->state_.IsOpen() ? View<State>(dml, this->state_) : View<State>();
-  w.F = View<Tri>(dml, this->faces_);
-  w.RO = View<std::uint32_t>(dml, this->ringOff_);
-  w.RF = View<std::uint32_t>(dml, this->ringFace_);
-  w.C = this->cand_.IsOpen() ? View<Cand>(dml, this->cand_) : View<Cand>();
-  w.O = this->order_.IsOpen() ? View<std::uint32_t>(dml, this->order_) : View<std::uint32_t>();
+  BindEach(w, [&dml](const auto& a) { return storage::View(dml, a); }, this->pos_, this->quad_,
+    this->attr_, this->recSize_ != 0, this->state_, this->faces_, this->ringOff_,
+    this->ringFace_, this->cand_, this->order_);
+}
+
+void Decimator::BindViews(Views& w, const Workers& workers, int t) const
+{
+  BindEach(w, [&workers, t](const auto& a) { return workers.Bind(t, a); }, this->pos_,
+    this->quad_, this->attr_, this->recSize_ != 0, this->state_, this->faces_, this->ringOff_,
+    this->ringFace_, this->cand_, this->order_);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -727,56 +744,57 @@ void Decimator::BuildQuadrics()
       ReleaseIfLarge(prev);
     }
   };
-  int T = (this->AllInCore() && !this->opt_.initialQuadric && nv >= 8192) ? this->threads_ : 1;
-  // Out of core: the upper half of the vertices on a helper thread through a forked DML.
-  Views forkViews;
-  std::unique_ptr<DML> fork = (T == 1 && !this->opt_.initialQuadric)
-    ? this->ForkHelper(nv, nv / 2, { this->quad_.Id(), this->state_.Id(), this->cand_.Id() },
-        forkViews)
-    : nullptr;
-  ForkGuard joinOnExit{ *this, fork };
-  if (fork)
-  {
-    T = 2; // ForRanges' halves: [0, nv / 2) and [nv / 2, nv)
-  }
-  ForRanges(
-    T, nv,
+  // On the workers of a phase over the vertices (not with initialQuadric, a caller's callback):
+  // in core on all cores, out of core the upper half on a helper thread through a forked DML.
+  storage::Phase phase;
+  phase.elements = nv;
+  phase.threads = this->opt_.initialQuadric ? 1 : this->threads_;
+  phase.inCoreMin = 8192;
+  phase.writes = { this->quad_.Id(), this->state_.Id(), this->cand_.Id() };
+  Workers workers(this->dml_, phase);
+  workers.Run(
     [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-      Views& w = (fork && t == 1) ? forkViews : this->v_;
+      Views w;
+      this->BindViews(w, workers, t);
       std::vector<Tri> tris;
       std::vector<std::uint32_t> next, prev;
       LinkTally tally;
-      // In core: the faces of the vertices 8 ahead, the corner positions of those 4 ahead.
-      const std::uint32_t* ROp = w.RO.Ptr(0);
-      const std::uint32_t* RFp = w.RF.Ptr(0);
-      const Tri* Fp = w.F.Ptr(0);
-      const Vec3* Pp = w.P.Ptr(0);
-      const bool prefetch = ROp && RFp && Fp && Pp;
-      for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
-      {
-        if (t == 0)
-        {
-          this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
-        }
-        if (prefetch && u + 8 < hi)
-        {
-          for (std::uint32_t k = ROp[u + 8], e = ROp[u + 9]; k < e; ++k)
+      WithAccess(
+        [&](auto RO, auto RF, auto F, auto P) {
+          for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
           {
-            Prefetch(Fp + RFp[k]);
-          }
-          for (std::uint32_t k = ROp[u + 4], e = ROp[u + 5]; k < e; ++k)
-          {
-            for (const std::uint32_t y : Fp[RFp[k]].v)
+            if (t == 0)
             {
-              PrefetchAt(Pp, y); // (the duplicate search may have killed the face)
+              this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
             }
+            if constexpr (decltype(RO)::kInCore)
+            {
+              // The faces of the vertices 8 ahead, the corner positions of those 4 ahead.
+              const std::uint32_t* ROp = RO.Data();
+              const std::uint32_t* RFp = RF.Data();
+              const Tri* Fp = F.Data();
+              const Vec3* Pp = P.Data();
+              if (u + 8 < hi)
+              {
+                for (std::uint32_t k = ROp[u + 8], e = ROp[u + 9]; k < e; ++k)
+                {
+                  Prefetch(Fp + RFp[k]);
+                }
+                for (std::uint32_t k = ROp[u + 4], e = ROp[u + 5]; k < e; ++k)
+                {
+                  for (const std::uint32_t y : Fp[RFp[k]].v)
+                  {
+                    PrefetchAt(Pp, y); // (the duplicate search may have killed the face)
+                  }
+                }
+              }
+            }
+            vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0);
           }
-        }
-        vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0);
-      }
+        },
+        w.RO, w.RF, w.F, w.P);
     },
-    [&]() { this->JoinHelper(fork); }, [this]() { this->progress_.Poll(); });
-  this->JoinHelper(fork);
+    [this]() { this->progress_.Poll(); });
 }
 
 } // namespace

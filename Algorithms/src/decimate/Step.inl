@@ -12,19 +12,10 @@ void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
   r.nbs.clear();
   r.keys.clear();
   const std::uint32_t b = w.RO.Get(x), e = w.RO.Get(x + 1);
-  const std::uint32_t* ids = w.RF.Ptr(b); // in core: the list itself
-  if (!ids)
+  const std::uint32_t* ids = w.RF.Run(b, e - b, r.ids);
+  for (std::uint32_t k = 0; k < e - b; ++k)
   {
-    r.ids.resize(e - b);
-    w.RF.GetRange(b, e - b, r.ids.data());
-    ids = r.ids.data();
-  }
-  if (const Tri* fp = w.F.Ptr(0))
-  {
-    for (std::uint32_t k = 0; k < e - b; ++k)
-    {
-      Prefetch(fp + ids[k]);
-    }
+    w.F.Prefetch(ids[k]);
   }
   for (std::uint32_t k = 0; k < e - b; ++k)
   {
@@ -82,12 +73,9 @@ void Decimator::BuildNeighbours(Views& w, Ring& r, bool positions)
   }
   if (positions)
   {
-    if (const Vec3* pp = w.P.Ptr(0))
+    for (const Nb& n : r.nbs)
     {
-      for (const Nb& n : r.nbs)
-      {
-        Prefetch(pp + n.v);
-      }
+      w.P.Prefetch(n.v);
     }
     r.px = w.P.Get(r.x);
     for (Nb& n : r.nbs)
@@ -359,22 +347,13 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
   }
   // Mark every vertex of the faces around u and v (the other two corners of each): no later
   // collapse of this pass touches them. (u and v are among them; they get their states below.)
-  State* Sp = const_cast<State*>(w.S.Ptr(0));
   for (const Ring* r : { &ru, &rv })
   {
     for (const RingFace& f : r->faces)
     {
       const std::uint32_t a = f.t.v[kNextCorner[f.corner]], b = f.t.v[kPrevCorner[f.corner]];
-      if (Sp)
-      {
-        Sp[a] |= kMarked;
-        Sp[b] |= kMarked;
-      }
-      else
-      {
-        w.S.Set(a, State(w.S.Get(a) | kMarked));
-        w.S.Set(b, State(w.S.Get(b) | kMarked));
-      }
+      w.S.Set(a, State(w.S.Get(a) | kMarked));
+      w.S.Set(b, State(w.S.Get(b) | kMarked));
     }
   }
   w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
@@ -512,15 +491,29 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   // ids; the positions of the ring's vertices and the partner's faces; the positions of the
   // partner's ring vertices and the states of both rings' vertices (the legality check reads
   // the positions, the collapse marks the states).
-  const std::uint32_t* Op = w.O.Ptr(0);
-  const State* Sp = w.S.Ptr(0);
-  const Cand* Cp = w.C.Ptr(0);
-  const std::uint32_t* ROp = w.RO.Ptr(0);
-  const std::uint32_t* RFp = w.RF.Ptr(0);
-  const Vec3* Pp = w.P.Ptr(0);
-  const Tri* Fp = w.F.Ptr(0);
-  const Quadric* Qp = this->lazySums_ ? nullptr : w.Q.Ptr(0);
-  const bool prefetch = Op && Sp && Cp && ROp && RFp && Pp && Fp;
+  // (A template over the access kind: the prefetches need the in-core addresses.)
+  auto loop = [&](auto O, auto S, auto C, auto RO, auto RF, auto P, auto F, auto Q) {
+  constexpr bool prefetch = decltype(O)::kInCore;
+  (void)S, (void)C, (void)RO, (void)RF, (void)P, (void)F, (void)Q;
+  const std::uint32_t* Op = nullptr;
+  const State* Sp = nullptr;
+  const Cand* Cp = nullptr;
+  const std::uint32_t* ROp = nullptr;
+  const std::uint32_t* RFp = nullptr;
+  const Vec3* Pp = nullptr;
+  const Tri* Fp = nullptr;
+  const Quadric* Qp = nullptr;
+  if constexpr (prefetch)
+  {
+    Op = O.Data();
+    Sp = S.Data();
+    Cp = C.Data();
+    ROp = RO.Data();
+    RFp = RF.Data();
+    Pp = P.Data();
+    Fp = F.Data();
+    Qp = this->lazySums_ ? nullptr : Q.Data();
+  }
   constexpr std::uint64_t kAhead = 16;
   // (The loops over a ring's corners below are written out: through a shared generic lambda,
   // GCC 12 emitted half of these prefetches and the step ran 3-5% slower.)
@@ -544,7 +537,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
       this->progress_.Tick(
         double(std::uint64_t(tickAt) + tickScale * (i - first)) / double(this->stepTotal_));
     }
-    if (prefetch)
+    if constexpr (prefetch)
     {
       std::uint32_t x;
       if (i + 2 * kAhead < last)
@@ -628,7 +621,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
         }
       }
     }
-    const std::uint32_t u = w.O.Get(i);
+    const std::uint32_t u = O.Get(i);
     switch (this->TryCollapse(u, s, lo, hi, run.removed))
     {
       case Try::Done:
@@ -645,6 +638,8 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
     }
   }
   return i;
+  };
+  return WithAccess(loop, w.O, w.S, w.C, w.RO, w.RF, w.P, w.F, w.Q);
 }
 
 // One scan of the faces: the split point with the fewest faces on the wrong side (faces whose
@@ -729,15 +724,26 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   }
   std::vector<std::uint64_t> end(cursor.begin() + 1, cursor.end());
   cursor.pop_back();
-  const int T = (this->AllInCore() && (!this->recSize_ || this->v_.A.Ptr(0))) ? this->threads_ : 1;
-  // Out of core: the two halves of the chunks on two threads (the second through a forked
-  // DML) while the faces split with the vertices at the middle chunk boundary (FaceSplit).
+  // In core: the chunks on every thread, taken from a shared counter. Out of core: the two
+  // halves of the chunks on two threads (the second through a forked DML) while the faces split
+  // with the vertices at the middle chunk boundary (FaceSplit).
   const std::size_t half = n / 2;
-  const bool forkable =
-    T == 1 && this->splitOn_ && half > 0 && std::uint64_t(half) * size == this->splitMid_;
-  if (this->scratch_.size() < std::size_t(std::max(T, 2)))
+  storage::Phase phase;
+  phase.elements = nv;
+  phase.threads = this->threads_;
+  phase.helper = this->splitOn_ && half > 0 && std::uint64_t(half) * size == this->splitMid_;
+  phase.helperFirst = this->splitMid_;
+  phase.writes = { this->state_.Id(), this->pos_.Id() };
+  phase.helperWrites.push_back({ this->faces_.Id(), this->splitFace_,
+    this->faces_.Size() - std::min(this->splitFace_, this->faces_.Size()) });
+  if (this->recSize_)
   {
-    this->scratch_.resize(std::size_t(std::max(T, 2)));
+    phase.helperWrites.push_back({ this->attr_.Id(), this->splitMid_ * this->recSize_,
+      this->attr_.Size() - this->splitMid_ * this->recSize_ });
+  }
+  if (this->scratch_.size() < std::size_t(std::max(this->threads_, 2)))
+  {
+    this->scratch_.resize(std::size_t(std::max(this->threads_, 2)));
   }
   std::vector<std::uint64_t> roundStart(n);
   std::vector<StepRun> runs(n);
@@ -786,6 +792,8 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     std::uint64_t mine = 0;
     std::atomic<std::size_t> next{ 0 };
     std::atomic<bool> stop{ false };
+    Workers workers(this->dml_, phase);
+    const int T = workers.Count();
     std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
     auto work = [&](int t) {
       Scratch& s = this->scratch_[std::size_t(t)];
@@ -810,53 +818,31 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
         stop = true;
       }
     };
-    Views forkViews;
-    std::unique_ptr<DML> fork;
-    ForkGuard joinOnExit{ *this, fork };
-    if (forkable)
-    {
-      const std::uint64_t mid = this->splitMid_;
-      std::vector<DML::Range> more;
-      more.push_back({ this->faces_.Id(), this->splitFace_,
-        this->faces_.Size() - std::min(this->splitFace_, this->faces_.Size()) });
-      if (this->recSize_)
-      {
-        more.push_back({ this->attr_.Id(), mid * this->recSize_,
-          this->attr_.Size() - mid * this->recSize_ });
-      }
-      fork =
-        this->ForkHelper(nv, mid, { this->state_.Id(), this->pos_.Id() }, forkViews, more);
-    }
-    if (fork)
+    if (workers.Forked())
     {
       // Each thread runs its half of the chunks in order (the same collapses as one after the
       // other: a chunk's collapses touch only its own vertices and faces).
-      this->scratch_[1].w = &forkViews;
-      ForRanges(
-        2, 2,
-        [&](int t, std::uint64_t gb, std::uint64_t ge, const std::atomic<bool>& halt) {
-          for (std::uint64_t g = gb; g < ge; ++g)
+      workers.Run([&](int t, std::uint64_t vb, std::uint64_t ve, const std::atomic<bool>& halt) {
+        Scratch& s = this->scratch_[std::size_t(t)];
+        Views views;
+        this->BindViews(views, workers, t);
+        ScratchViews use(s, views);
+        for (std::size_t c = vb / size; c < (ve + size - 1) / size; ++c)
+        {
+          if (halt.load(std::memory_order_relaxed))
           {
-            Scratch& s = this->scratch_[std::size_t(t)];
-            for (std::size_t c = g ? half : 0; c < (g ? n : half); ++c)
-            {
-              if (halt.load(std::memory_order_relaxed))
-              {
-                return;
-              }
-              const std::uint32_t lo = std::uint32_t(c * size);
-              const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-              cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
-                t == 0 ? std::int64_t(at + done + mine) : -1);
-              if (t == 0)
-              {
-                mine += cursor[c] - roundStart[c];
-              }
-            }
+            return;
           }
-        },
-        [&]() { this->JoinHelper(fork); });
-      this->JoinHelper(fork);
+          const std::uint32_t lo = std::uint32_t(c * size);
+          const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
+            t == 0 ? std::int64_t(at + done + mine) : -1);
+          if (t == 0)
+          {
+            mine += cursor[c] - roundStart[c];
+          }
+        }
+      });
     }
     // Chunks are taken from a shared counter: if a thread cannot start, the others take its share.
     else if (T > 1)
@@ -1000,7 +986,8 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
   // a time; the others go group by group through StepChunks (in parallel when in core).
   this->stepTotal_ = std::max<std::uint64_t>(taken, 1);
   this->progress_.BeginPhase("collapse", kWork::kStep * double(taken), wCompact + workAfter);
-  this->lazySums_ = !this->AllInCore(); // (the mode does not change before Compact)
+  // (the page policy's choice, see lazySums_; the mode does not change before Compact)
+  this->lazySums_ = !this->v_.Q.InCore();
   StepRun run;
   if (groups && nv >= 2 * this->StepChunkSize(nv))
   {

@@ -47,14 +47,11 @@ void Decimator::Apply(
   Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
 {
   const float cost = float(pl.cost); // compared as stored
-  if (const Cand* cp = w.C.Ptr(x))
-  {
-    if (!Before(cost, partner, cp->cost, cp->partner) && !Before(cost, partner, cp->cost2, cp->partner2))
-    {
-      return;
-    }
-  }
   Cand c = w.C.Get(x);
+  if (!Before(cost, partner, c.cost, c.partner) && !Before(cost, partner, c.cost2, c.partner2))
+  {
+    return;
+  }
   if (Before(cost, partner, c.cost, c.partner))
   {
     c.cost2 = c.cost;
@@ -78,50 +75,6 @@ void Decimator::Apply(
   w.C.Set(x, c);
 }
 
-std::unique_ptr<DML> Decimator::ForkHelper(std::uint64_t nv, std::uint64_t mid,
-  std::initializer_list<storage::BlockId> blocks, Views& w, const std::vector<DML::Range>& more)
-{
-  constexpr std::uint64_t kForkMin = 65536; // below, the sweeps are short
-  const std::uint64_t budget = this->dml_.GetProfile().memoryBudget;
-  if (this->threads_ < 2 || nv < kForkMin || budget == 0 || this->AllInCore())
-  {
-    return nullptr;
-  }
-  std::vector<DML::Range> ranges;
-  for (storage::BlockId id : blocks)
-  {
-    ranges.push_back({ id, mid, nv - mid });
-  }
-  ranges.insert(ranges.end(), more.begin(), more.end());
-  std::unique_ptr<DML> fork;
-  try
-  {
-    fork = this->dml_.Fork(budget / 2, ranges);
-  }
-  catch (const storage::BudgetError&)
-  {
-    return nullptr; // too little room to share: one thread
-  }
-  if (fork)
-  {
-    this->BindViews(w, *fork);
-  }
-  return fork;
-}
-
-void Decimator::JoinHelper(std::unique_ptr<DML>& fork)
-{
-  if (this->scratch_.size() > 1)
-  {
-    this->scratch_[1].w = nullptr; // (the helper's views die with the fork)
-  }
-  if (fork)
-  {
-    std::unique_ptr<DML> f = std::move(fork);
-    this->dml_.Join(*f);
-  }
-}
-
 // Step 1 of a pass: every active vertex evaluates its edges. In core, the vertex range is split
 // among threads_ threads; a thread writes only its own vertices' candidates and queues offers to
 // the others', which their owners apply between barriers, one chunk of vertices at a time (the
@@ -136,26 +89,28 @@ void Decimator::Sweep(std::uint64_t nv)
     s.lo = 0;
     s.hi = kNone;
     s.batch.n = 0;
-    for (std::uint64_t u = 0; u < nv; ++u)
-    {
-      this->Tick(u, nv);
-      this->PrefetchSweep(u, nv);
-      this->Evaluate(std::uint32_t(u), s);
-    }
+    WithAccess(
+      [&](auto S, auto RO, auto RF, auto F) {
+        for (std::uint64_t u = 0; u < nv; ++u)
+        {
+          this->Tick(u, nv);
+          PrefetchSweep(S, RO, RF, F, u, nv);
+          this->Evaluate(std::uint32_t(u), s);
+        }
+      },
+      this->v_.S, this->v_.RO, this->v_.RF, this->v_.F);
     this->FlushEdges(s);
   };
-  int T = (this->AllInCore() && nv >= kParallelMin) ? this->threads_ : 1;
   // Out of core on two threads: the second sweeps the upper half of the vertices through a
   // forked DML. Each thread writes only its own range's candidates (the others' offers are
   // queued, as in core), the only block the sweep writes.
-  Views forkViews;
-  std::unique_ptr<DML> fork =
-    T == 1 ? this->ForkHelper(nv, nv / 2, { this->cand_.Id() }, forkViews) : nullptr;
-  ForkGuard joinOnExit{ *this, fork };
-  if (fork)
-  {
-    T = 2;
-  }
+  storage::Phase phase;
+  phase.elements = nv;
+  phase.threads = this->threads_;
+  phase.inCoreMin = kParallelMin;
+  phase.writes = { this->cand_.Id() };
+  Workers workers(this->dml_, phase);
+  const int T = workers.Count();
   if (T <= 1)
   {
     sequential();
@@ -168,11 +123,12 @@ void Decimator::Sweep(std::uint64_t nv)
   this->partStart_.assign(std::size_t(T) + 1, 0);
   for (int t = 0; t <= T; ++t)
   {
-    this->partStart_[std::size_t(t)] = std::uint32_t(nv * std::uint64_t(t) / std::uint64_t(T));
+    this->partStart_[std::size_t(t)] = std::uint32_t(workers.Begin(t));
   }
-  if (fork)
+  std::vector<Views> views(static_cast<std::size_t>(T));
+  for (int t = 0; t < T; ++t)
   {
-    this->scratch_[1].w = &forkViews; // (partStart_[1] is nv / 2)
+    this->BindViews(views[std::size_t(t)], workers, t);
   }
   std::uint64_t rounds = 0;
   for (int t = 0; t < T; ++t)
@@ -193,21 +149,27 @@ void Decimator::Sweep(std::uint64_t nv)
   std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
   auto work = [&](int t) {
     Scratch& s = this->scratch_[std::size_t(t)];
+    ScratchViews use(s, views[std::size_t(t)]);
     for (std::uint64_t r = 0; r < rounds; ++r)
     {
       try
       {
         const std::uint64_t b = std::min<std::uint64_t>(s.hi, s.lo + r * kChunk);
         const std::uint64_t e = std::min<std::uint64_t>(s.hi, b + kChunk);
-        for (std::uint64_t u = b; u < e && !stop.load(std::memory_order_relaxed); ++u)
-        {
-          if (t == 0)
-          {
-            this->Tick(u - s.lo, s.hi - s.lo); // progress and abort: the calling thread only
-          }
-          this->PrefetchSweep(u, e);
-          this->Evaluate(std::uint32_t(u), s);
-        }
+        const Views& w = views[std::size_t(t)];
+        WithAccess(
+          [&](auto S, auto RO, auto RF, auto F) {
+            for (std::uint64_t u = b; u < e && !stop.load(std::memory_order_relaxed); ++u)
+            {
+              if (t == 0)
+              {
+                this->Tick(u - s.lo, s.hi - s.lo); // progress and abort: the calling thread only
+              }
+              PrefetchSweep(S, RO, RF, F, u, e);
+              this->Evaluate(std::uint32_t(u), s);
+            }
+          },
+          w.S, w.RO, w.RF, w.F);
         this->FlushEdges(s); // (its offers to other threads go out at this barrier)
       }
       catch (...)
@@ -258,7 +220,7 @@ void Decimator::Sweep(std::uint64_t nv)
       barrier.Drop();
     }
   });
-  this->JoinHelper(fork); // (on an exception, joinOnExit does)
+  workers.Join(); // (on an exception, its destructor does)
   RethrowFirst(errors);
   if (started < T)
   {
@@ -308,13 +270,7 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     return;
   }
   const std::uint32_t b = w.RO.Get(u), e = w.RO.Get(u + 1);
-  const std::uint32_t* ids = w.RF.Ptr(b);
-  if (!ids)
-  {
-    s.ids.resize(e - b);
-    w.RF.GetRange(b, e - b, s.ids.data());
-    ids = s.ids.data();
-  }
+  const std::uint32_t* ids = w.RF.Run(b, e - b, s.ids);
   if (e - b > s.next.size())
   {
     s.next.resize(e - b);
@@ -347,23 +303,14 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
   {
     return;
   }
-  if (const Quadric* qp = w.Q.Ptr(0))
+  // The neighbours' data is read (and their candidates written) below: fetch it in parallel.
+  for (std::size_t i = 0; i < n; ++i)
   {
-    // The neighbours' data is read (and their candidates written) below: fetch it in parallel.
-    const State* sp = w.S.Ptr(0);
-    const Vec3* pp = w.P.Ptr(0);
-    const Cand* cp = w.C.Ptr(0);
-    for (std::size_t i = 0; i < n; ++i)
-    {
-      const std::uint32_t a = next[i];
-      Prefetch(qp + a);
-      if (sp && pp && cp)
-      {
-        Prefetch(sp + a);
-        Prefetch(pp + a);
-        Prefetch(cp + a);
-      }
-    }
+    const std::uint32_t a = next[i];
+    w.Q.Prefetch(a);
+    w.S.Prefetch(a);
+    w.P.Prefetch(a);
+    w.C.Prefetch(a);
   }
   const Quadric Qu = w.Q.Get(u);
   const Vec3 pu = w.P.Get(u);

@@ -1,0 +1,369 @@
+// The one way an algorithm reads and writes a block: a typed accessor.
+//
+//   View<T>         an accessor of one block through one DML (the algorithm's, or a forked one a
+//                   helper thread uses), chosen at run time: the block's memory in core, the
+//                   DML's page cache out of core. Refresh() after anything that may change the
+//                   mode or move the block (OpenBlock, Resize, Reconfigure).
+//   CoreAccess<T>   the same interface, resolved at compile time: raw memory (in core).
+//   PagedAccess<T>  the same interface, resolved at compile time: the page cache (out of core).
+//   PinWindow<T>    in-place access by reference (T& At(block, i)) through a few pinned pages.
+//   WithAccess(f, views...)
+//                   calls f once with every view as CoreAccess when they are all in core, else
+//                   with every view as PagedAccess: a phase written once as a generic lambda (or a
+//                   template over the access kind) runs on raw pointers in core and through the
+//                   DML out of core. `kInCore` tells a body which it got, for what only memory
+//                   has (prefetch hints need addresses).
+//
+// Each accessor carries the range of elements it may write (WriteBounds: every element unless a
+// parallel phase restricts it, see Parallel.h). Builds with SIPMSS_CHECK_WRITES (the default
+// when NDEBUG is not defined; the storage tests turn it on) check every Set and SetRange against
+// it and throw WriteOutOfBounds: the rules of a parallel phase (each thread writes only its own
+// elements) are then enforced, not only written down.
+#pragma once
+
+#include "sipmss/storage/DML.h"
+
+#include <cstring>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#ifndef SIPMSS_CHECK_WRITES
+#ifdef NDEBUG
+#define SIPMSS_CHECK_WRITES 0
+#else
+#define SIPMSS_CHECK_WRITES 1
+#endif
+#endif
+
+namespace sipmss::storage
+{
+// The elements an accessor may write: [first, end) without [holeFirst, holeEnd).
+struct WriteBounds
+{
+  std::uint64_t first = 0;
+  std::uint64_t end = std::numeric_limits<std::uint64_t>::max();
+  std::uint64_t holeFirst = 0;
+  std::uint64_t holeEnd = 0;
+
+  bool Allows(std::uint64_t first, std::uint64_t count) const
+  {
+    const std::uint64_t last = first + count; // (exclusive)
+    return count == 0 ||
+      (first >= this->first && last <= this->end &&
+        (last <= this->holeFirst || first >= this->holeEnd));
+  }
+  static WriteBounds None() { return { 0, 0, 0, 0 }; }
+};
+
+// A write outside an accessor's WriteBounds (a parallel phase broke its declared ranges).
+class WriteOutOfBounds : public std::logic_error
+{
+public:
+  WriteOutOfBounds(BlockId id, std::uint64_t first, std::uint64_t count, const WriteBounds& b)
+    : std::logic_error("sipmss::storage: write of elements [" + std::to_string(first) + ", " +
+        std::to_string(first + count) + ") of block " + std::to_string(id) +
+        " outside its declared range [" + std::to_string(b.first) + ", " +
+        (b.end == std::numeric_limits<std::uint64_t>::max() ? std::string("end")
+                                                             : std::to_string(b.end)) +
+        ")" +
+        (b.holeEnd > b.holeFirst ? " without [" + std::to_string(b.holeFirst) + ", " +
+              std::to_string(b.holeEnd) + ")"
+                                 : std::string()))
+  {
+  }
+};
+
+namespace detail
+{
+SIPMSS_ALWAYS_INLINE void CheckWrite(
+  [[maybe_unused]] BlockId id, [[maybe_unused]] const WriteBounds& b,
+  [[maybe_unused]] std::uint64_t first, [[maybe_unused]] std::uint64_t count)
+{
+#if SIPMSS_CHECK_WRITES
+  if (!b.Allows(first, count))
+  {
+    throw WriteOutOfBounds(id, first, count, b);
+  }
+#endif
+}
+} // namespace detail
+
+template <class T>
+class View
+{
+public:
+  View() = default;
+  View(DML& dml, const Array<T>& a, const WriteBounds& bounds = {})
+    : dml_(&dml)
+    , id_(a.Id())
+    , bounds_(bounds)
+  {
+    this->Refresh();
+  }
+  void Refresh() { this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_)); }
+  bool IsBound() const { return this->dml_ != nullptr; }
+  // Whether the block is in this DML's memory (then CoreAccess serves it).
+  bool InCore() const { return this->base_ != nullptr; }
+  DML& Dml() const { return *this->dml_; }
+  BlockId Id() const { return this->id_; }
+  T* Base() const { return this->base_; }
+  const WriteBounds& Bounds() const { return this->bounds_; }
+  void Restrict(const WriteBounds& bounds) { this->bounds_ = bounds; }
+
+  SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const
+  {
+    if (this->base_)
+    {
+      return this->base_[i];
+    }
+    T v;
+    this->dml_->Read(this->id_, sizeof(T), i, &v);
+    return v;
+  }
+  SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
+  {
+    detail::CheckWrite(this->id_, this->bounds_, i, 1);
+    if (this->base_)
+    {
+      this->base_[i] = v;
+      return;
+    }
+    this->dml_->Write(this->id_, sizeof(T), i, &v);
+  }
+  void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
+  {
+    if (n == 0)
+    {
+      return;
+    }
+    if (this->base_)
+    {
+      std::memcpy(dst, this->base_ + first, n * sizeof(T));
+      return;
+    }
+    this->dml_->ReadRange(this->id_, first, n, dst);
+  }
+  void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
+  {
+    if (n == 0)
+    {
+      return;
+    }
+    detail::CheckWrite(this->id_, this->bounds_, first, n);
+    if (this->base_)
+    {
+      std::memcpy(this->base_ + first, src, n * sizeof(T));
+      return;
+    }
+    this->dml_->WriteRange(this->id_, first, n, src);
+  }
+  // The elements [first, first + n) to read: in place in core, else copied into `buffer`.
+  const T* Run(std::uint64_t first, std::uint64_t n, std::vector<T>& buffer) const
+  {
+    if (this->base_)
+    {
+      return this->base_ + first;
+    }
+    buffer.resize(n);
+    this->GetRange(first, n, buffer.data());
+    return buffer.data();
+  }
+  // A hint that element i is read soon: fetches its cache lines in core (its first and last
+  // byte: a 80-byte record spans two), nothing out of core.
+  SIPMSS_ALWAYS_INLINE void Prefetch(std::uint64_t i) const
+  {
+#if defined(__GNUC__)
+    if (this->base_)
+    {
+      // (as an integer: i may be past the block, e.g. a dead face's corner; never dereferenced)
+      const char* p = reinterpret_cast<const char*>(
+        reinterpret_cast<std::uintptr_t>(this->base_) + std::uintptr_t(i) * sizeof(T));
+      __builtin_prefetch(p);
+      if constexpr (sizeof(T) > 8)
+      {
+        __builtin_prefetch(p + sizeof(T) - 1);
+      }
+    }
+#else
+    (void)i;
+#endif
+  }
+
+private:
+  DML* dml_ = nullptr;
+  BlockId id_ = -1;
+  T* base_ = nullptr;
+  WriteBounds bounds_;
+};
+
+// In core: the block's memory, no test per element.
+template <class T>
+class CoreAccess
+{
+public:
+  static constexpr bool kInCore = true;
+  explicit CoreAccess(const View<T>& v)
+    : base_(v.Base())
+    , id_(v.Id())
+    , bounds_(v.Bounds())
+  {
+  }
+  SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const { return this->base_[i]; }
+  SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
+  {
+    detail::CheckWrite(this->id_, this->bounds_, i, 1);
+    this->base_[i] = v;
+  }
+  void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
+  {
+    if (n)
+    {
+      std::memcpy(dst, this->base_ + first, n * sizeof(T));
+    }
+  }
+  void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
+  {
+    if (n)
+    {
+      detail::CheckWrite(this->id_, this->bounds_, first, n);
+      std::memcpy(this->base_ + first, src, n * sizeof(T));
+    }
+  }
+  // The elements' memory, for reading in place and for prefetch hints.
+  SIPMSS_ALWAYS_INLINE const T* Data() const { return this->base_; }
+
+private:
+  T* base_;
+  BlockId id_;
+  WriteBounds bounds_;
+};
+
+// Out of core: the DML's page cache (its inline fast path on the block's recent pages).
+template <class T>
+class PagedAccess
+{
+public:
+  static constexpr bool kInCore = false;
+  explicit PagedAccess(const View<T>& v)
+    : dml_(v.IsBound() ? &v.Dml() : nullptr)
+    , id_(v.Id())
+    , bounds_(v.Bounds())
+  {
+  }
+  SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const
+  {
+    T v;
+    this->dml_->Read(this->id_, sizeof(T), i, &v);
+    return v;
+  }
+  SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
+  {
+    detail::CheckWrite(this->id_, this->bounds_, i, 1);
+    this->dml_->Write(this->id_, sizeof(T), i, &v);
+  }
+  void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
+  {
+    if (n)
+    {
+      this->dml_->ReadRange(this->id_, first, n, dst);
+    }
+  }
+  void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
+  {
+    if (n)
+    {
+      detail::CheckWrite(this->id_, this->bounds_, first, n);
+      this->dml_->WriteRange(this->id_, first, n, src);
+    }
+  }
+
+private:
+  DML* dml_;
+  BlockId id_;
+  WriteBounds bounds_;
+};
+
+// In-place access by reference (read-modify-write of records): a few pinned pages of one block
+// kept across element accesses (out of core), so that runs of nearby accesses cost one page
+// lookup instead of one per element; in core the block's memory. Not write-checked (a
+// single-threaded accessor). Release() before anything that may move or resize the block.
+template <class T>
+class PinWindow
+{
+public:
+  PinWindow(DML& dml, Access access)
+    : dml_(dml)
+    , access_(access)
+  {
+  }
+  ~PinWindow() { this->Release(); }
+  PinWindow(const PinWindow&) = delete;
+  PinWindow& operator=(const PinWindow&) = delete;
+
+  T& At(BlockId id, std::uint64_t i)
+  {
+    if (void* base = this->dml_.BasePointer(id))
+    {
+      return static_cast<T*>(base)[i];
+    }
+    if (id != this->id_)
+    {
+      this->Release();
+      this->id_ = id;
+    }
+    for (std::size_t k = 0; k < this->used_; ++k)
+    {
+      const Span& s = this->spans_[k];
+      if (i >= s.first && i < s.first + s.count)
+      {
+        return static_cast<T*>(s.data)[i - s.first];
+      }
+    }
+    std::size_t k = this->used_ < kWays ? this->used_++ : (this->next_++ % kWays);
+    if (this->spans_[k].data && k < this->used_ && this->used_ == kWays && this->pinned_[k])
+    {
+      this->dml_.Unpin(this->id_, this->spans_[k]);
+    }
+    this->spans_[k] = this->dml_.Pin(id, i, this->access_);
+    this->pinned_[k] = true;
+    return static_cast<T*>(this->spans_[k].data)[i - this->spans_[k].first];
+  }
+  void Release()
+  {
+    for (std::size_t k = 0; k < this->used_; ++k)
+    {
+      if (this->pinned_[k])
+      {
+        this->dml_.Unpin(this->id_, this->spans_[k]);
+        this->pinned_[k] = false;
+      }
+      this->spans_[k] = Span{};
+    }
+    this->used_ = 0;
+    this->next_ = 0;
+  }
+
+private:
+  static constexpr std::size_t kWays = 2;
+  DML& dml_;
+  Access access_;
+  BlockId id_ = -1;
+  Span spans_[kWays];
+  bool pinned_[kWays] = { false, false };
+  std::size_t used_ = 0, next_ = 0;
+};
+
+// f(CoreAccess<T>...) when every view is in core, else f(PagedAccess<T>...). A view that is not
+// bound (a block the phase does not have) counts as in core and must not be used.
+template <class F, class... T>
+decltype(auto) WithAccess(F&& f, const View<T>&... views)
+{
+  if (((views.InCore() || !views.IsBound()) && ...))
+  {
+    return f(CoreAccess<T>(views)...);
+  }
+  return f(PagedAccess<T>(views)...);
+}
+} // namespace sipmss::storage

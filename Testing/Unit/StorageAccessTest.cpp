@@ -1,0 +1,281 @@
+// The accessor (View, CoreAccess, PagedAccess, WithAccess) and the parallel-for (Workers) in both
+// storage modes: the same results either way, each worker's declared write ranges enforced
+// (this file is built with SIPMSS_CHECK_WRITES), a helper's writes visible after Join.
+#define SIPMSS_CHECK_WRITES 1
+#include "StorageTestUtil.h"
+
+#include "sipmss/storage/Access.h"
+#include "sipmss/storage/Parallel.h"
+
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <numeric>
+#include <string>
+#include <vector>
+
+namespace
+{
+using namespace sipmss::storage;
+using sipmss::storage::testing::ListDir;
+using sipmss::storage::testing::TempDir;
+
+Profile OutOfCoreProfile(const std::string& dir, std::uint64_t budget)
+{
+  Profile p;
+  p.directories = { dir };
+  p.memoryBudget = budget;
+  p.policy = ModePolicy::OutOfCore;
+  return p;
+}
+
+// The sum of a block's elements times their index, through WithAccess; which kind it got.
+template <class T>
+std::pair<double, bool> WeightedSum(const View<T>& v, std::uint64_t n)
+{
+  return WithAccess(
+    [n](auto a) {
+      double sum = 0;
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        sum += double(i) * double(a.Get(i));
+      }
+      return std::make_pair(sum, decltype(a)::kInCore);
+    },
+    v);
+}
+
+TEST(StorageAccess, WithAccessGivesRawMemoryInCoreAndThePageCacheOutOfCore)
+{
+  TempDir dir;
+  constexpr std::uint64_t n = 50000;
+  double expected = 0;
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    expected += double(i) * double(i % 977);
+  }
+  for (const bool outOfCore : { false, true })
+  {
+    SCOPED_TRACE(outOfCore ? "out of core" : "in core");
+    DML dml;
+    if (outOfCore)
+    {
+      ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 64 << 10)), Mode::OutOfCore);
+    }
+    Array<std::uint32_t> a(dml, n);
+    View<std::uint32_t> v(dml, a);
+    EXPECT_EQ(v.InCore(), !outOfCore);
+    WithAccess(
+      [](auto w) {
+        for (std::uint64_t i = 0; i < n; ++i)
+        {
+          w.Set(i, std::uint32_t(i % 977));
+        }
+      },
+      v);
+    const auto [sum, core] = WeightedSum(v, n);
+    EXPECT_EQ(sum, expected);
+    EXPECT_EQ(core, !outOfCore);
+    // Run: in place in core (no copy), copied out of core; the same elements.
+    std::vector<std::uint32_t> buffer;
+    const std::uint32_t* run = v.Run(1000, 3000, buffer);
+    EXPECT_EQ(run == v.Base() + 1000, !outOfCore);
+    EXPECT_EQ(buffer.size(), outOfCore ? 3000u : 0u);
+    for (std::uint64_t i = 0; i < 3000; ++i)
+    {
+      ASSERT_EQ(run[i], std::uint32_t((1000 + i) % 977));
+    }
+    v.Prefetch(n + 5); // (a hint, even past the end: never dereferenced)
+  }
+  EXPECT_TRUE(ListDir(dir.Path()).empty());
+}
+
+TEST(StorageAccess, WritesOutsideTheDeclaredBoundsThrow)
+{
+  DML dml;
+  Array<double> a(dml, 100);
+  View<double> v(dml, a, WriteBounds{ 10, 50, 20, 30 });
+  EXPECT_NO_THROW(v.Set(10, 1.0));
+  EXPECT_NO_THROW(v.Set(49, 1.0));
+  EXPECT_NO_THROW(v.Set(30, 1.0));
+  EXPECT_THROW(v.Set(9, 1.0), WriteOutOfBounds);
+  EXPECT_THROW(v.Set(50, 1.0), WriteOutOfBounds);
+  EXPECT_THROW(v.Set(25, 1.0), WriteOutOfBounds); // in the hole
+  const double three[3] = { 1, 2, 3 };
+  EXPECT_NO_THROW(v.SetRange(17, 3, three));
+  EXPECT_THROW(v.SetRange(18, 3, three), WriteOutOfBounds); // its last element is in the hole
+  EXPECT_THROW(
+    WithAccess([](auto w) { w.Set(60, 2.0); }, v), WriteOutOfBounds); // (the kinds check too)
+  View<double> none(dml, a, WriteBounds::None());
+  EXPECT_THROW(none.Set(0, 1.0), WriteOutOfBounds);
+  try
+  {
+    v.Set(25, 1.0);
+  }
+  catch (const WriteOutOfBounds& e)
+  {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("[25, 26)"), std::string::npos) << what;
+    EXPECT_NE(what.find("[10, 50)"), std::string::npos) << what;
+    EXPECT_NE(what.find("without [20, 30)"), std::string::npos) << what;
+  }
+  EXPECT_EQ(v.Get(25), 0.0); // (a refused write writes nothing)
+}
+
+// A phase over [0, n): each worker writes its own range of `owned` (and reads `other`). In core
+// on every thread; out of core on two, the helper through a forked DML.
+TEST(StorageAccess, WorkersSplitARangeAndEnforceTheirWrites)
+{
+  TempDir dir;
+  constexpr std::uint64_t n = 200000;
+  for (const bool outOfCore : { false, true })
+  {
+    SCOPED_TRACE(outOfCore ? "out of core" : "in core");
+    DML dml;
+    if (outOfCore)
+    {
+      ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 256 << 10)), Mode::OutOfCore);
+    }
+    Array<std::uint64_t> owned(dml, n), other(dml, n);
+    for (std::uint64_t i = 0; i < n; ++i)
+    {
+      other.Set(i, 3 * i);
+    }
+    Phase phase;
+    phase.elements = n;
+    phase.threads = 3;
+    phase.writes = { owned.Id() };
+    {
+      Workers workers(dml, phase);
+      ASSERT_EQ(workers.Count(), outOfCore ? 2 : 3);
+      EXPECT_EQ(workers.Forked(), outOfCore);
+      EXPECT_EQ(workers.Shared(), !outOfCore);
+      EXPECT_EQ(workers.Begin(0), 0u);
+      EXPECT_EQ(workers.Begin(workers.Count()), n);
+      std::vector<int> seen(std::size_t(workers.Count()), 0);
+      std::atomic<int> refused{ 0 };
+      workers.Run([&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>&) {
+        EXPECT_EQ(lo, workers.Begin(t));
+        EXPECT_EQ(hi, workers.Begin(t + 1));
+        View<std::uint64_t> mine = workers.Bind(t, owned);
+        View<std::uint64_t> theirs = workers.Bind(t, other);
+        WithAccess(
+          [&](auto o, auto r) {
+            for (std::uint64_t i = lo; i < hi; ++i)
+            {
+              o.Set(i, r.Get(i) + 1);
+            }
+          },
+          mine, theirs);
+        // Outside its range, and in a block it did not declare: refused.
+        try
+        {
+          mine.Set(hi == n ? 0 : n - 1, 7);
+        }
+        catch (const WriteOutOfBounds&)
+        {
+          ++refused;
+        }
+        try
+        {
+          theirs.Set(lo, 7);
+        }
+        catch (const WriteOutOfBounds&)
+        {
+          ++refused;
+        }
+        seen[std::size_t(t)] = 1;
+      });
+      EXPECT_EQ(refused.load(), 2 * workers.Count());
+      EXPECT_EQ(std::accumulate(seen.begin(), seen.end(), 0), workers.Count());
+      EXPECT_FALSE(workers.Forked()); // (joined by Run)
+    }
+    for (std::uint64_t i = 0; i < n; i += 997)
+    {
+      ASSERT_EQ(owned.Get(i), 3 * i + 1) << i;
+      ASSERT_EQ(other.Get(i), 3 * i) << i;
+    }
+    ASSERT_EQ(owned.Get(n - 1), 3 * (n - 1) + 1);
+  }
+}
+
+// One worker for small phases, for one thread, and in core when the phase asks for it; the
+// helper's first element and its extra ranges as declared; two tasks over the same elements.
+TEST(StorageAccess, WorkersHelperRangesAndTasks)
+{
+  TempDir dir;
+  {
+    DML dml;
+    Phase small;
+    small.elements = 100;
+    small.threads = 4;
+    small.inCoreMin = 1000;
+    EXPECT_EQ(Workers(dml, small).Count(), 1);
+    small.inCoreMin = 0;
+    small.inCoreThreads = false;
+    EXPECT_EQ(Workers(dml, small).Count(), 1);
+  }
+  DML dml;
+  ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 256 << 10)), Mode::OutOfCore);
+  constexpr std::uint64_t n = 100000;
+  Array<std::uint32_t> a(dml, n), b(dml, 2 * n), q(dml, n);
+  {
+    Phase one;
+    one.elements = n;
+    one.threads = 1;
+    EXPECT_EQ(Workers(dml, one).Count(), 1);
+    one.threads = 2;
+    one.elements = Workers::kHelperMin - 1;
+    EXPECT_EQ(Workers(dml, one).Count(), 1);
+  }
+  Phase phase;
+  phase.elements = n;
+  phase.threads = 2;
+  phase.helperFirst = 0; // the second task writes every element of a
+  phase.writes = { a.Id() };
+  phase.helperWrites = { { b.Id(), n, n } }; // and the upper half of b
+  phase.mainWrites = { q.Id() };             // the first task all of q
+  Workers workers(dml, phase);
+  ASSERT_TRUE(workers.Forked());
+  EXPECT_EQ(workers.Begin(1), 0u);
+  EXPECT_TRUE(workers.Bounds(0, b.Id()).Allows(0, n));
+  EXPECT_FALSE(workers.Bounds(0, b.Id()).Allows(n, 1));
+  EXPECT_TRUE(workers.Bounds(1, b.Id()).Allows(n, n));
+  EXPECT_FALSE(workers.Bounds(1, b.Id()).Allows(n - 1, 1));
+  EXPECT_FALSE(workers.Bounds(1, q.Id()).Allows(0, 1));
+  EXPECT_FALSE(workers.Bounds(0, a.Id()).Allows(0, 1));
+  std::vector<int> ran(2, -1);
+  workers.RunTasks(2, [&](int t, int task, const std::atomic<bool>&) {
+    ran[std::size_t(task)] = t;
+    if (task == 0)
+    {
+      View<std::uint32_t> qv = workers.Bind(t, q), bv = workers.Bind(t, b);
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        qv.Set(i, std::uint32_t(i + 5));
+        bv.Set(i, 1);
+      }
+    }
+    else
+    {
+      View<std::uint32_t> av = workers.Bind(t, a), bv = workers.Bind(t, b);
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        av.Set(i, std::uint32_t(2 * i));
+        bv.Set(n + i, 2);
+      }
+      EXPECT_THROW(bv.Set(0, 9), WriteOutOfBounds);
+    }
+  });
+  EXPECT_EQ(ran[0], 0);
+  EXPECT_EQ(ran[1], 1);
+  EXPECT_FALSE(workers.Forked());
+  for (std::uint64_t i = 0; i < n; i += 101)
+  {
+    ASSERT_EQ(a.Get(i), 2 * i);
+    ASSERT_EQ(q.Get(i), i + 5);
+    ASSERT_EQ(b.Get(i), 1u);
+    ASSERT_EQ(b.Get(n + i), 2u);
+  }
+}
+} // namespace
