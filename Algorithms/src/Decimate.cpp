@@ -1,10 +1,10 @@
 // Algorithm I of SIPMSS: a linear-time iterative full edge collapse with quadric error metrics,
 // written against the DML so that it runs in core or out of core with identical results. The
-// passes, their state and their files: decimate/Decimator.h. Here: the pass schedule, the run
+// passes, their state and their files: decimate/Passes.h. Here: the pass schedule, the run
 // (a pipeline of the passes) and the entry points.
-#include "decimate/Decimator.h"
+#include "decimate/Passes.h"
 
-// The passes (one translation unit with this file: decimate/Decimator.h says why).
+// The passes (one translation unit with this file: decimate/Passes.h says why).
 #include "decimate/Read.inl"
 #include "decimate/Rings.inl"
 #include "decimate/Sweep.inl"
@@ -17,15 +17,15 @@ namespace
 {
 // ---------------------------------------------------------------------------------------------
 
-std::vector<std::uint64_t> Decimator::Levels(std::uint64_t F0) const
+std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0)
 {
-  std::uint64_t target = this->opt_.targetTriangles;
+  std::uint64_t target = ctx.opt.targetTriangles;
   if (target == 0)
   {
-    double r = std::min(1.0, std::max(0.0, this->opt_.targetReduction));
+    double r = std::min(1.0, std::max(0.0, ctx.opt.targetReduction));
     target = std::uint64_t(std::llround(double(F0) * (1.0 - r)));
   }
-  const int K = std::max(1, this->opt_.levelsOfDetail);
+  const int K = std::max(1, ctx.opt.levelsOfDetail);
   std::vector<std::uint64_t> levels(K);
   for (int i = 0; i < K; ++i)
   {
@@ -44,36 +44,36 @@ std::vector<std::uint64_t> Decimator::Levels(std::uint64_t F0) const
 
 // Run's pass loop, on counts only: each pass removes its planned share (a pass that removes
 // fewer makes the next estimates larger: the progress then moves more slowly, never back).
-std::uint64_t Decimator::PassGoal(std::uint64_t T, std::uint64_t level) const
+std::uint64_t PassGoal(const RunContext& ctx, std::uint64_t T, std::uint64_t level)
 {
-  const double fraction = std::min(0.9, std::max(0.01, this->opt_.passFraction));
-  const double farFraction = std::min(0.9, std::max(fraction, this->opt_.farPassFraction));
+  const double fraction = std::min(0.9, std::max(0.01, ctx.opt.passFraction));
+  const double farFraction = std::min(0.9, std::max(fraction, ctx.opt.farPassFraction));
   // Far from the level, the cheapest collapses cost orders of magnitude less than the level's
   // error and their exact order matters less: larger passes (fewer sweeps).
-  const bool far = double(T) > this->opt_.farRatio * double(std::max<std::uint64_t>(level, 1));
+  const bool far = double(T) > ctx.opt.farRatio * double(std::max<std::uint64_t>(level, 1));
   const std::uint64_t step =
     std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
   return std::max(level, T > step ? T - step : 0);
 }
 
-double Decimator::PassesWork(
-  std::uint64_t T, std::size_t level, const std::vector<std::uint64_t>& levels) const
+double PassesWork(const RunContext& ctx, const MeshState& mesh, 
+  std::uint64_t T, std::size_t level, const std::vector<std::uint64_t>& levels)
 {
-  const double vpf = this->VerticesPerFace();
+  const double vpf = VerticesPerFace(mesh);
   double work = 0;
   double nf = double(T), nv = vpf * double(T);
   for (int guard = 0; level < levels.size() && guard < 10000; ++guard)
   {
     if (T <= levels[level])
     {
-      if (this->emitsLevels_)
+      if (ctx.emitsLevels)
       {
         work += kWork::kWrite * double(T) * (1.0 + vpf);
       }
       ++level;
       continue;
     }
-    const std::uint64_t goal = this->PassGoal(T, levels[level]);
+    const std::uint64_t goal = PassGoal(ctx, T, levels[level]);
     work += (kWork::kSweep + kWork::kOrder) * nv + kWork::kStep * double(2 * (T - goal) + 16) +
       kWork::kCompact * (nf + nv);
     T = goal;
@@ -83,10 +83,11 @@ double Decimator::PassesWork(
   return work + kWork::kWrite * double(T) * (1.0 + vpf);
 }
 
-double Decimator::RestWork(int stage, std::uint64_t V, std::uint64_t F) const
+double RestWork(
+  const RunContext& ctx, const MeshState& mesh, int stage, std::uint64_t V, std::uint64_t F)
 {
   double work = 0;
-  if (stage <= 0 && this->opt_.weldDistance >= 0)
+  if (stage <= 0 && ctx.opt.weldDistance >= 0)
   {
     work += kWork::kWeld * double(V + F);
   }
@@ -99,65 +100,67 @@ double Decimator::RestWork(int stage, std::uint64_t V, std::uint64_t F) const
     work += kWork::kQuadrics * double(F);
   }
   // The passes from F faces (nv_ and nf_ are those of the input until the first pass).
-  return work + this->PassesWork(F, 0, this->Levels(F));
+  return work + PassesWork(ctx, mesh, F, 0, Levels(ctx, F));
 }
 
-void Decimator::Run(const MeshSource& input, io::MeshSink& output,
+void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& input,
+  io::MeshSink& output,
   const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel)
 {
-  this->emitsLevels_ = bool(onLevel);
-  this->Read(input);
-  if (this->opt_.weldDistance >= 0)
+  ctx.emitsLevels = bool(onLevel);
+  Read(ctx, mesh, input);
+  if (ctx.opt.weldDistance >= 0)
   {
-    PhaseTimer timer(this->stats_, this->dml_, "weld");
-    this->progress_.BeginPhase("weld", kWork::kWeld * double(this->nv_ + this->nf_),
-      this->RestWork(1, this->nv_, this->nf_));
-    this->Weld();
+    PhaseTimer timer(ctx.stats, mesh.dml, "weld");
+    ctx.progress.BeginPhase("weld", kWork::kWeld * double(mesh.nv + mesh.nf),
+      RestWork(ctx, mesh, 1, mesh.nv, mesh.nf));
+    Weld(ctx, mesh);
   }
-  this->BuildRings();
-  this->BuildQuadrics();
-  if (this->opt_.sourceConsumed)
+  BuildRings(ctx, mesh);
+  BuildQuadrics(ctx, mesh);
+  if (ctx.opt.sourceConsumed)
   {
-    this->opt_.sourceConsumed();
-    this->dml_.Reconfigure();
+    ctx.opt.sourceConsumed();
+    mesh.dml.Reconfigure();
   }
 
-  const std::uint64_t F0 = this->liveFaces_;
-  const std::vector<std::uint64_t> levels = this->Levels(F0);
+  const std::uint64_t F0 = mesh.liveFaces;
+  const std::vector<std::uint64_t> levels = Levels(ctx, F0);
   const int K = int(levels.size());
   auto emitLevel = [&](int level) {
     if (onLevel)
     {
       // (the final write follows the last level's: this phase never ends the run)
-      this->progress_.BeginPhase("write", kWork::kWrite * double(this->nv_ + this->nf_),
-        this->PassesWork(this->liveFaces_, std::size_t(level) + 1, levels));
-      onLevel(level, [this](io::MeshSink& sink) { this->Emit(sink); });
+      ctx.progress.BeginPhase("write", kWork::kWrite * double(mesh.nv + mesh.nf),
+        PassesWork(ctx, mesh, mesh.liveFaces, std::size_t(level) + 1, levels));
+      onLevel(level, [&](io::MeshSink& sink) { Emit(ctx, mesh, sink); });
     }
   };
   {
-    PhaseTimer timer(this->stats_, this->dml_, "collapse");
+    PhaseTimer timer(ctx.stats, mesh.dml, "collapse");
     int level = 0;
     bool compacted = false;
     while (level < K)
     {
-      if (this->liveFaces_ <= levels[level])
+      if (mesh.liveFaces <= levels[level])
       {
         if (!compacted)
         {
-          this->Compact();
+          Compact(ctx, mesh, pass);
           compacted = true;
         }
         emitLevel(level);
         ++level;
         continue;
       }
-      const std::uint64_t goal = this->PassGoal(this->liveFaces_, levels[level]);
-      if (!this->Pass(goal, goal == levels[level], this->PassesWork(goal, std::size_t(level), levels)))
+      const std::uint64_t goal = PassGoal(ctx, mesh.liveFaces, levels[level]);
+      if (!Pass(ctx, mesh, pass, goal, goal == levels[level],
+            PassesWork(ctx, mesh, goal, std::size_t(level), levels)))
       {
         // No legal collapse under maximumError remains: this is the final level.
         if (!compacted)
         {
-          this->Compact();
+          Compact(ctx, mesh, pass);
         }
         emitLevel(level);
         break;
@@ -166,27 +169,35 @@ void Decimator::Run(const MeshSource& input, io::MeshSink& output,
     }
   }
   {
-    PhaseTimer timer(this->stats_, this->dml_, "write");
-    this->progress_.BeginPhase("write", kWork::kWrite * double(this->nv_ + this->nf_), 0.0);
-    this->Emit(output);
+    PhaseTimer timer(ctx.stats, mesh.dml, "write");
+    ctx.progress.BeginPhase("write", kWork::kWrite * double(mesh.nv + mesh.nf), 0.0);
+    Emit(ctx, mesh, output);
   }
-  this->progress_.Finish();
-  this->stats_.outputVertices = this->nv_;
-  this->stats_.outputTriangles = this->nf_;
-  this->stats_.droppedInputFaces = this->dropped_ + this->readerDropped_;
-  this->stats_.storage = this->dml_.GetStats();
+  ctx.progress.Finish();
+  ctx.stats.outputVertices = mesh.nv;
+  ctx.stats.outputTriangles = mesh.nf;
+  ctx.stats.droppedInputFaces = mesh.dropped + mesh.readerDropped;
+  ctx.stats.storage = mesh.dml.GetStats();
 }
 
-} // namespace
-
-namespace
+// A run with a state of its own (the context, the mesh, the passes').
+void RunOnOwnState(const DecimateOptions& options, Progress& progress, RunStats& stats,
+  const MeshSource& input, io::MeshSink& output,
+  const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel)
 {
+  RunContext ctx(options, progress, stats);
+  MeshState mesh(options);
+  PassState pass;
+  Run(ctx, mesh, pass, input, output, onLevel);
+}
+
 // The bytes of a decimation's structures on V vertices and F faces (without point data): the
-// table Decimator declares (Loader::Begin).
+// table the decimation declares (BeginInput).
 double DecimateBytes(std::uint64_t V, std::uint64_t F)
 {
   return double(V) *
-    double(sizeof(Vec3) + sizeof(Quadric) + sizeof(State) + sizeof(Cand) + 4 * sizeof(std::uint32_t)) +
+    double(
+      sizeof(Vec3) + sizeof(Quadric) + sizeof(State) + sizeof(Cand) + 4 * sizeof(std::uint32_t)) +
     double(F) * double(sizeof(Tri) + 3 * sizeof(std::uint32_t));
 }
 
@@ -217,11 +228,9 @@ RunStats DecimateReordered(const MeshSource& input, io::MeshSink& output,
     }
   };
   RunStats stats;
-  {
-    Decimator d(o, progress, stats);
-    d.Run([&mesh](io::MeshSink& sink, const io::ReadOptions& ro) { return mesh.Replay(sink, ro); },
-      output, onLevel);
-  }
+  RunOnOwnState(o, progress, stats,
+    [&mesh](io::MeshSink& sink, const io::ReadOptions& ro) { return mesh.Replay(sink, ro); },
+    output, onLevel);
   stats.phases.insert(stats.phases.begin(), before.phases.begin(), before.phases.end());
   stats.reordered = true;
   stats.layoutFarFraction = mesh.Layout().FarFraction();
@@ -242,8 +251,7 @@ RunStats Decimate(const MeshSource& input, io::MeshSink& output, const DecimateO
     try
     {
       RunStats stats;
-      Decimator d(options, progress, stats);
-      d.Run(input, output, onLevel);
+      RunOnOwnState(options, progress, stats, input, output, onLevel);
       return stats;
     }
     catch (const detail::ReorderNeeded&)
@@ -259,8 +267,9 @@ double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOpti
   RunStats stats;
   DecimateOptions o = options;
   o.dml = nullptr;
-  Decimator d(o, none, stats);
-  return d.Plan(V, F);
+  RunContext ctx(o, none, stats);
+  MeshState mesh(o);
+  return Plan(ctx, mesh, V, F);
 }
 
 } // namespace sipmss::algorithms

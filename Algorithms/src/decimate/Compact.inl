@@ -1,5 +1,5 @@
 // Algorithm I: compaction after a pass, and the output.
-// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+// (Part of Decimate.cpp's translation unit; the map of the passes: Passes.h.)
 namespace sipmss::algorithms
 {
 namespace
@@ -9,21 +9,21 @@ namespace
 // have to read. The blocks then shrink (Resize: no copy) and the DML re-evaluates its mode with
 // the smaller cost. The rings are rebuilt (degrees, offsets, reverse fill). In place rather than
 // into fresh blocks: half the peak memory, and no first-touch page faults on every pass.
-void Decimator::Compact()
+void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
 {
-  const std::uint64_t nv = this->nv_, nf = this->nf_;
-  const std::uint64_t nf2 = this->liveFaces_;
+  const std::uint64_t nv = mesh.nv, nf = mesh.nf;
+  const std::uint64_t nf2 = mesh.liveFaces;
   const std::uint64_t total = 4 * nf + 2 * nv;
-  this->remap_.Resize(std::max<std::uint64_t>(nv, 1));
-  this->BindViews();
-  View<std::uint32_t> R(this->dml_, this->remap_);
+  mesh.remap.Resize(std::max<std::uint64_t>(nv, 1));
+  mesh.BindViews();
+  View<std::uint32_t> R(mesh.dml, mesh.remap);
   // On several threads (Workers): the degrees (CountDegrees), the rings by vertex range (each
   // thread scans all faces and writes only its own vertices), the moves (in place, downwards)
   // one array group per thread. Same result either way.
   // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with);
   // the candidate order is free until the next pass: CountDegrees' second counter array.
-  FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
-  this->CountDegrees(nf, kParallelCompactMin, 0, total, &this->order_);
+  FillBlock(mesh.dml, mesh.ringOff, std::uint32_t(0));
+  CountDegrees(ctx, mesh, nf, kParallelCompactMin, 0, total, &mesh.order);
   // 2. New vertex numbers; RO[k] = end of k's ring (k <= v: RO[k] was read already). R holds the
   // new number, with the top bit for the survivors of this pass (their old state is overwritten
   // below before their neighbours look at it).
@@ -32,36 +32,36 @@ void Decimator::Compact()
   std::uint32_t end = 0;
   for (std::uint64_t v = 0; v < nv; ++v)
   {
-    this->Tick(nf + v, total);
-    const std::uint32_t deg = this->v_.RO.Get(v);
+    ctx.Tick(nf + v, total);
+    const std::uint32_t deg = mesh.views.RO.Get(v);
     if (deg == 0)
     {
       R.Set(v, kNone);
       continue;
     }
     end += deg;
-    this->v_.RO.Set(k, end);
-    const bool survivor = (this->v_.S.Get(v) & kCollapsed) != 0;
+    mesh.views.RO.Set(k, end);
+    const bool survivor = (mesh.views.S.Get(v) & kCollapsed) != 0;
     R.Set(v, std::uint32_t(k) | (survivor ? kTop : 0u));
-    if (survivor && this->lazySums_)
+    if (survivor && pass.lazySums)
     {
       // Its collapse's partner (its candidate's) is still in place: nothing moved yet.
-      Quadric Q = this->v_.Q.Get(v);
-      AddTo(Q, this->v_.Q.Get(this->v_.C.Get(v).partner));
-      this->v_.Q.Set(v, Q);
+      Quadric Q = mesh.views.Q.Get(v);
+      AddTo(Q, mesh.views.Q.Get(mesh.views.C.Get(v).partner));
+      mesh.views.Q.Set(v, Q);
     }
     ++k;
   }
-  this->lazySums_ = false;
+  pass.lazySums = false;
   const std::uint64_t nv2 = k;
-  this->v_.RO.Set(nv2, end);
+  mesh.views.RO.Set(nv2, end);
   // 3. Vertex data, and the candidates carried to the next pass.
   // (S, C, R: access of either kind, see WithAccess)
-  auto carry = [this, kTop](const auto& S, const auto& C, const auto& R, std::uint64_t v,
+  auto carry = [&, kTop](const auto& S, const auto& C, const auto& R, std::uint64_t v,
                  State& flags, Cand& c) {
     const State sv = S.Get(v);
     flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
-    c = this->none_;
+    c = kNoCandidate;
     if (sv & kCollapsed)
     {
       flags = State((flags & ~kNeedsLegal) | kSurvivor); // every edge changed
@@ -107,7 +107,7 @@ void Decimator::Compact()
         c.partner2 = kNone;
         if (x2 == kNone)
         {
-          c = this->none_;
+          c = kNoCandidate;
         }
         else
         {
@@ -116,7 +116,7 @@ void Decimator::Compact()
       }
       else
       {
-        c = this->none_;
+        c = kNoCandidate;
         if (!(flags & kNeedsLegal))
         {
           flags |= kRecompute;
@@ -124,7 +124,7 @@ void Decimator::Compact()
       }
     }
   };
-  const std::size_t rec = this->recSize_;
+  const std::size_t rec = mesh.recSize;
   std::uint64_t f2 = 0;
   // 4. Faces, ascending: new index f2 <= f (they read only R and the faces).
   auto moveFaces = [&](Views& wv, const View<std::uint32_t>& RR, bool tick) {
@@ -132,7 +132,7 @@ void Decimator::Compact()
     {
       if (tick)
       {
-        this->Tick(nf + 2 * nv + f, total);
+        ctx.Tick(nf + 2 * nv + f, total);
       }
       Tri t = wv.F.Get(f);
       if (!Alive(t))
@@ -154,11 +154,11 @@ void Decimator::Compact()
         {
           if (tick)
           {
-            this->Tick(nf + nv + v, total);
+            ctx.Tick(nf + nv + v, total);
           }
           else if (poll && (v & 4095) == 0)
           {
-            this->progress_.Poll();
+            ctx.progress.Poll();
           }
           const std::uint32_t rv = RA.Get(v);
           const std::uint64_t w = rv & ~kTop;
@@ -180,7 +180,7 @@ void Decimator::Compact()
         {
           if (tick)
           {
-            this->Tick(nf + nv + v, total);
+            ctx.Tick(nf + nv + v, total);
           }
           const std::uint32_t rv = RA.Get(v);
           if (rv == kNone)
@@ -211,22 +211,22 @@ void Decimator::Compact()
   // second through a forked DML).
   storage::Phase phase;
   phase.elements = nv;
-  phase.threads = std::min(this->threads_, 2);
+  phase.threads = std::min(ctx.threads, 2);
   phase.inCoreMin = kParallelCompactMin;
   phase.helperFirst = 0; // (the second task writes every vertex of its blocks)
-  phase.writes = { this->state_.Id(), this->cand_.Id(), this->pos_.Id() };
+  phase.writes = { mesh.state.Id(), mesh.cand.Id(), mesh.pos.Id() };
   if (rec)
   {
-    phase.helperWrites.push_back({ this->attr_.Id(), 0, nv * rec });
+    phase.helperWrites.push_back({ mesh.attr.Id(), 0, nv * rec });
   }
-  phase.mainWrites = { this->quad_.Id(), this->faces_.Id() };
-  Workers workers(this->dml_, phase);
+  phase.mainWrites = { mesh.quad.Id(), mesh.faces.Id() };
+  Workers workers(mesh.dml, phase);
   // (Progress: on one thread the quadrics only poll, the rest ticks, then the faces.)
   const bool split = workers.Count() > 1;
   workers.RunTasks(2, [&](int t, int task, const std::atomic<bool>&) {
     Views wv;
-    this->BindViews(wv, workers, t);
-    const View<std::uint32_t> RR = workers.Bind(t, this->remap_);
+    mesh.BindViews(wv, workers, t);
+    const View<std::uint32_t> RR = workers.Bind(t, mesh.remap);
     if (task == 0)
     {
       moveQuadrics(wv, RR, t == 0 && split, t == 0);
@@ -242,59 +242,59 @@ void Decimator::Compact()
   });
   if (!split)
   {
-    this->BindViews();
-    moveFaces(this->v_, R, true);
+    mesh.BindViews();
+    moveFaces(mesh.views, R, true);
   }
   // 5. Shrink, then the rings (faces in reverse: each list ascending, RO[k] ends at its start).
   const std::uint64_t nvb = std::max<std::uint64_t>(nv2, 1);
-  this->pos_.Resize(nvb);
-  this->quad_.Resize(nvb);
+  mesh.pos.Resize(nvb);
+  mesh.quad.Resize(nvb);
   if (rec)
   {
-    this->attr_.Resize(nvb * rec);
+    mesh.attr.Resize(nvb * rec);
   }
-  this->state_.Resize(nvb);
-  this->cand_.Resize(nvb);
-  this->faces_.Resize(std::max<std::uint64_t>(nf2, 1));
-  this->ringOff_.Resize(nv2 + 1);
-  this->ringFace_.Resize(std::max<std::uint64_t>(3 * nf2, 1));
-  this->nv_ = nv2;
-  this->nf_ = nf2;
-  this->BindViews();
-  this->FillRings(nf2, 2 * nf + 2 * nv, total);
-  this->remap_.Resize(nvb);
-  this->order_.Resize(nvb);
-  this->dml_.Reconfigure();
-  this->BindViews();
+  mesh.state.Resize(nvb);
+  mesh.cand.Resize(nvb);
+  mesh.faces.Resize(std::max<std::uint64_t>(nf2, 1));
+  mesh.ringOff.Resize(nv2 + 1);
+  mesh.ringFace.Resize(std::max<std::uint64_t>(3 * nf2, 1));
+  mesh.nv = nv2;
+  mesh.nf = nf2;
+  mesh.BindViews();
+  FillRings(ctx, mesh, nf2, 2 * nf + 2 * nv, total);
+  mesh.remap.Resize(nvb);
+  mesh.order.Resize(nvb);
+  mesh.dml.Reconfigure();
+  mesh.BindViews();
 }
 
 // ---------------------------------------------------------------------------------------------
 // output
 
-void Decimator::Emit(io::MeshSink& sink)
+void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink)
 {
   io::MeshHeader h;
   h.format = io::Format::Unknown;
-  h.vertexCount = this->nv_;
-  h.faceCount = this->nf_;
-  h.layout = this->layout_;
+  h.vertexCount = mesh.nv;
+  h.faceCount = mesh.nf;
+  h.layout = mesh.layout;
   sink.Begin(h);
-  this->BindViews();
-  const std::size_t rec = this->recSize_;
-  const std::size_t ns = this->layout_.scalars.size();
+  mesh.BindViews();
+  const std::size_t rec = mesh.recSize;
+  const std::size_t ns = mesh.layout.scalars.size();
   // Chunks of at most 16K vertices and about 1 MiB of buffers, whatever the number of vertex
   // properties (the output's size does not depend on the chunking).
-  const std::size_t perVertex = sizeof(Vec3) + 12 + (this->layout_.normals ? 12 : 0) +
-    (this->layout_.texcoords ? 8 : 0) + 4 * ns + rec + (this->layout_.colors ? 4 : 0);
+  const std::size_t perVertex = sizeof(Vec3) + 12 + (mesh.layout.normals ? 12 : 0) +
+    (mesh.layout.texcoords ? 8 : 0) + 4 * ns + rec + (mesh.layout.colors ? 4 : 0);
   const std::size_t chunk = std::clamp<std::size_t>((std::size_t(1) << 20) / perVertex, 1, 1 << 14);
   std::vector<Vec3> p(chunk);
   std::vector<float> xyz(3 * chunk), normals, tex, scalars;
   std::vector<std::uint8_t> raw, rgba;
-  if (this->layout_.normals)
+  if (mesh.layout.normals)
   {
     normals.resize(3 * chunk);
   }
-  if (this->layout_.texcoords)
+  if (mesh.layout.texcoords)
   {
     tex.resize(2 * chunk);
   }
@@ -302,22 +302,22 @@ void Decimator::Emit(io::MeshSink& sink)
   {
     scalars.resize(ns * chunk);
   }
-  if (this->layout_.colors)
+  if (mesh.layout.colors)
   {
     rgba.resize(4 * chunk);
   }
   raw.resize(rec * chunk);
-  const std::uint64_t total = this->nv_ + this->nf_;
-  for (std::uint64_t first = 0; first < this->nv_; first += chunk)
+  const std::uint64_t total = mesh.nv + mesh.nf;
+  for (std::uint64_t first = 0; first < mesh.nv; first += chunk)
   {
-    this->progress_.Tick(total ? double(first) / double(total) : 1.0);
-    const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->nv_ - first));
-    this->v_.P.GetRange(first, n, p.data());
+    ctx.progress.Tick(total ? double(first) / double(total) : 1.0);
+    const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, mesh.nv - first));
+    mesh.views.P.GetRange(first, n, p.data());
     for (std::size_t i = 0; i < n; ++i)
     {
-      xyz[3 * i] = float(p[i].x + this->origin_.x);
-      xyz[3 * i + 1] = float(p[i].y + this->origin_.y);
-      xyz[3 * i + 2] = float(p[i].z + this->origin_.z);
+      xyz[3 * i] = float(p[i].x + mesh.origin.x);
+      xyz[3 * i + 1] = float(p[i].y + mesh.origin.y);
+      xyz[3 * i + 2] = float(p[i].z + mesh.origin.z);
     }
     io::VertexChunk vc;
     vc.first = first;
@@ -325,19 +325,19 @@ void Decimator::Emit(io::MeshSink& sink)
     vc.xyz = xyz.data();
     if (rec)
     {
-      this->v_.A.GetRange(first * rec, n * rec, raw.data());
+      mesh.views.A.GetRange(first * rec, n * rec, raw.data());
       for (std::size_t i = 0; i < n; ++i)
       {
         const float* f = reinterpret_cast<const float*>(raw.data() + i * rec);
         std::size_t k = 0;
-        if (this->layout_.normals)
+        if (mesh.layout.normals)
         {
           for (int j = 0; j < 3; ++j)
           {
             normals[3 * i + j] = f[k++];
           }
         }
-        if (this->layout_.texcoords)
+        if (mesh.layout.texcoords)
         {
           for (int j = 0; j < 2; ++j)
           {
@@ -348,30 +348,30 @@ void Decimator::Emit(io::MeshSink& sink)
         {
           scalars[ns * i + j] = f[k++];
         }
-        if (this->layout_.colors)
+        if (mesh.layout.colors)
         {
-          std::memcpy(&rgba[4 * i], raw.data() + i * rec + this->nFloats_ * sizeof(float), 4);
+          std::memcpy(&rgba[4 * i], raw.data() + i * rec + mesh.nFloats * sizeof(float), 4);
         }
       }
-      vc.normals = this->layout_.normals ? normals.data() : nullptr;
-      vc.texcoords = this->layout_.texcoords ? tex.data() : nullptr;
+      vc.normals = mesh.layout.normals ? normals.data() : nullptr;
+      vc.texcoords = mesh.layout.texcoords ? tex.data() : nullptr;
       vc.scalars = ns ? scalars.data() : nullptr;
-      vc.rgba = this->layout_.colors ? rgba.data() : nullptr;
+      vc.rgba = mesh.layout.colors ? rgba.data() : nullptr;
     }
     sink.Vertices(vc);
   }
   std::vector<Tri> tris(chunk);
-  for (std::uint64_t first = 0; first < this->nf_; first += chunk)
+  for (std::uint64_t first = 0; first < mesh.nf; first += chunk)
   {
-    this->progress_.Tick(total ? double(this->nv_ + first) / double(total) : 1.0);
-    const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, this->nf_ - first));
-    this->v_.F.GetRange(first, n, tris.data());
+    ctx.progress.Tick(total ? double(mesh.nv + first) / double(total) : 1.0);
+    const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, mesh.nf - first));
+    mesh.views.F.GetRange(first, n, tris.data());
     sink.Triangles(reinterpret_cast<const std::uint32_t*>(tris.data()), n);
   }
   io::ReadStats rs;
-  rs.vertices = this->nv_;
-  rs.triangles = this->nf_;
-  rs.polygons = this->nf_;
+  rs.vertices = mesh.nv;
+  rs.triangles = mesh.nf;
+  rs.polygons = mesh.nf;
   sink.End(rs);
 }
 

@@ -1,5 +1,5 @@
 // Algorithm I: reading the input into the DML, and the optional weld.
-// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+// (Part of Decimate.cpp's translation unit; the map of the passes: Passes.h.)
 namespace sipmss::algorithms
 {
 namespace
@@ -8,7 +8,7 @@ void Loader::Tick()
 {
   try
   {
-    this->progress_.Tick(this->d_.ReadFraction());
+    this->ctx_.progress.Tick(ReadFraction(this->mesh_));
   }
   catch (const AbortedError&)
   {
@@ -18,8 +18,8 @@ void Loader::Tick()
 }
 void Loader::Begin(const io::MeshHeader& header)
 {
-  this->d_.BeginInput(header);
-  if (this->d_.MeasuresLayout())
+  BeginInput(this->ctx_, this->mesh_, header);
+  if (MeasuresLayout(this->ctx_))
   {
     this->MeasureLayout(header.vertexCount);
   }
@@ -27,7 +27,7 @@ void Loader::Begin(const io::MeshHeader& header)
 void Loader::Vertices(const io::VertexChunk& chunk)
 {
   this->Tick();
-  this->d_.AddVertices(chunk);
+  AddVertices(this->mesh_, chunk);
 }
 void Loader::Triangles(const std::uint32_t* indices, std::size_t count)
 {
@@ -39,7 +39,7 @@ void Loader::Triangles(const std::uint32_t* indices, std::size_t count)
       this->Measured();
     }
   }
-  this->d_.AddTriangles(indices, count);
+  AddTriangles(this->mesh_, indices, count);
 }
 void Loader::End(const io::ReadStats& stats)
 {
@@ -47,35 +47,35 @@ void Loader::End(const io::ReadStats& stats)
   {
     this->Measured();
   }
-  this->d_.EndInput(stats);
+  this->mesh_.readerDropped = stats.droppedFaces;
 }
 
 // ---------------------------------------------------------------------------------------------
 // read
 
-void Decimator::BeginInput(const io::MeshHeader& header)
+void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
 {
-  if (this->begun_)
+  if (mesh.begun)
   {
     return;
   }
-  this->begun_ = true;
-  this->layout_ = header.layout;
-  this->nFloats_ = (this->layout_.normals ? 3 : 0) + (this->layout_.texcoords ? 2 : 0) +
-    this->layout_.scalars.size();
-  this->recSize_ = this->nFloats_ * sizeof(float) + (this->layout_.colors ? 4 : 0);
-  this->announcedV_ = header.vertexCount;
-  this->announcedF_ = header.faceCount;
+  mesh.begun = true;
+  mesh.layout = header.layout;
+  mesh.nFloats = (mesh.layout.normals ? 3 : 0) + (mesh.layout.texcoords ? 2 : 0) +
+    mesh.layout.scalars.size();
+  mesh.recSize = mesh.nFloats * sizeof(float) + (mesh.layout.colors ? 4 : 0);
+  mesh.announcedV = header.vertexCount;
+  mesh.announcedF = header.faceCount;
   if (header.vertexCount + header.faceCount > 0)
   {
-    this->progress_.Sized(header.vertexCount, header.faceCount);
-    this->progress_.BeginPhase("read", kWork::kRead * double(header.vertexCount + header.faceCount),
-      this->WorkAfterRead(header.vertexCount, header.faceCount));
+    ctx.progress.Sized(header.vertexCount, header.faceCount);
+    ctx.progress.BeginPhase("read", kWork::kRead * double(header.vertexCount + header.faceCount),
+      WorkAfterRead(ctx, mesh, header.vertexCount, header.faceCount));
   }
 
   // The profile: the structures of the run, sized from the header (0 when unknown: the blocks
   // then grow with Resize and the DML re-evaluates the mode as they do).
-  storage::Profile profile = this->opt_.storage;
+  storage::Profile profile = ctx.opt.storage;
   const std::uint64_t V = header.vertexCount, F = header.faceCount;
   auto add = [&profile](const char* name, std::size_t size, std::uint64_t count) {
     if (size == 0)
@@ -89,7 +89,7 @@ void Decimator::BeginInput(const io::MeshHeader& header)
     profile.structures.push_back(std::move(s));
   };
   add("decimate.positions", sizeof(Vec3), V);
-  add("decimate.attributes", this->recSize_, V);
+  add("decimate.attributes", mesh.recSize, V);
   add("decimate.quadrics", sizeof(Quadric), V);
   add("decimate.vertexState", sizeof(State), V);
   add("decimate.faces", sizeof(Tri), F);
@@ -98,50 +98,50 @@ void Decimator::BeginInput(const io::MeshHeader& header)
   add("decimate.candidates", sizeof(Cand), V);
   add("decimate.order", sizeof(std::uint32_t), V);
   add("decimate.remap", sizeof(std::uint32_t), V);
-  if (!this->opt_.dml)
+  if (!ctx.opt.dml)
   {
-    this->dml_.Config(profile);
+    mesh.dml.Config(profile);
   }
 
-  this->vCap_ = std::max<std::uint64_t>(V, 1);
-  this->fCap_ = std::max<std::uint64_t>(F, 1);
-  this->pos_ = Array<Vec3>(this->dml_, this->vCap_);
-  if (this->recSize_)
+  mesh.vCap = std::max<std::uint64_t>(V, 1);
+  mesh.fCap = std::max<std::uint64_t>(F, 1);
+  mesh.pos = Array<Vec3>(mesh.dml, mesh.vCap);
+  if (mesh.recSize)
   {
-    this->attr_ = Array<std::uint8_t>(this->dml_, this->vCap_ * this->recSize_);
+    mesh.attr = Array<std::uint8_t>(mesh.dml, mesh.vCap * mesh.recSize);
   }
-  this->faces_ = Array<Tri>(this->dml_, this->fCap_);
+  mesh.faces = Array<Tri>(mesh.dml, mesh.fCap);
 }
 
-void Decimator::EnsureVertexCapacity(std::uint64_t n)
+void EnsureVertexCapacity(MeshState& mesh, std::uint64_t n)
 {
-  if (n <= this->vCap_)
+  if (n <= mesh.vCap)
   {
     return;
   }
-  std::uint64_t cap = std::max<std::uint64_t>({ n, this->vCap_ * 2, 1024 });
-  this->pos_.Resize(cap);
-  if (this->recSize_)
+  std::uint64_t cap = std::max<std::uint64_t>({ n, mesh.vCap * 2, 1024 });
+  mesh.pos.Resize(cap);
+  if (mesh.recSize)
   {
-    this->attr_.Resize(cap * this->recSize_);
+    mesh.attr.Resize(cap * mesh.recSize);
   }
-  this->vCap_ = cap;
+  mesh.vCap = cap;
 }
 
-void Decimator::EnsureFaceCapacity(std::uint64_t n)
+void EnsureFaceCapacity(MeshState& mesh, std::uint64_t n)
 {
-  if (n <= this->fCap_)
+  if (n <= mesh.fCap)
   {
     return;
   }
-  std::uint64_t cap = std::max<std::uint64_t>({ n, this->fCap_ * 2, 1024 });
-  this->faces_.Resize(cap);
-  this->fCap_ = cap;
+  std::uint64_t cap = std::max<std::uint64_t>({ n, mesh.fCap * 2, 1024 });
+  mesh.faces.Resize(cap);
+  mesh.fCap = cap;
 }
 
-void Decimator::AddVertices(const io::VertexChunk& c)
+void AddVertices(MeshState& mesh, const io::VertexChunk& c)
 {
-  if (!this->begun_)
+  if (!mesh.begun)
   {
     throw io::MeshIOError("decimate: the source sent vertices before Begin()");
   }
@@ -154,36 +154,36 @@ void Decimator::AddVertices(const io::VertexChunk& c)
   {
     throw io::MeshIOError("decimate: more than 2^32 - 1 vertices");
   }
-  this->EnsureVertexCapacity(end);
-  if (!this->haveOrigin_)
+  EnsureVertexCapacity(mesh, end);
+  if (!mesh.haveOrigin)
   {
-    this->origin_ = { double(c.xyz[0]), double(c.xyz[1]), double(c.xyz[2]) };
-    this->haveOrigin_ = true;
+    mesh.origin = { double(c.xyz[0]), double(c.xyz[1]), double(c.xyz[2]) };
+    mesh.haveOrigin = true;
   }
-  this->vbuf_.resize(c.count);
+  mesh.vbuf.resize(c.count);
   for (std::size_t i = 0; i < c.count; ++i)
   {
-    this->vbuf_[i] = { double(c.xyz[3 * i]) - this->origin_.x,
-      double(c.xyz[3 * i + 1]) - this->origin_.y, double(c.xyz[3 * i + 2]) - this->origin_.z };
+    mesh.vbuf[i] = { double(c.xyz[3 * i]) - mesh.origin.x,
+      double(c.xyz[3 * i + 1]) - mesh.origin.y, double(c.xyz[3 * i + 2]) - mesh.origin.z };
   }
-  View<Vec3>(this->dml_, this->pos_).SetRange(c.first, c.count, this->vbuf_.data());
-  if (this->recSize_)
+  View<Vec3>(mesh.dml, mesh.pos).SetRange(c.first, c.count, mesh.vbuf.data());
+  if (mesh.recSize)
   {
-    const std::size_t rec = this->recSize_;
-    const std::size_t ns = this->layout_.scalars.size();
-    this->abuf_.assign(c.count * rec, 0);
+    const std::size_t rec = mesh.recSize;
+    const std::size_t ns = mesh.layout.scalars.size();
+    mesh.abuf.assign(c.count * rec, 0);
     for (std::size_t i = 0; i < c.count; ++i)
     {
-      float* f = reinterpret_cast<float*>(this->abuf_.data() + i * rec);
+      float* f = reinterpret_cast<float*>(mesh.abuf.data() + i * rec);
       std::size_t k = 0;
-      if (this->layout_.normals)
+      if (mesh.layout.normals)
       {
         for (int j = 0; j < 3; ++j)
         {
           f[k++] = c.normals ? c.normals[3 * i + j] : 0.0f;
         }
       }
-      if (this->layout_.texcoords)
+      if (mesh.layout.texcoords)
       {
         for (int j = 0; j < 2; ++j)
         {
@@ -194,52 +194,52 @@ void Decimator::AddVertices(const io::VertexChunk& c)
       {
         f[k++] = c.scalars ? c.scalars[ns * i + j] : 0.0f;
       }
-      if (this->layout_.colors)
+      if (mesh.layout.colors)
       {
-        std::uint8_t* rgba = this->abuf_.data() + i * rec + this->nFloats_ * sizeof(float);
+        std::uint8_t* rgba = mesh.abuf.data() + i * rec + mesh.nFloats * sizeof(float);
         for (int j = 0; j < 4; ++j)
         {
           rgba[j] = c.rgba ? c.rgba[4 * i + j] : std::uint8_t(255);
         }
       }
     }
-    View<std::uint8_t>(this->dml_, this->attr_)
-      .SetRange(c.first * rec, c.count * rec, this->abuf_.data());
+    View<std::uint8_t>(mesh.dml, mesh.attr)
+      .SetRange(c.first * rec, c.count * rec, mesh.abuf.data());
   }
-  this->nv_ = std::max(this->nv_, end);
+  mesh.nv = std::max(mesh.nv, end);
 }
 
-void Decimator::AddTriangles(const std::uint32_t* idx, std::size_t count)
+void AddTriangles(MeshState& mesh, const std::uint32_t* idx, std::size_t count)
 {
-  if (!this->begun_)
+  if (!mesh.begun)
   {
     throw io::MeshIOError("decimate: the source sent triangles before Begin()");
   }
-  this->tbuf_.clear();
+  mesh.tbuf.clear();
   for (std::size_t i = 0; i < count; ++i)
   {
     Tri t = { { idx[3 * i], idx[3 * i + 1], idx[3 * i + 2] } };
     if (t.v[0] == t.v[1] || t.v[1] == t.v[2] || t.v[0] == t.v[2])
     {
-      ++this->dropped_;
+      ++mesh.dropped;
       continue;
     }
-    this->tbuf_.push_back(t);
+    mesh.tbuf.push_back(t);
   }
-  if (this->tbuf_.empty())
+  if (mesh.tbuf.empty())
   {
     return;
   }
-  this->EnsureFaceCapacity(this->nf_ + this->tbuf_.size());
-  View<Tri>(this->dml_, this->faces_).SetRange(this->nf_, this->tbuf_.size(), this->tbuf_.data());
-  this->nf_ += this->tbuf_.size();
+  EnsureFaceCapacity(mesh, mesh.nf + mesh.tbuf.size());
+  View<Tri>(mesh.dml, mesh.faces).SetRange(mesh.nf, mesh.tbuf.size(), mesh.tbuf.data());
+  mesh.nf += mesh.tbuf.size();
 }
 
-void Decimator::Read(const MeshSource& input)
+void Read(RunContext& ctx, MeshState& mesh, const MeshSource& input)
 {
-  PhaseTimer timer(this->stats_, this->dml_, "read");
-  this->progress_.BeginPhase("read", 0.0, 1.0); // (its share once the header gives the sizes)
-  Loader loader(*this, this->progress_);
+  PhaseTimer timer(ctx.stats, mesh.dml, "read");
+  ctx.progress.BeginPhase("read", 0.0, 1.0); // (its share once the header gives the sizes)
+  Loader loader(ctx, mesh);
   io::ReadOptions ro;
   io::ReadStats rs;
   try
@@ -264,36 +264,36 @@ void Decimator::Read(const MeshSource& input)
   }
   if (loader.Layout().Faces() > 0)
   {
-    this->stats_.layoutFarFraction = loader.Layout().FarFraction();
+    ctx.stats.layoutFarFraction = loader.Layout().FarFraction();
   }
-  this->progress_.Poll(); // (the exact sizes and the mode's re-evaluation follow: storage calls)
-  if (!this->begun_)
+  ctx.progress.Poll(); // (the exact sizes and the mode's re-evaluation follow: storage calls)
+  if (!mesh.begun)
   {
     io::MeshHeader h;
-    this->BeginInput(h);
+    BeginInput(ctx, mesh, h);
   }
-  this->stats_.inputVertices = this->nv_;
-  this->stats_.inputTriangles = this->nf_ + this->dropped_;
-  this->readerDropped_ = std::max(this->readerDropped_, rs.droppedFaces);
+  ctx.stats.inputVertices = mesh.nv;
+  ctx.stats.inputTriangles = mesh.nf + mesh.dropped;
+  mesh.readerDropped = std::max(mesh.readerDropped, rs.droppedFaces);
   // Exact sizes, then let the DML re-evaluate the mode.
-  this->vCap_ = std::max<std::uint64_t>(this->nv_, 1);
-  this->fCap_ = std::max<std::uint64_t>(this->nf_, 1);
-  this->pos_.Resize(this->vCap_);
-  if (this->recSize_)
+  mesh.vCap = std::max<std::uint64_t>(mesh.nv, 1);
+  mesh.fCap = std::max<std::uint64_t>(mesh.nf, 1);
+  mesh.pos.Resize(mesh.vCap);
+  if (mesh.recSize)
   {
-    this->attr_.Resize(this->vCap_ * this->recSize_);
+    mesh.attr.Resize(mesh.vCap * mesh.recSize);
   }
-  this->faces_.Resize(this->fCap_);
-  this->progress_.Poll();
-  this->dml_.Reconfigure();
+  mesh.faces.Resize(mesh.fCap);
+  ctx.progress.Poll();
+  mesh.dml.Reconfigure();
 }
 
 // Greedy welding: each vertex joins the lowest-index representative within weldDistance (a
 // spatial hash of cells of that size in the DML), else becomes a representative.
-void Decimator::Weld()
+void Weld(RunContext& ctx, MeshState& mesh)
 {
-  const double d = this->opt_.weldDistance;
-  const std::uint64_t nv = this->nv_;
+  const double d = ctx.opt.weldDistance;
+  const std::uint64_t nv = mesh.nv;
   if (nv == 0)
   {
     return;
@@ -304,12 +304,12 @@ void Decimator::Weld()
     tableSize *= 2;
   }
   const std::uint64_t mask = tableSize - 1;
-  Array<std::uint32_t> head(this->dml_, tableSize);
-  Array<std::uint32_t> next(this->dml_, nv);
-  Array<std::uint32_t> rep(this->dml_, nv);
-  FillBlock(this->dml_, head, kNone);
-  View<std::uint32_t> H(this->dml_, head), N(this->dml_, next), R(this->dml_, rep);
-  View<Vec3> P(this->dml_, this->pos_);
+  Array<std::uint32_t> head(mesh.dml, tableSize);
+  Array<std::uint32_t> next(mesh.dml, nv);
+  Array<std::uint32_t> rep(mesh.dml, nv);
+  FillBlock(mesh.dml, head, kNone);
+  View<std::uint32_t> H(mesh.dml, head), N(mesh.dml, next), R(mesh.dml, rep);
+  View<Vec3> P(mesh.dml, mesh.pos);
   const double inv = d > 0 ? 1.0 / d : 0.0;
   const double d2 = d * d;
   // (clamped to +-2^62 before the conversion: a tiny distance makes the quotients huge, and
@@ -342,7 +342,7 @@ void Decimator::Weld()
   const int reach = d > 0 ? 1 : 0;
   for (std::uint64_t v = 0; v < nv; ++v)
   {
-    this->Tick(v, nv);
+    ctx.Tick(v, nv);
     Vec3 p = P.Get(v);
     std::int64_t c[3];
     cellOf(p, c);
@@ -383,10 +383,10 @@ void Decimator::Weld()
       R.Set(v, best);
     }
   }
-  View<Tri> F(this->dml_, this->faces_);
-  for (std::uint64_t f = 0; f < this->nf_; ++f)
+  View<Tri> F(mesh.dml, mesh.faces);
+  for (std::uint64_t f = 0; f < mesh.nf; ++f)
   {
-    this->Tick(f, this->nf_);
+    ctx.Tick(f, mesh.nf);
     Tri t = F.Get(f);
     if (!Alive(t))
     {
@@ -405,7 +405,7 @@ void Decimator::Weld()
     if (w.v[0] == w.v[1] || w.v[1] == w.v[2] || w.v[0] == w.v[2])
     {
       F.Set(f, kDeadTri);
-      ++this->dropped_;
+      ++mesh.dropped;
     }
     else if (w.v[0] != t.v[0] || w.v[1] != t.v[1] || w.v[2] != t.v[2])
     {

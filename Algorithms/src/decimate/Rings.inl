@@ -1,5 +1,5 @@
 // Algorithm I: the vertex rings (face lists per vertex) and the quadrics.
-// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+// (Part of Decimate.cpp's translation unit; the map of the passes: Passes.h.)
 namespace sipmss::algorithms
 {
 namespace
@@ -12,11 +12,11 @@ namespace
 // and counts only its own vertices (no atomics; a worker never writes another's counter, not
 // even adding zero). With a `spare` block of nv counters and workers that share memory, two of
 // them count half of the faces each instead, the second into `spare`, which is then added.
-void Decimator::CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::uint64_t tickBase,
-  std::uint64_t tickTotal, const Array<std::uint32_t>* spare)
+void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t parallelMin,
+  std::uint64_t tickBase, std::uint64_t tickTotal, const Array<std::uint32_t>* spare)
 {
-  this->BindViews();
-  const std::uint64_t nv = this->nv_;
+  mesh.BindViews();
+  const std::uint64_t nv = mesh.nv;
   auto tick = [&](int t, std::uint64_t f, const std::atomic<bool>& stop) {
     if ((f & 4095) != 0)
     {
@@ -29,7 +29,7 @@ void Decimator::CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::u
     if (t == 0 && tickTotal)
     {
       // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
-      this->progress_.Tick(double(tickBase + f) / double(tickTotal));
+      ctx.progress.Tick(double(tickBase + f) / double(tickTotal));
     }
     return true;
   };
@@ -37,19 +37,19 @@ void Decimator::CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::u
   {
     storage::Phase halves;
     halves.elements = nv;
-    halves.threads = std::min(this->threads_, 2);
+    halves.threads = std::min(ctx.threads, 2);
     halves.inCoreMin = parallelMin;
     halves.helper = false;
     halves.helperFirst = 0; // (worker 1 writes all of the spare counters)
     halves.writes = { spare->Id() };
-    halves.mainWrites = { this->ringOff_.Id() };
-    Workers workers(this->dml_, halves);
+    halves.mainWrites = { mesh.ringOff.Id() };
+    Workers workers(mesh.dml, halves);
     if (workers.Shared())
     {
       workers.RunTasks(2, [&](int t, int task, const std::atomic<bool>& stop) {
-        const View<Tri> F = workers.Bind(t, this->faces_);
+        const View<Tri> F = workers.Bind(t, mesh.faces);
         const View<std::uint32_t> counts =
-          workers.Bind(t, task == 0 ? this->ringOff_ : *spare);
+          workers.Bind(t, task == 0 ? mesh.ringOff : *spare);
         WithAccess(
           [&](auto Fa, auto Ca) {
             if (task == 1)
@@ -74,7 +74,7 @@ void Decimator::CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::u
           },
           F, counts);
       });
-      const View<std::uint32_t> RO(this->dml_, this->ringOff_), extra(this->dml_, *spare);
+      const View<std::uint32_t> RO(mesh.dml, mesh.ringOff), extra(mesh.dml, *spare);
       WithAccess(
         [&](auto ROa, auto Ea) {
           for (std::uint64_t v = 0; v < nv; ++v)
@@ -88,13 +88,13 @@ void Decimator::CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::u
   }
   storage::Phase phase;
   phase.elements = nv;
-  phase.threads = this->threads_;
+  phase.threads = ctx.threads;
   phase.inCoreMin = parallelMin;
-  phase.writes = { this->ringOff_.Id() };
-  Workers workers(this->dml_, phase);
+  phase.writes = { mesh.ringOff.Id() };
+  Workers workers(mesh.dml, phase);
   workers.Run([&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-    const View<Tri> F = workers.Bind(t, this->faces_);
-    const View<std::uint32_t> RO = workers.Bind(t, this->ringOff_);
+    const View<Tri> F = workers.Bind(t, mesh.faces);
+    const View<std::uint32_t> RO = workers.Bind(t, mesh.ringOff);
     WithAccess(
       [&](auto Fa, auto ROa) {
         for (std::uint64_t f = 0; f < nf && tick(t, f, stop); ++f)
@@ -121,26 +121,27 @@ void Decimator::CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::u
 // hold the end of each list: faces in reverse, so each list ends up in increasing face order and
 // RO[v] at its start. In core on all cores, each thread owns a range of vertices and scans every
 // face (the reads are sequential, the writes it splits are not): the same lists.
-void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal)
+void FillRings(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t tickBase,
+  std::uint64_t tickTotal)
 {
-  const std::uint64_t nv = this->nv_;
+  const std::uint64_t nv = mesh.nv;
   // Out of core: the upper half of the vertices (their offsets and lists) on a helper thread
   // through a forked DML.
   const std::uint64_t mid = nv / 2;
-  const std::uint64_t rfBegin = mid > 0 ? this->v_.RO.Get(mid - 1) : 0;
-  const std::uint64_t rfEnd = mid > 0 ? this->v_.RO.Get(nv) : 0;
+  const std::uint64_t rfBegin = mid > 0 ? mesh.views.RO.Get(mid - 1) : 0;
+  const std::uint64_t rfEnd = mid > 0 ? mesh.views.RO.Get(nv) : 0;
   storage::Phase phase;
   phase.elements = nv;
-  phase.threads = this->threads_;
+  phase.threads = ctx.threads;
   phase.inCoreThreads = nf >= kParallelRingsMin;
   phase.helper = rfBegin < rfEnd;
-  phase.writes = { this->ringOff_.Id() };
-  phase.helperWrites = { { this->ringFace_.Id(), rfBegin, rfEnd - rfBegin } };
-  Workers workers(this->dml_, phase);
+  phase.writes = { mesh.ringOff.Id() };
+  phase.helperWrites = { { mesh.ringFace.Id(), rfBegin, rfEnd - rfBegin } };
+  Workers workers(mesh.dml, phase);
   workers.Run([&](int th, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
-    const View<Tri> F = workers.Bind(th, this->faces_);
-    const View<std::uint32_t> RO = workers.Bind(th, this->ringOff_);
-    const View<std::uint32_t> RF = workers.Bind(th, this->ringFace_);
+    const View<Tri> F = workers.Bind(th, mesh.faces);
+    const View<std::uint32_t> RO = workers.Bind(th, mesh.ringOff);
+    const View<std::uint32_t> RF = workers.Bind(th, mesh.ringFace);
     WithAccess(
       [&](auto Fa, auto ROa, auto RFa) {
         for (std::uint64_t i = nf; i-- > 0;)
@@ -154,7 +155,7 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
             if (th == 0 && tickTotal)
             {
               // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
-              this->progress_.Tick(double(tickBase + (nf - i)) / double(tickTotal));
+              ctx.progress.Tick(double(tickBase + (nf - i)) / double(tickTotal));
             }
           }
           const Tri t = Fa.Get(i);
@@ -178,21 +179,21 @@ void Decimator::FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_
   });
 }
 
-void Decimator::BuildRings()
+void BuildRings(RunContext& ctx, MeshState& mesh)
 {
-  PhaseTimer timer(this->stats_, this->dml_, "rings");
-  this->progress_.BeginPhase(
-    "rings", kWork::kRings * double(this->nf_), this->RestWork(2, this->nv_, this->nf_));
-  const std::uint64_t nv = this->nv_, nf = this->nf_;
+  PhaseTimer timer(ctx.stats, mesh.dml, "rings");
+  ctx.progress.BeginPhase(
+    "rings", kWork::kRings * double(mesh.nf), RestWork(ctx, mesh, 2, mesh.nv, mesh.nf));
+  const std::uint64_t nv = mesh.nv, nf = mesh.nf;
   if (3 * nf >= kNone)
   {
     throw std::runtime_error("decimate: more than 1.4 billion triangles");
   }
-  this->ringOff_ = Array<std::uint32_t>(this->dml_, nv + 1);
-  FillBlock(this->dml_, this->ringOff_, std::uint32_t(0));
-  View<Tri> F(this->dml_, this->faces_);
-  View<Vec3> P(this->dml_, this->pos_);
-  View<std::uint32_t> RO(this->dml_, this->ringOff_);
+  mesh.ringOff = Array<std::uint32_t>(mesh.dml, nv + 1);
+  FillBlock(mesh.dml, mesh.ringOff, std::uint32_t(0));
+  View<Tri> F(mesh.dml, mesh.faces);
+  View<Vec3> P(mesh.dml, mesh.pos);
+  View<std::uint32_t> RO(mesh.dml, mesh.ringOff);
   // Passes 1 and 3 run on the workers of a phase (each on its own faces), the degrees and
   // pass 2 by vertex range (CountDegrees, FillRings); same result.
   // Pass 1 over the faces: validate, drop zero-area faces, count the degrees. The first bad
@@ -202,21 +203,21 @@ void Decimator::BuildRings()
   {
     storage::Phase phase;
     phase.elements = nf;
-    phase.threads = this->threads_;
+    phase.threads = ctx.threads;
     phase.inCoreThreads = nf >= kParallelRingsMin;
-    phase.writes = { this->faces_.Id() };
-    Workers workers(this->dml_, phase);
+    phase.writes = { mesh.faces.Id() };
+    Workers workers(mesh.dml, phase);
     const int T1 = workers.Count();
     std::vector<std::uint64_t> lives(std::size_t(T1), 0), drops(std::size_t(T1), 0);
     std::vector<std::uint64_t> bad(std::size_t(T1), ~std::uint64_t(0));
     auto pass1 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
-      View<Tri> Fv = workers.Bind(th, this->faces_);
-      const View<Vec3> Pv = workers.Bind(th, this->pos_);
+      View<Tri> Fv = workers.Bind(th, mesh.faces);
+      const View<Vec3> Pv = workers.Bind(th, mesh.pos);
       for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
       {
         if (th == 0 && ((f - fb) & 1023) == 0)
         {
-          this->progress_.Tick(double((f - fb) * T1) / double(4 * nf));
+          ctx.progress.Tick(double((f - fb) * T1) / double(4 * nf));
         }
         Tri t = Fv.Get(f);
         if (!Alive(t))
@@ -261,11 +262,11 @@ void Decimator::BuildRings()
     for (int th = 0; th < T1; ++th)
     {
       live += lives[std::size_t(th)];
-      this->dropped_ += drops[std::size_t(th)];
+      mesh.dropped += drops[std::size_t(th)];
     }
     if (T1 > 1)
     {
-      this->CountDegrees(nf, 0, nf, 4 * nf);
+      CountDegrees(ctx, mesh, nf, 0, nf, 4 * nf);
       F.Refresh();
       P.Refresh();
       RO.Refresh();
@@ -279,14 +280,14 @@ void Decimator::BuildRings()
     RO.Set(v, sum);
   }
   RO.Set(nv, sum);
-  this->ringFace_ = Array<std::uint32_t>(this->dml_, std::max<std::uint32_t>(sum, 1));
+  mesh.ringFace = Array<std::uint32_t>(mesh.dml, std::max<std::uint32_t>(sum, 1));
   F.Refresh();
   P.Refresh();
   RO.Refresh();
-  View<std::uint32_t> RF(this->dml_, this->ringFace_);
+  View<std::uint32_t> RF(mesh.dml, mesh.ringFace);
   // Pass 2: the incident face lists.
-  this->BindViews();
-  this->FillRings(nf, 2 * nf, 4 * nf);
+  mesh.BindViews();
+  FillRings(ctx, mesh, nf, 2 * nf, 4 * nf);
   // Faces on the same vertex set: copies of one orientation are one face, and two faces of
   // opposite orientations cancel (a zero-volume double-sided pair: keeping one of them would
   // leave three faces on each of its edges). A group is settled by its first live member; the
@@ -318,15 +319,15 @@ void Decimator::BuildRings()
   // increasing order.
   storage::Phase phase3;
   phase3.elements = nv;
-  phase3.threads = this->threads_;
+  phase3.threads = ctx.threads;
   phase3.inCoreThreads = nf >= kParallelRingsMin;
-  Workers workers3(this->dml_, phase3);
+  Workers workers3(mesh.dml, phase3);
   const int T3 = workers3.Count();
   std::vector<std::vector<std::uint64_t>> found(static_cast<std::size_t>(T3));
   auto pass3 = [&](int th, std::uint64_t vb, std::uint64_t ve, const std::atomic<bool>& stop) {
-    const View<Tri> Fv = workers3.Bind(th, this->faces_);
-    const View<std::uint32_t> ROv = workers3.Bind(th, this->ringOff_);
-    const View<std::uint32_t> RFv = workers3.Bind(th, this->ringFace_);
+    const View<Tri> Fv = workers3.Bind(th, mesh.faces);
+    const View<std::uint32_t> ROv = workers3.Bind(th, mesh.ringOff);
+    const View<std::uint32_t> RFv = workers3.Bind(th, mesh.ringFace);
     std::vector<std::uint32_t> list;
     std::vector<std::pair<std::uint64_t, std::uint32_t>> keyed; // (other two vertices, face)
     std::uint64_t work = 0; // ring entries since the last poll
@@ -335,7 +336,7 @@ void Decimator::BuildRings()
       if (th == 0 && work >= 4096)
       {
         work = 0;
-        this->progress_.Tick(double(3 * nf) / double(4 * nf) +
+        ctx.progress.Tick(double(3 * nf) / double(4 * nf) +
           double((x - vb) * std::uint64_t(T3)) / double(4 * std::max<std::uint64_t>(nv, 1)));
       }
       const std::uint32_t b = ROv.Get(x), e = ROv.Get(x + 1);
@@ -352,7 +353,7 @@ void Decimator::BuildRings()
         {
           if (th == 0)
           {
-            this->progress_.Poll(); // (a vertex of very high valence)
+            ctx.progress.Poll(); // (a vertex of very high valence)
           }
           else if (stop.load(std::memory_order_relaxed))
           {
@@ -399,7 +400,7 @@ void Decimator::BuildRings()
       ReleaseIfLarge(list);
     }
   };
-  workers3.Run(pass3, [this]() { this->progress_.Poll(); });
+  workers3.Run(pass3, [&]() { ctx.progress.Poll(); });
   // The groups in the order of their first members (face order, as a sweep over the faces
   // would settle them).
   std::vector<std::uint64_t> members; // the threads' lists, one after the other
@@ -421,7 +422,7 @@ void Decimator::BuildRings()
     if (work >= 4096)
     {
       work = 0;
-      this->progress_.Tick(1.0);
+      ctx.progress.Tick(1.0);
     }
     const std::uint64_t* ids = members.data() + group.second + 1;
     const std::uint64_t count = ids[-1];
@@ -484,7 +485,7 @@ void Decimator::BuildRings()
     if (!kept)
     {
       F.Set(f, kDeadTri);
-      ++this->dropped_;
+      ++mesh.dropped;
       --live;
     }
     for (std::uint64_t k = 1; k < count; ++k)
@@ -497,19 +498,19 @@ void Decimator::BuildRings()
         continue;
       }
       F.Set(g, kDeadTri);
-      ++this->dropped_;
+      ++mesh.dropped;
       --live;
     }
   }
-  this->liveFaces_ = live;
+  mesh.liveFaces = live;
 }
 
 // ---------------------------------------------------------------------------------------------
 // rings of single vertices
 
-void Decimator::BindViews()
+void MeshState::BindViews()
 {
-  this->BindViews(this->v_, this->dml_);
+  this->BindViews(this->views, this->dml);
 }
 
 // (bind(array) makes one view; blocks not open, or attributes absent, get an unbound one)
@@ -530,54 +531,54 @@ void BindEach(Views& w, const Bind& bind, const Array<Vec3>& pos, const Array<Qu
   w.O = order.IsOpen() ? bind(order) : View<std::uint32_t>();
 }
 
-void Decimator::BindViews(Views& w, DML& dml) const
+void MeshState::BindViews(Views& w, DML& on) const
 {
-  BindEach(w, [&dml](const auto& a) { return storage::View(dml, a); }, this->pos_, this->quad_,
-    this->attr_, this->recSize_ != 0, this->state_, this->faces_, this->ringOff_,
-    this->ringFace_, this->cand_, this->order_);
+  BindEach(w, [&on](const auto& a) { return storage::View(on, a); }, this->pos, this->quad,
+    this->attr, this->recSize != 0, this->state, this->faces, this->ringOff, this->ringFace,
+    this->cand, this->order);
 }
 
-void Decimator::BindViews(Views& w, const Workers& workers, int t) const
+void MeshState::BindViews(Views& w, const Workers& workers, int t) const
 {
-  BindEach(w, [&workers, t](const auto& a) { return workers.Bind(t, a); }, this->pos_,
-    this->quad_, this->attr_, this->recSize_ != 0, this->state_, this->faces_, this->ringOff_,
-    this->ringFace_, this->cand_, this->order_);
+  BindEach(w, [&workers, t](const auto& a) { return workers.Bind(t, a); }, this->pos,
+    this->quad, this->attr, this->recSize != 0, this->state, this->faces, this->ringOff,
+    this->ringFace, this->cand, this->order);
 }
 
 // ---------------------------------------------------------------------------------------------
 // quadrics
 
-void Decimator::BuildQuadrics()
+void BuildQuadrics(RunContext& ctx, MeshState& mesh)
 {
-  PhaseTimer timer(this->stats_, this->dml_, "quadrics");
-  this->progress_.BeginPhase("quadrics", kWork::kQuadrics * double(this->liveFaces_),
-    this->RestWork(3, this->nv_, this->liveFaces_));
-  const std::uint64_t nv = this->nv_;
-  this->quad_ = Array<Quadric>(this->dml_, std::max<std::uint64_t>(nv, 1));
-  this->state_ = Array<State>(this->dml_, std::max<std::uint64_t>(nv, 1));
-  this->cand_ = Array<Cand>(this->dml_, std::max<std::uint64_t>(nv, 1));
-  this->order_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
-  this->remap_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(nv, 1));
-  this->BindViews();
+  PhaseTimer timer(ctx.stats, mesh.dml, "quadrics");
+  ctx.progress.BeginPhase("quadrics", kWork::kQuadrics * double(mesh.liveFaces),
+    RestWork(ctx, mesh, 3, mesh.nv, mesh.liveFaces));
+  const std::uint64_t nv = mesh.nv;
+  mesh.quad = Array<Quadric>(mesh.dml, std::max<std::uint64_t>(nv, 1));
+  mesh.state = Array<State>(mesh.dml, std::max<std::uint64_t>(nv, 1));
+  mesh.cand = Array<Cand>(mesh.dml, std::max<std::uint64_t>(nv, 1));
+  mesh.order = Array<std::uint32_t>(mesh.dml, std::max<std::uint64_t>(nv, 1));
+  mesh.remap = Array<std::uint32_t>(mesh.dml, std::max<std::uint64_t>(nv, 1));
+  mesh.BindViews();
   // One gather per vertex over its ring (faces in increasing order, so the sums are those of a
   // scatter in face order, whatever the threads): the area-weighted face plane quadrics, the edge
   // multiplicities (topology flags, boundary constraint planes), the initial quadric, and the
   // empty candidate. Every vertex writes only its own records: in core the vertex range is split
   // among threads (not with initialQuadric, a caller's callback).
-  const double bw = this->opt_.boundaryWeight;
-  auto vertex = [this, bw](Views& w, std::uint32_t u, std::vector<Tri>& tris,
+  const double bw = ctx.opt.boundaryWeight;
+  auto vertex = [&, bw](Views& w, std::uint32_t u, std::vector<Tri>& tris,
                   std::vector<std::uint32_t>& next, std::vector<std::uint32_t>& prev,
                   LinkTally& tally, const std::atomic<bool>& stop, bool caller) {
     // A vertex of very high valence takes long: the calling thread polls inside it (an abort
     // throws), another thread stops early when the run is being stopped.
-    auto stopped = [this, &stop, caller](std::size_t i) {
+    auto stopped = [&, caller](std::size_t i) {
       if ((i & 4095) != 4095)
       {
         return false;
       }
       if (caller)
       {
-        this->progress_.Poll();
+        ctx.progress.Poll();
       }
       return stop.load(std::memory_order_relaxed);
     };
@@ -708,18 +709,18 @@ void Decimator::BuildQuadrics()
       {
         flags |= kComplex; // several fans meet here: the link condition keeps them apart
       }
-      if (this->opt_.lockBoundary)
+      if (ctx.opt.lockBoundary)
       {
         flags |= kFixed;
       }
     }
-    if (this->opt_.initialQuadric)
+    if (ctx.opt.initialQuadric)
     {
       double iq[10] = { 0 };
-      if (this->opt_.initialQuadric(u, iq))
+      if (ctx.opt.initialQuadric(u, iq))
       {
         // World to local coordinates: x = y + o.
-        const Vec3 o = this->origin_;
+        const Vec3 o = mesh.origin;
         const double ax = iq[0] * o.x + iq[1] * o.y + iq[2] * o.z;
         const double ay = iq[1] * o.x + iq[4] * o.y + iq[5] * o.z;
         const double az = iq[2] * o.x + iq[5] * o.y + iq[7] * o.z;
@@ -735,7 +736,7 @@ void Decimator::BuildQuadrics()
     }
     w.Q.Set(u, Q);
     w.S.Set(u, flags);
-    w.C.Set(u, this->none_);
+    w.C.Set(u, kNoCandidate);
     if (useTally)
     {
       tally.Release();
@@ -748,14 +749,14 @@ void Decimator::BuildQuadrics()
   // in core on all cores, out of core the upper half on a helper thread through a forked DML.
   storage::Phase phase;
   phase.elements = nv;
-  phase.threads = this->opt_.initialQuadric ? 1 : this->threads_;
+  phase.threads = ctx.opt.initialQuadric ? 1 : ctx.threads;
   phase.inCoreMin = 8192;
-  phase.writes = { this->quad_.Id(), this->state_.Id(), this->cand_.Id() };
-  Workers workers(this->dml_, phase);
+  phase.writes = { mesh.quad.Id(), mesh.state.Id(), mesh.cand.Id() };
+  Workers workers(mesh.dml, phase);
   workers.Run(
     [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
       Views w;
-      this->BindViews(w, workers, t);
+      mesh.BindViews(w, workers, t);
       std::vector<Tri> tris;
       std::vector<std::uint32_t> next, prev;
       LinkTally tally;
@@ -765,7 +766,7 @@ void Decimator::BuildQuadrics()
           {
             if (t == 0)
             {
-              this->Tick(u - lo, hi - lo); // progress and abort: the calling thread only
+              ctx.Tick(u - lo, hi - lo); // progress and abort: the calling thread only
             }
             if constexpr (decltype(RO)::kInCore)
             {
@@ -794,7 +795,7 @@ void Decimator::BuildQuadrics()
         },
         w.RO, w.RF, w.F, w.P);
     },
-    [this]() { this->progress_.Poll(); });
+    [&]() { ctx.progress.Poll(); });
 }
 
 } // namespace

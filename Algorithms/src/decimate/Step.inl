@@ -1,11 +1,11 @@
 // Algorithm I: the collapse step (legality, collapse, the chunked rounds) and a pass.
-// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+// (Part of Decimate.cpp's translation unit; the map of the passes: Passes.h.)
 namespace sipmss::algorithms
 {
 namespace
 {
 // x's live faces only (r.faces; no neighbour table, no positions).
-void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
+void LoadFaces(Views& w, std::uint32_t x, Ring& r)
 {
   r.x = x;
   r.faces.clear();
@@ -30,14 +30,14 @@ void Decimator::LoadFaces(Views& w, std::uint32_t x, Ring& r)
   }
 }
 
-void Decimator::LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
+void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions)
 {
-  this->LoadFaces(w, x, r);
-  this->BuildNeighbours(w, r, positions);
+  LoadFaces(w, x, r);
+  BuildNeighbours(w, r, positions);
 }
 
 // The sorted neighbour table of a ring whose faces are loaded (and their positions).
-void Decimator::BuildNeighbours(Views& w, Ring& r, bool positions)
+void BuildNeighbours(Views& w, Ring& r, bool positions)
 {
   r.nbs.clear();
   r.keys.clear();
@@ -85,15 +85,15 @@ void Decimator::BuildNeighbours(Views& w, Ring& r, bool positions)
   }
 }
 
-bool Decimator::FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const
+bool FaceOk(const RunContext& ctx, const Ring& r, std::size_t slot, const Vec3& p)
 {
   Vec3 c[3];
   r.Corners(slot, c);
-  return this->FaceOk(c, r.faces[slot].corner, p);
+  return FaceOk(ctx, c, r.faces[slot].corner, p);
 }
 
 // Face with corners c (overwritten) when corner `corner` moves to p.
-bool Decimator::FaceOk(Vec3 c[3], int corner, const Vec3& p) const
+bool FaceOk(const RunContext& ctx, Vec3 c[3], int corner, const Vec3& p)
 {
   const Vec3 n0 = Cross(c[1] - c[0], c[2] - c[0]);
   c[corner] = p;
@@ -111,14 +111,15 @@ bool Decimator::FaceOk(Vec3 c[3], int corner, const Vec3& p) const
     return true;
   }
   // Flips or turns too much: n0.n1 < cos |n0| |n1|, compared squared (no square root).
-  const double dot = Dot(n0, n1), k = this->cosThreshold_;
+  const double dot = Dot(n0, n1), k = ctx.cosThreshold;
   const double bound2 = k * k * l0 * l1;
   return k >= 0 ? (dot >= 0 && dot * dot >= bound2) : (dot >= 0 || dot * dot <= bound2);
 }
 
 // Is collapsing u (ring in s.ru, with its neighbour table and positions) and nb.v to p legal?
 // Loads s.rv the same way unless rvLoaded.
-bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded)
+bool Legal(RunContext& ctx, MeshState& mesh, std::uint32_t u, const Nb& nb, const Vec3& p,
+  Scratch& s, bool rvLoaded)
 {
   const std::uint32_t v = nb.v;
   const std::uint32_t m = nb.count;
@@ -126,7 +127,7 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, 
   Ring& rv = s.rv;
   if (!rvLoaded)
   {
-    this->LoadRing(this->W(s), v, rv, true);
+    LoadRing(mesh.W(s), v, rv, true);
   }
   // The collapse must leave faces (no vanishing component).
   if (ru.faces.size() + rv.faces.size() <= 2 * std::size_t(m))
@@ -188,14 +189,14 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, 
   // Geometry of the faces that survive.
   for (std::size_t s = 0; s < ru.faces.size(); ++s)
   {
-    if (!Has(ru.faces[s].t, v) && !this->FaceOk(ru, s, p))
+    if (!Has(ru.faces[s].t, v) && !FaceOk(ctx, ru, s, p))
     {
       return false;
     }
   }
   for (std::size_t s = 0; s < rv.faces.size(); ++s)
   {
-    if (!Has(rv.faces[s].t, u) && !this->FaceOk(rv, s, p))
+    if (!Has(rv.faces[s].t, u) && !FaceOk(ctx, rv, s, p))
     {
       return false;
     }
@@ -207,7 +208,7 @@ bool Decimator::Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, 
 // faces, whose third vertices are opp[0..m-1]: the same rules, without neighbour tables. The
 // common neighbours are exactly the opposite vertices when those differ and no other vertex of
 // v's faces without u is a corner of u's faces; positions are read per face.
-bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
+bool LegalFaces(RunContext& ctx, MeshState& mesh, std::uint32_t u, std::uint32_t v, std::uint32_t m,
   const std::uint32_t opp[2], const Vec3& p, Scratch& s)
 {
   const Ring& ru = s.ru;
@@ -250,7 +251,7 @@ bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
   {
     return false;
   }
-  Views& w = this->W(s);
+  Views& w = mesh.W(s);
   for (const Ring* r : { &ru, &rv })
   {
     const std::uint32_t other = r == &ru ? v : u;
@@ -261,7 +262,7 @@ bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
         continue;
       }
       Vec3 c[3] = { w.P.Get(f.t.v[0]), w.P.Get(f.t.v[1]), w.P.Get(f.t.v[2]) };
-      if (!this->FaceOk(c, f.corner, p))
+      if (!FaceOk(ctx, c, f.corner, p))
       {
         return false;
       }
@@ -270,10 +271,10 @@ bool Decimator::LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m,
   return true;
 }
 
-void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s)
+void InterpolateAttributes(MeshState& mesh, std::uint32_t u, std::uint32_t v, double t, Scratch& s)
 {
-  Views& w = this->W(s);
-  const std::size_t rec = this->recSize_;
+  Views& w = mesh.W(s);
+  const std::size_t rec = mesh.recSize;
   if (rec == 0 || t <= 0.0)
   {
     return;
@@ -290,11 +291,11 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
   w.A.GetRange(std::uint64_t(v) * rec, rec, s.abuf2.data());
   float* a = reinterpret_cast<float*>(s.abuf.data());
   const float* b = reinterpret_cast<const float*>(s.abuf2.data());
-  for (std::size_t i = 0; i < this->nFloats_; ++i)
+  for (std::size_t i = 0; i < mesh.nFloats; ++i)
   {
     a[i] = float(double(a[i]) + t * (double(b[i]) - double(a[i])));
   }
-  if (this->layout_.normals)
+  if (mesh.layout.normals)
   {
     double l = std::sqrt(double(a[0]) * a[0] + double(a[1]) * a[1] + double(a[2]) * a[2]);
     if (l > 0)
@@ -305,10 +306,10 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
       }
     }
   }
-  if (this->layout_.colors)
+  if (mesh.layout.colors)
   {
-    std::uint8_t* ca = s.abuf.data() + this->nFloats_ * sizeof(float);
-    const std::uint8_t* cb = s.abuf2.data() + this->nFloats_ * sizeof(float);
+    std::uint8_t* ca = s.abuf.data() + mesh.nFloats * sizeof(float);
+    const std::uint8_t* cb = s.abuf2.data() + mesh.nFloats * sizeof(float);
     for (int i = 0; i < 4; ++i)
     {
       double x = double(ca[i]) + t * (double(cb[i]) - double(ca[i]));
@@ -320,9 +321,9 @@ void Decimator::InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t
 
 // Collapses u and c.partner (their faces loaded in s.ru and s.rv) into u at c.p; returns the
 // number of faces removed.
-std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
+std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const Cand& c, Scratch& s)
 {
-  Views& w = this->W(s);
+  Views& w = mesh.W(s);
   const std::uint32_t v = c.partner;
   const Ring& ru = s.ru;
   const Ring& rv = s.rv;
@@ -357,13 +358,13 @@ std::uint64_t Decimator::Collapse(std::uint32_t u, const Cand& c, Scratch& s)
     }
   }
   w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
-  if (!this->lazySums_)
+  if (!pass.lazySums)
   {
     Quadric Q = w.Q.Get(u);
     AddTo(Q, w.Q.Get(v));
     w.Q.Set(u, Q);
   }
-  this->InterpolateAttributes(u, v, double(c.t), s);
+  InterpolateAttributes(mesh, u, v, double(c.t), s);
   w.S.Set(v, State(kRemoved | kMarked));
   w.S.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
   return removed;
@@ -382,10 +383,10 @@ inline std::uint32_t CostBin(double cost)
 // u, the partner and every vertex of their rings in the range, else it is deferred. Collapses
 // that stay inside disjoint ranges touch disjoint data (a face they change or a position they
 // move has all its vertices in the range), so chunks can run at the same time.
-Decimator::Try Decimator::TryCollapse(
+Try TryCollapse(RunContext& ctx, MeshState& mesh, PassState& pass, 
   std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi, std::uint64_t& removed)
 {
-  Views& w = this->W(s);
+  Views& w = mesh.W(s);
   const State su = w.S.Get(u);
   if (su & kBusy)
   {
@@ -404,8 +405,8 @@ Decimator::Try Decimator::TryCollapse(
   const bool chunked = lo != 0 || hi != kNone;
   // In a chunk: every vertex of the faces in it (u is), and with the face split on, only faces
   // on the chunk's side of the split.
-  const bool split = chunked && this->splitOn_;
-  const bool upper = lo >= this->splitMid_;
+  const bool split = chunked && pass.splitOn;
+  const bool upper = lo >= pass.splitMid;
   auto outside = [&](const Ring& r) {
     bool out = false;
     for (const RingFace& f : r.faces)
@@ -414,11 +415,11 @@ Decimator::Try Decimator::TryCollapse(
       {
         out |= x < lo || x >= hi;
       }
-      out |= split && ((f.id >= this->splitFace_) != upper);
+      out |= split && ((f.id >= pass.splitFace) != upper);
     }
     return out;
   };
-  if (this->RingLength(w, u) + this->RingLength(w, v) > kMaxCollapseRing)
+  if (RingLength(w, u) + RingLength(w, v) > kMaxCollapseRing)
   {
     // Not made (kMaxCollapseRing). In a chunk, deferred: the verdict is the sequential one.
     if (chunked)
@@ -429,7 +430,7 @@ Decimator::Try Decimator::TryCollapse(
     return Try::Illegal;
   }
   // The faces only: the edge's faces and their third vertices come from u's.
-  this->LoadFaces(w, u, s.ru);
+  LoadFaces(w, u, s.ru);
   if (chunked && outside(s.ru))
   {
     return Try::Defer;
@@ -448,7 +449,7 @@ Decimator::Try Decimator::TryCollapse(
   }
   if (m > 0)
   {
-    this->LoadFaces(w, v, s.rv);
+    LoadFaces(w, v, s.rv);
     if (chunked && outside(s.rv))
     {
       return Try::Defer;
@@ -460,31 +461,31 @@ Decimator::Try Decimator::TryCollapse(
   {
     // A non-manifold edge, or rings too large for LegalFaces' pairwise test: the sorted
     // neighbour tables.
-    this->BuildNeighbours(w, s.ru, true);
-    this->BuildNeighbours(w, s.rv, true);
-    legal = this->Legal(u, *s.ru.Find(v), p, s, true);
+    BuildNeighbours(w, s.ru, true);
+    BuildNeighbours(w, s.rv, true);
+    legal = Legal(ctx, mesh, u, *s.ru.Find(v), p, s, true);
   }
   else if (m > 0)
   {
-    legal = this->LegalFaces(u, v, m, opp, p, s);
+    legal = LegalFaces(ctx, mesh, u, v, m, opp, p, s);
   }
   if (!legal)
   {
     w.S.Set(u, State(su | kNeedsLegal));
     return Try::Illegal;
   }
-  removed += this->Collapse(u, c, s);
+  removed += Collapse(mesh, pass, u, c, s);
   return Try::Done;
 }
 
 // Runs TryCollapse on the candidates at positions [first, last) of the order until `budget`
 // faces are removed; deferred ones get kDeferred (no list: the footprint stays in the DML).
 // Returns where it stopped.
-std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo,
-  std::uint32_t hi, std::uint64_t budget, Scratch& s, StepRun& run, std::int64_t tickAt,
-  std::uint64_t tickScale)
+std::uint64_t Step(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t first,
+  std::uint64_t last, std::uint32_t lo, std::uint32_t hi, std::uint64_t budget, Scratch& s,
+  StepRun& run, std::int64_t tickAt, std::uint64_t tickScale)
 {
-  Views& w = this->W(s);
+  Views& w = mesh.W(s);
   // In core: prefetch the data of the candidates ahead, in stages, each reading what the one
   // before fetched: their state, candidate and ring offsets; for those still free, the
   // partner's, the ring's face ids and both positions; the ring's faces and the partner's face
@@ -512,7 +513,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
     RFp = RF.Data();
     Pp = P.Data();
     Fp = F.Data();
-    Qp = this->lazySums_ ? nullptr : Q.Data();
+    Qp = pass.lazySums ? nullptr : Q.Data();
   }
   constexpr std::uint64_t kAhead = 16;
   // (The loops over a ring's corners below are written out: through a shared generic lambda,
@@ -534,8 +535,8 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
   {
     if (tickAt >= 0 && ((i - first) & 1023) == 0)
     {
-      this->progress_.Tick(
-        double(std::uint64_t(tickAt) + tickScale * (i - first)) / double(this->stepTotal_));
+      ctx.progress.Tick(
+        double(std::uint64_t(tickAt) + tickScale * (i - first)) / double(pass.stepTotal));
     }
     if constexpr (prefetch)
     {
@@ -622,7 +623,7 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
       }
     }
     const std::uint32_t u = O.Get(i);
-    switch (this->TryCollapse(u, s, lo, hi, run.removed))
+    switch (TryCollapse(ctx, mesh, pass, u, s, lo, hi, run.removed))
     {
       case Try::Done:
         ++run.done;
@@ -646,10 +647,10 @@ std::uint64_t Decimator::Step(std::uint64_t first, std::uint64_t last, std::uint
 // vertices all lie below the middle chunk boundary but sit at or after it, or all at or above
 // it and before), in one pass: that count is (below faces) + min over f of (above faces before
 // f - below faces before f).
-void Decimator::FaceSplit(std::uint64_t nv)
+void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
 {
-  this->splitOn_ = false;
-  const std::uint64_t size = this->StepChunkSize(nv);
+  pass.splitOn = false;
+  const std::uint64_t size = StepChunkSize(ctx, nv);
   const std::uint64_t n = (nv + size - 1) / size;
   if (n < 2)
   {
@@ -658,9 +659,9 @@ void Decimator::FaceSplit(std::uint64_t nv)
   const std::uint64_t mid = n / 2 * size;
   std::int64_t diff = 0, best = 0;
   std::uint64_t below = 0, bestAt = 0;
-  for (std::uint64_t f = 0; f < this->nf_; ++f)
+  for (std::uint64_t f = 0; f < mesh.nf; ++f)
   {
-    const Tri t = this->v_.F.Get(f);
+    const Tri t = mesh.views.F.Get(f);
     if (!Alive(t))
     {
       continue;
@@ -685,9 +686,9 @@ void Decimator::FaceSplit(std::uint64_t nv)
     }
   }
   const std::uint64_t wrong = std::uint64_t(std::int64_t(below) + best);
-  this->splitMid_ = mid;
-  this->splitFace_ = bestAt;
-  this->splitOn_ = wrong <= this->liveFaces_ / kSplitWrongShare;
+  pass.splitMid = mid;
+  pass.splitFace = bestAt;
+  pass.splitOn = wrong <= mesh.liveFaces / kSplitWrongShare;
 }
 
 // Step 3 for the candidates at positions [groupBegin, groupEnd) of the order, which are in
@@ -697,10 +698,10 @@ void Decimator::FaceSplit(std::uint64_t nv)
 // parallel when in core, else one after the other: the same result); then the deferred ones run
 // in order, one at a time, up to the pass's goal. Near the goal, the rest runs one at a time.
 // Neither the thread count nor the storage mode changes the result.
-void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
-  std::uint64_t goal, StepRun& total)
+void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t groupBegin,
+  std::uint64_t groupEnd, std::uint64_t nv, std::uint64_t goal, StepRun& total)
 {
-  const std::uint64_t size = this->StepChunkSize(nv);
+  const std::uint64_t size = StepChunkSize(ctx, nv);
   const std::size_t n = std::size_t((nv + size - 1) / size);
   // The chunk boundaries in the group (it is in vertex order).
   std::vector<std::uint64_t> cursor(n + 1);
@@ -711,7 +712,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     while (l < h)
     {
       const std::uint64_t m = l + (h - l) / 2;
-      if (this->v_.O.Get(m) < vb)
+      if (mesh.views.O.Get(m) < vb)
       {
         l = m + 1;
       }
@@ -730,20 +731,20 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   const std::size_t half = n / 2;
   storage::Phase phase;
   phase.elements = nv;
-  phase.threads = this->threads_;
-  phase.helper = this->splitOn_ && half > 0 && std::uint64_t(half) * size == this->splitMid_;
-  phase.helperFirst = this->splitMid_;
-  phase.writes = { this->state_.Id(), this->pos_.Id() };
-  phase.helperWrites.push_back({ this->faces_.Id(), this->splitFace_,
-    this->faces_.Size() - std::min(this->splitFace_, this->faces_.Size()) });
-  if (this->recSize_)
+  phase.threads = ctx.threads;
+  phase.helper = pass.splitOn && half > 0 && std::uint64_t(half) * size == pass.splitMid;
+  phase.helperFirst = pass.splitMid;
+  phase.writes = { mesh.state.Id(), mesh.pos.Id() };
+  phase.helperWrites.push_back({ mesh.faces.Id(), pass.splitFace,
+    mesh.faces.Size() - std::min(pass.splitFace, mesh.faces.Size()) });
+  if (mesh.recSize)
   {
-    phase.helperWrites.push_back({ this->attr_.Id(), this->splitMid_ * this->recSize_,
-      this->attr_.Size() - this->splitMid_ * this->recSize_ });
+    phase.helperWrites.push_back({ mesh.attr.Id(), pass.splitMid * mesh.recSize,
+      mesh.attr.Size() - pass.splitMid * mesh.recSize });
   }
-  if (this->scratch_.size() < std::size_t(std::max(this->threads_, 2)))
+  if (pass.scratch.size() < std::size_t(std::max(ctx.threads, 2)))
   {
-    this->scratch_.resize(std::size_t(std::max(this->threads_, 2)));
+    pass.scratch.resize(std::size_t(std::max(ctx.threads, 2)));
   }
   std::vector<std::uint64_t> roundStart(n);
   std::vector<StepRun> runs(n);
@@ -752,14 +753,14 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
   const std::uint64_t at = groupBegin;
   std::uint64_t done = 0;
   std::vector<std::uint64_t> quota(n);
-  while (this->liveFaces_ > goal)
+  while (mesh.liveFaces > goal)
   {
     std::uint64_t left = 0;
     for (std::size_t c = 0; c < n; ++c)
     {
       left += end[c] - cursor[c];
     }
-    const std::uint64_t R = this->liveFaces_ - goal;
+    const std::uint64_t R = mesh.liveFaces - goal;
     if (left == 0)
     {
       return;
@@ -771,11 +772,11 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       for (std::size_t c = 0; c < n && run.removed < R; ++c)
       {
         const std::uint64_t from = cursor[c];
-        cursor[c] = this->Step(
-          cursor[c], end[c], 0, kNone, R, this->scratch_[0], run, std::int64_t(at + done));
+        cursor[c] = Step(ctx, mesh, pass, 
+          cursor[c], end[c], 0, kNone, R, pass.scratch[0], run, std::int64_t(at + done));
         done += cursor[c] - from;
       }
-      this->liveFaces_ -= run.removed;
+      mesh.liveFaces -= run.removed;
       total.done += run.done;
       total.illegal += run.illegal;
       return;
@@ -792,11 +793,11 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     std::uint64_t mine = 0;
     std::atomic<std::size_t> next{ 0 };
     std::atomic<bool> stop{ false };
-    Workers workers(this->dml_, phase);
+    Workers workers(mesh.dml, phase);
     const int T = workers.Count();
     std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
     auto work = [&](int t) {
-      Scratch& s = this->scratch_[std::size_t(t)];
+      Scratch& s = pass.scratch[std::size_t(t)];
       try
       {
         for (std::size_t c; !stop.load(std::memory_order_relaxed) && (c = next++) < n;)
@@ -804,7 +805,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
           const std::uint32_t lo = std::uint32_t(c * size);
           const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
           // progress and abort: the calling thread only
-          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
+          cursor[c] = Step(ctx, mesh, pass, cursor[c], end[c], lo, hi, quota[c], s, runs[c],
             t == 0 ? std::int64_t(at + done + mine) : -1);
           if (t == 0)
           {
@@ -823,9 +824,9 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       // Each thread runs its half of the chunks in order (the same collapses as one after the
       // other: a chunk's collapses touch only its own vertices and faces).
       workers.Run([&](int t, std::uint64_t vb, std::uint64_t ve, const std::atomic<bool>& halt) {
-        Scratch& s = this->scratch_[std::size_t(t)];
+        Scratch& s = pass.scratch[std::size_t(t)];
         Views views;
-        this->BindViews(views, workers, t);
+        mesh.BindViews(views, workers, t);
         ScratchViews use(s, views);
         for (std::size_t c = vb / size; c < (ve + size - 1) / size; ++c)
         {
@@ -835,7 +836,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
           }
           const std::uint32_t lo = std::uint32_t(c * size);
           const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-          cursor[c] = this->Step(cursor[c], end[c], lo, hi, quota[c], s, runs[c],
+          cursor[c] = Step(ctx, mesh, pass, cursor[c], end[c], lo, hi, quota[c], s, runs[c],
             t == 0 ? std::int64_t(at + done + mine) : -1);
           if (t == 0)
           {
@@ -864,7 +865,7 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
     }
     for (std::size_t c = 0; c < n; ++c)
     {
-      this->liveFaces_ -= runs[c].removed;
+      mesh.liveFaces -= runs[c].removed;
       total.done += runs[c].done;
       total.illegal += runs[c].illegal;
     }
@@ -873,52 +874,53 @@ void Decimator::StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std
       std::uint64_t k = roundStart[c];
       for (std::uint64_t i = roundStart[c]; i < cursor[c]; ++i)
       {
-        const std::uint32_t u = this->v_.O.Get(i);
-        const State su = this->v_.S.Get(u);
+        const std::uint32_t u = mesh.views.O.Get(i);
+        const State su = mesh.views.S.Get(u);
         if (su & kDeferred)
         {
-          this->v_.S.Set(u, State(su & ~kDeferred));
-          this->v_.O.Set(k++, u);
+          mesh.views.S.Set(u, State(su & ~kDeferred));
+          mesh.views.O.Set(k++, u);
         }
       }
-      if (this->liveFaces_ > goal + b.removed)
+      if (mesh.liveFaces > goal + b.removed)
       {
-        this->Step(roundStart[c], k, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], b,
+        Step(ctx, mesh, pass, roundStart[c], k, 0, kNone, mesh.liveFaces - goal, pass.scratch[0], b,
           std::int64_t(at + done), 0); // (polls only: these candidates were counted)
       }
     }
-    this->liveFaces_ -= std::min(b.removed, this->liveFaces_);
+    mesh.liveFaces -= std::min(b.removed, mesh.liveFaces);
     total.done += b.done;
     total.illegal += b.illegal;
   }
 }
 
-bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
+bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal, bool exact,
+  double workAfter)
 {
-  const std::uint64_t nv = this->nv_;
-  this->BindViews();
+  const std::uint64_t nv = mesh.nv;
+  mesh.BindViews();
   // Progress: the pass's steps by their work (kWork), then the rest of the run.
-  const double wantGuess = double(2 * (this->liveFaces_ - std::min(goal, this->liveFaces_)) + 16);
+  const double wantGuess = double(2 * (mesh.liveFaces - std::min(goal, mesh.liveFaces)) + 16);
   const double wStep = kWork::kStep * wantGuess;
-  const double wCompact = kWork::kCompact * double(this->nf_ + nv);
+  const double wCompact = kWork::kCompact * double(mesh.nf + nv);
   const double wOrder = kWork::kOrder * double(nv);
   // 1. Every vertex's cheapest collapse.
-  this->progress_.BeginPhase(
+  ctx.progress.BeginPhase(
     "collapse", kWork::kSweep * double(nv), wOrder + wStep + wCompact + workAfter);
-  this->Sweep(nv);
+  Sweep(ctx, mesh, pass, nv);
   // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
   // about four times the collapses the goal needs (a collapse removes 2 faces, and both
   // endpoints may propose it). Ties in order of vertex index.
-  this->progress_.BeginPhase("collapse", wOrder, wStep + wCompact + workAfter);
-  std::fill(this->hist_.begin(), this->hist_.end(), 0u);
+  ctx.progress.BeginPhase("collapse", wOrder, wStep + wCompact + workAfter);
+  std::fill(pass.hist.begin(), pass.hist.end(), 0u);
   std::uint64_t candidates = 0;
   for (std::uint64_t u = 0; u < nv; ++u)
   {
-    this->Tick(u, 2 * nv);
-    const Cand c = this->v_.C.Get(u);
+    ctx.Tick(u, 2 * nv);
+    const Cand c = mesh.views.C.Get(u);
     if (c.partner != kNone)
     {
-      ++this->hist_[CostBin(c.cost)];
+      ++pass.hist[CostBin(c.cost)];
       ++candidates;
     }
   }
@@ -926,12 +928,12 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
   {
     return false;
   }
-  const std::uint64_t want = 2 * (this->liveFaces_ - goal) + 16;
+  const std::uint64_t want = 2 * (mesh.liveFaces - goal) + 16;
   std::uint64_t taken = 0;
   std::uint32_t lastBin = 0;
   for (std::uint32_t b = 0; b < std::uint32_t(kCostBins); ++b)
   {
-    taken += this->hist_[b];
+    taken += pass.hist[b];
     lastBin = b;
     if (taken >= want)
     {
@@ -945,15 +947,15 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
   // same quality in tests against a strict order.
   const int groups = exact ? 0 : kGroups;
   const std::size_t keys = groups ? std::size_t(groups) : std::size_t(lastBin) + 1;
-  std::vector<std::uint64_t>& start = this->starts_; // start of each key (group or bin)
+  std::vector<std::uint64_t>& start = pass.starts; // start of each key (group or bin)
   start.assign(keys, 0);
   std::uint64_t cum = 0;
   for (std::uint32_t b = 0; b <= lastBin; ++b)
   {
-    const std::uint64_t n = this->hist_[b];
+    const std::uint64_t n = pass.hist[b];
     const std::uint32_t key = std::uint32_t(
       groups ? std::min<std::uint64_t>(groups - 1, cum * std::uint64_t(groups) / taken) : b);
-    this->hist_[b] = key; // bin -> key
+    pass.hist[b] = key; // bin -> key
     start[key] += n;
     cum += n;
   }
@@ -964,11 +966,11 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
     x = sum;
     sum += n;
   }
-  this->BindViews();
+  mesh.BindViews();
   for (std::uint64_t u = 0; u < nv; ++u)
   {
-    this->Tick(nv + u, 2 * nv);
-    const Cand c = this->v_.C.Get(u);
+    ctx.Tick(nv + u, 2 * nv);
+    const Cand c = mesh.views.C.Get(u);
     if (c.partner == kNone)
     {
       continue;
@@ -976,7 +978,7 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
     const std::uint32_t b = CostBin(c.cost);
     if (b <= lastBin)
     {
-      this->v_.O.Set(start[this->hist_[b]]++, std::uint32_t(u));
+      mesh.views.O.Set(start[pass.hist[b]]++, std::uint32_t(u));
     }
   }
   // 3. Collapse in cost order, endpoints of earlier collapses excluded. Legality is checked
@@ -984,29 +986,29 @@ bool Decimator::Pass(std::uint64_t goal, bool exact, double workAfter)
   // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
   // in the next passes. A pass that may end on a level goes strictly in order, one collapse at
   // a time; the others go group by group through StepChunks (in parallel when in core).
-  this->stepTotal_ = std::max<std::uint64_t>(taken, 1);
-  this->progress_.BeginPhase("collapse", kWork::kStep * double(taken), wCompact + workAfter);
+  pass.stepTotal = std::max<std::uint64_t>(taken, 1);
+  ctx.progress.BeginPhase("collapse", kWork::kStep * double(taken), wCompact + workAfter);
   // (the page policy's choice, see lazySums_; the mode does not change before Compact)
-  this->lazySums_ = !this->v_.Q.InCore();
+  pass.lazySums = !mesh.views.Q.InCore();
   StepRun run;
-  if (groups && nv >= 2 * this->StepChunkSize(nv))
+  if (groups && nv >= 2 * StepChunkSize(ctx, nv))
   {
-    this->FaceSplit(nv);
-    for (std::size_t g = 0; g < keys && this->liveFaces_ > goal; ++g)
+    FaceSplit(ctx, mesh, pass, nv);
+    for (std::size_t g = 0; g < keys && mesh.liveFaces > goal; ++g)
     {
-      this->StepChunks(g ? start[g - 1] : 0, start[g], nv, goal, run);
+      StepChunks(ctx, mesh, pass, g ? start[g - 1] : 0, start[g], nv, goal, run);
     }
-    this->splitOn_ = false;
+    pass.splitOn = false;
   }
   else
   {
-    this->Step(0, taken, 0, kNone, this->liveFaces_ - goal, this->scratch_[0], run, 0);
-    this->liveFaces_ -= run.removed;
+    Step(ctx, mesh, pass, 0, taken, 0, kNone, mesh.liveFaces - goal, pass.scratch[0], run, 0);
+    mesh.liveFaces -= run.removed;
   }
   const std::uint64_t done = run.done, illegal = run.illegal;
   // 4. Compact into fresh blocks.
-  this->progress_.BeginPhase("collapse", wCompact, workAfter);
-  this->Compact();
+  ctx.progress.BeginPhase("collapse", wCompact, workAfter);
+  Compact(ctx, mesh, pass);
   // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
   // as long as some candidate exists.
   return done > 0 || illegal > 0;

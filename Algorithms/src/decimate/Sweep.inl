@@ -1,5 +1,5 @@
 // Algorithm I: the candidate sweep (each vertex's cheapest collapse) and the placement.
-// (Part of Decimate.cpp's translation unit; the map of the passes: Decimator.h.)
+// (Part of Decimate.cpp's translation unit; the map of the passes: Passes.h.)
 namespace sipmss::algorithms
 {
 namespace
@@ -9,7 +9,7 @@ namespace
 
 // The placement of a collapse with summed quadric Q (PlaceLanes for one edge); a fixed endpoint
 // stays where it is.
-Placement Decimator::Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const
+Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv)
 {
   if (su & kFixed)
   {
@@ -27,23 +27,23 @@ Placement Decimator::Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, Sta
 // Offers an edge to x: directly when x is this thread's, else queued for x's thread. The result
 // does not depend on the order of offers (the best two by (cost, partner) are kept), so the
 // parallel sweep in core and the sequential one out of core give identical candidates.
-void Decimator::Offer(
+void Offer(MeshState& mesh, PassState& pass, 
   std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner, Scratch& s)
 {
   if (x < s.lo || x >= s.hi)
   {
     std::size_t t = 0;
-    while (t + 1 < this->partStart_.size() && x >= this->partStart_[t + 1])
+    while (t + 1 < pass.partStart.size() && x >= pass.partStart[t + 1])
     {
       ++t;
     }
     s.out[t].push_back({ x, partner, fromPartner, pl });
     return;
   }
-  this->Apply(this->W(s), x, partner, pl, fromPartner);
+  Apply(mesh.W(s), x, partner, pl, fromPartner);
 }
 
-void Decimator::Apply(
+void Apply(
   Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner)
 {
   const float cost = float(pl.cost); // compared as stored
@@ -80,12 +80,12 @@ void Decimator::Apply(
 // the others', which their owners apply between barriers, one chunk of vertices at a time (the
 // queues stay small). Out of core (the DML is single-threaded) one thread sweeps in order. Both
 // give the same candidates: see Offer.
-void Decimator::Sweep(std::uint64_t nv)
+void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
 {
   constexpr std::uint64_t kChunk = 16384;
   constexpr std::uint64_t kParallelMin = 8192;
-  auto sequential = [this, nv]() {
-    Scratch& s = this->scratch_[0];
+  auto sequential = [&, nv]() {
+    Scratch& s = pass.scratch[0];
     s.lo = 0;
     s.hi = kNone;
     s.batch.n = 0;
@@ -93,49 +93,49 @@ void Decimator::Sweep(std::uint64_t nv)
       [&](auto S, auto RO, auto RF, auto F) {
         for (std::uint64_t u = 0; u < nv; ++u)
         {
-          this->Tick(u, nv);
+          ctx.Tick(u, nv);
           PrefetchSweep(S, RO, RF, F, u, nv);
-          this->Evaluate(std::uint32_t(u), s);
+          Evaluate(ctx, mesh, pass, std::uint32_t(u), s);
         }
       },
-      this->v_.S, this->v_.RO, this->v_.RF, this->v_.F);
-    this->FlushEdges(s);
+      mesh.views.S, mesh.views.RO, mesh.views.RF, mesh.views.F);
+    FlushEdges(ctx, mesh, pass, s);
   };
   // Out of core on two threads: the second sweeps the upper half of the vertices through a
   // forked DML. Each thread writes only its own range's candidates (the others' offers are
   // queued, as in core), the only block the sweep writes.
   storage::Phase phase;
   phase.elements = nv;
-  phase.threads = this->threads_;
+  phase.threads = ctx.threads;
   phase.inCoreMin = kParallelMin;
-  phase.writes = { this->cand_.Id() };
-  Workers workers(this->dml_, phase);
+  phase.writes = { mesh.cand.Id() };
+  Workers workers(mesh.dml, phase);
   const int T = workers.Count();
   if (T <= 1)
   {
     sequential();
     return;
   }
-  if (this->scratch_.size() < std::size_t(T))
+  if (pass.scratch.size() < std::size_t(T))
   {
-    this->scratch_.resize(std::size_t(T));
+    pass.scratch.resize(std::size_t(T));
   }
-  this->partStart_.assign(std::size_t(T) + 1, 0);
+  pass.partStart.assign(std::size_t(T) + 1, 0);
   for (int t = 0; t <= T; ++t)
   {
-    this->partStart_[std::size_t(t)] = std::uint32_t(workers.Begin(t));
+    pass.partStart[std::size_t(t)] = std::uint32_t(workers.Begin(t));
   }
   std::vector<Views> views(static_cast<std::size_t>(T));
   for (int t = 0; t < T; ++t)
   {
-    this->BindViews(views[std::size_t(t)], workers, t);
+    mesh.BindViews(views[std::size_t(t)], workers, t);
   }
   std::uint64_t rounds = 0;
   for (int t = 0; t < T; ++t)
   {
-    Scratch& s = this->scratch_[std::size_t(t)];
-    s.lo = this->partStart_[std::size_t(t)];
-    s.hi = this->partStart_[std::size_t(t) + 1];
+    Scratch& s = pass.scratch[std::size_t(t)];
+    s.lo = pass.partStart[std::size_t(t)];
+    s.hi = pass.partStart[std::size_t(t) + 1];
     s.batch.n = 0;
     s.out.resize(std::size_t(T));
     for (auto& q : s.out)
@@ -148,7 +148,7 @@ void Decimator::Sweep(std::uint64_t nv)
   std::atomic<bool> stop{ false };
   std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
   auto work = [&](int t) {
-    Scratch& s = this->scratch_[std::size_t(t)];
+    Scratch& s = pass.scratch[std::size_t(t)];
     ScratchViews use(s, views[std::size_t(t)]);
     for (std::uint64_t r = 0; r < rounds; ++r)
     {
@@ -163,14 +163,14 @@ void Decimator::Sweep(std::uint64_t nv)
             {
               if (t == 0)
               {
-                this->Tick(u - s.lo, s.hi - s.lo); // progress and abort: the calling thread only
+                ctx.Tick(u - s.lo, s.hi - s.lo); // progress and abort: the calling thread only
               }
               PrefetchSweep(S, RO, RF, F, u, e);
-              this->Evaluate(std::uint32_t(u), s);
+              Evaluate(ctx, mesh, pass, std::uint32_t(u), s);
             }
           },
           w.S, w.RO, w.RF, w.F);
-        this->FlushEdges(s); // (its offers to other threads go out at this barrier)
+        FlushEdges(ctx, mesh, pass, s); // (its offers to other threads go out at this barrier)
       }
       catch (...)
       {
@@ -186,9 +186,9 @@ void Decimator::Sweep(std::uint64_t nv)
           {
             if (o != t)
             {
-              for (const Deferred& d : this->scratch_[std::size_t(o)].out[std::size_t(t)])
+              for (const Deferred& d : pass.scratch[std::size_t(o)].out[std::size_t(t)])
               {
-                this->Apply(this->W(s), d.x, d.partner, d.pl, d.fromPartner); // (may page)
+                Apply(mesh.W(s), d.x, d.partner, d.pl, d.fromPartner); // (may page)
               }
             }
           }
@@ -232,9 +232,9 @@ void Decimator::Sweep(std::uint64_t nv)
 // them to both endpoints (light path: the ring's faces only, no neighbour table). An edge u-a is
 // taken from the face where a follows u; an edge seen only with a before u is a boundary edge
 // (or inconsistently oriented) and is taken from there.
-void Decimator::Evaluate(std::uint32_t u, Scratch& s)
+void Evaluate(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u, Scratch& s)
 {
-  Views& w = this->W(s);
+  Views& w = mesh.W(s);
   const State su = w.S.Get(u);
   if (su & kLocked)
   {
@@ -242,7 +242,7 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
   }
   if (su & kNeedsLegal)
   {
-    this->EvaluateFull(u, su, s);
+    EvaluateFull(ctx, mesh, u, su, s);
     return;
   }
   if (!Active(su))
@@ -257,7 +257,7 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
         const std::uint32_t v = c.partner;
         Quadric Q = w.Q.Get(v);
         AddTo(Q, w.Q.Get(u));
-        const Placement pl = this->Place(Q, w.P.Get(u), w.P.Get(v), su, w.S.Get(v));
+        const Placement pl = Place(Q, w.P.Get(u), w.P.Get(v), su, w.S.Get(v));
         // c.cost stays: the same edge's cost as computed before (equal up to rounding), which
         // keeps the outcome independent of whether an offer to u came before or after this.
         c.p[0] = float(pl.p.x);
@@ -279,13 +279,13 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
   std::uint32_t* next = s.next.data();
   std::uint32_t* prev = s.prev.data();
   // A vertex of very high valence takes long: the calling thread polls inside it.
-  const bool poll = e - b > 65536 && &s == &this->scratch_[0];
+  const bool poll = e - b > 65536 && &s == &pass.scratch[0];
   std::size_t n = 0;
   for (std::uint32_t k = 0; k < e - b; ++k)
   {
     if (poll && (k & 4095) == 4095)
     {
-      this->progress_.Poll();
+      ctx.progress.Poll();
     }
     const Tri t = w.F.Get(ids[k]);
     if (!Alive(t))
@@ -330,23 +330,23 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     {
       if (poll && (i & 4095) == 4095)
       {
-        this->progress_.Poll();
+        ctx.progress.Poll();
       }
       if (tally.First(true, next[i], i))
       {
-        this->EvaluateEdge(u, su, Qu, pu, next[i], next, prev, n, &tally, s);
+        EvaluateEdge(ctx, mesh, pass, u, su, Qu, pu, next[i], next, prev, n, &tally, s);
       }
     }
     for (std::size_t i = 0; i < n; ++i)
     {
       if (poll && (i & 4095) == 4095)
       {
-        this->progress_.Poll();
+        ctx.progress.Poll();
       }
       const std::uint32_t a = prev[i];
       if (tally.Count(true, a) == 0 && tally.First(false, a, i))
       {
-        this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, &tally, s);
+        EvaluateEdge(ctx, mesh, pass, u, su, Qu, pu, a, next, prev, n, &tally, s);
       }
     }
     s.tally.Release();
@@ -365,7 +365,7 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     const std::uint32_t a = next[i];
     if (!in(next, i, a))
     {
-      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, nullptr, s);
+      EvaluateEdge(ctx, mesh, pass, u, su, Qu, pu, a, next, prev, n, nullptr, s);
     }
   }
   for (std::size_t i = 0; i < n; ++i)
@@ -373,16 +373,16 @@ void Decimator::Evaluate(std::uint32_t u, Scratch& s)
     const std::uint32_t a = prev[i];
     if (!in(next, n, a) && !in(prev, i, a))
     {
-      this->EvaluateEdge(u, su, Qu, pu, a, next, prev, n, nullptr, s);
+      EvaluateEdge(ctx, mesh, pass, u, su, Qu, pu, a, next, prev, n, nullptr, s);
     }
   }
 }
 
-void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
-  std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
-  const LinkTally* tally, Scratch& s)
+void EvaluateEdge(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u, State su,
+  const Quadric& Qu, const Vec3& pu, std::uint32_t v, const std::uint32_t* next,
+  const std::uint32_t* prev, std::size_t n, const LinkTally* tally, Scratch& s)
 {
-  Views& w = this->W(s);
+  Views& w = mesh.W(s);
   const State sv = w.S.Get(v);
   if (sv & kLocked)
   {
@@ -426,7 +426,7 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   {
     Quadric Q = Qv;
     AddTo(Q, Qu);
-    this->OfferEdge(u, v, this->Place(Q, pu, pv, su, sv), Trace(Q), offerV, s);
+    OfferEdge(ctx, mesh, pass, u, v, Place(Q, pu, pv, su, sv), Trace(Q), offerV, s);
     return;
   }
   // Queued: placed in pairs (the offers do not depend on their order).
@@ -447,12 +447,12 @@ void Decimator::EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const
   b.offerV[l] = offerV;
   if (++b.n == EdgeBatch::kLanes)
   {
-    this->FlushEdges(s);
+    FlushEdges(ctx, mesh, pass, s);
   }
 }
 
 // Places the queued edges of the sweep and offers them.
-void Decimator::FlushEdges(Scratch& s)
+void FlushEdges(RunContext& ctx, MeshState& mesh, PassState& pass, Scratch& s)
 {
   EdgeBatch& b = s.batch;
   const int n = b.n;
@@ -511,48 +511,48 @@ void Decimator::FlushEdges(Scratch& s)
 #endif
   for (int l = 0; l < n; ++l)
   {
-    this->OfferEdge(b.u[l], b.v[l], { cost[l], { px[l], py[l], pz[l] }, t[l] },
+    OfferEdge(ctx, mesh, pass, b.u[l], b.v[l], { cost[l], { px[l], py[l], pz[l] }, t[l] },
       b.q[0][l] + b.q[4][l] + b.q[7][l], b.offerV[l], s);
   }
 }
 
 // Offers edge u-v with placement pl (summed quadric's trace `trace`) to u, and to v if offerV,
 // unless it has no finite cost or exceeds maximumError.
-void Decimator::OfferEdge(
+void OfferEdge(RunContext& ctx, MeshState& mesh, PassState& pass, 
   std::uint32_t u, std::uint32_t v, const Placement& pl, double trace, bool offerV, Scratch& s)
 {
   if (!std::isfinite(pl.cost) ||
-    (std::isfinite(this->opt_.maximumError) && pl.cost > this->opt_.maximumError * trace))
+    (std::isfinite(ctx.opt.maximumError) && pl.cost > ctx.opt.maximumError * trace))
   {
     return;
   }
-  this->Offer(u, v, pl, false, s);
+  Offer(mesh, pass, u, v, pl, false, s);
   if (offerV)
   {
-    this->Offer(v, u, pl, true, s);
+    Offer(mesh, pass, v, u, pl, true, s);
   }
 }
 
 // The heavy path for a vertex whose cheapest collapse was illegal: all its edges, in cost
 // order, the first legal one is its candidate. Edges to higher neighbours are still offered to
 // them.
-void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
+void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, Scratch& s)
 {
-  Views& w = this->W(s);
-  w.C.Set(u, this->none_);
-  const std::uint32_t lengthU = this->RingLength(w, u);
+  Views& w = mesh.W(s);
+  w.C.Set(u, kNoCandidate);
+  const std::uint32_t lengthU = RingLength(w, u);
   if (lengthU > kMaxCollapseRing)
   {
     return; // (no collapse of u is made in this pass: kMaxCollapseRing)
   }
   Ring& ru = s.ru;
-  this->LoadRing(w, u, ru, true);
+  LoadRing(w, u, ru, true);
   if (ru.faces.empty())
   {
     return;
   }
   const Quadric Qu = w.Q.Get(u);
-  const double maxErr = this->opt_.maximumError;
+  const double maxErr = ctx.opt.maximumError;
   const bool checkErr = std::isfinite(maxErr);
   s.edges.clear();
   for (std::uint32_t k = 0; k < ru.nbs.size(); ++k)
@@ -571,13 +571,13 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
     {
       continue;
     }
-    if (lengthU + this->RingLength(w, nb.v) > kMaxCollapseRing)
+    if (lengthU + RingLength(w, nb.v) > kMaxCollapseRing)
     {
       continue;
     }
     Quadric Q = w.Q.Get(nb.v);
     AddTo(Q, Qu);
-    const Placement pl = this->Place(Q, ru.px, nb.p, su, sv);
+    const Placement pl = Place(Q, ru.px, nb.p, su, sv);
     if (!std::isfinite(pl.cost) || (checkErr && pl.cost > maxErr * Trace(Q)))
     {
       continue;
@@ -591,7 +591,7 @@ void Decimator::EvaluateFull(std::uint32_t u, State su, Scratch& s)
   });
   for (const EdgeCand& ec : s.edges)
   {
-    if (this->Legal(u, ru.nbs[ec.nbIndex], ec.pl.p, s))
+    if (Legal(ctx, mesh, u, ru.nbs[ec.nbIndex], ec.pl.p, s))
     {
       Cand c;
       c.cost = float(ec.cost);

@@ -58,10 +58,19 @@
 // estimate of the rest of the run (the remaining passes simulated with the pass schedule): the
 // progress is monotonic and about linear in time (Progress::BeginPhase).
 //
-// Files: this header (the types, the Decimator's members and its per-thread scratch), read and
-// weld (Read.inl), rings and quadrics (Rings.inl), the candidate sweep (Sweep.inl), the collapse
-// step and the passes (Step.inl), compaction and output (Compact.inl), a phase cut into ranges
-// per thread (Threads.inl), the schedule, the run and the entry points (../Decimate.cpp).
+// The state of a run is three structs, and every pass is a free function that takes the ones it
+// uses: RunContext (the options, the progress, the statistics, the thread count), MeshState (the
+// blocks in the DML, their counts and views, the input's description) and PassState (what a
+// pass leaves for its steps: the cost histogram, the face split, the lazy sums, the threads'
+// scratch). A phase reads and writes the blocks through the accessor (storage::View, and a
+// template over the access kind with storage::WithAccess where a loop is hot) and runs on the
+// workers storage::Workers gives it (in core on every thread, out of core on a helper with a
+// forked DML, or on one): no pass tests the storage mode.
+//
+// Files: this header (the types, the state, the declarations of the passes), read and weld
+// (Read.inl), rings and quadrics (Rings.inl), the candidate sweep (Sweep.inl), legality, the
+// collapse and the step (Step.inl), compaction and output (Compact.inl), the schedule, the run
+// (a pipeline of the passes) and the entry points (../Decimate.cpp).
 // They are one translation unit: Decimate.cpp includes them after this header, so that all of
 // Algorithm I stays internal (an anonymous namespace) and the compiler inlines and specializes
 // across the passes as it did when they were one file (as separate translation units, 1.4% more
@@ -252,7 +261,7 @@ struct EdgeBatch
   bool offerV[kLanes];
 };
 
-// The views of one DML over the mesh's blocks: the Decimator's own, or those of a forked DML
+// The views of one DML over the mesh's blocks: the mesh's own, or those of a worker's DML
 // (an out-of-core helper thread's).
 struct Views
 {
@@ -288,7 +297,8 @@ inline void Prefetch(const T* p)
 template <class T>
 inline void PrefetchAt(const T* base, std::uint32_t i)
 {
-  Prefetch(reinterpret_cast<const T*>(reinterpret_cast<std::uintptr_t>(base) + std::uintptr_t(i) * sizeof(T)));
+  Prefetch(reinterpret_cast<const T*>(
+    reinterpret_cast<std::uintptr_t>(base) + std::uintptr_t(i) * sizeof(T)));
 }
 
 template <class T>
@@ -473,7 +483,7 @@ struct Scratch
   std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
   std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
   EdgeBatch batch;                        // the sweep's edges waiting for their placement
-  Views* w = nullptr; // the views this thread uses; nullptr: the Decimator's
+  Views* w = nullptr; // the views this thread uses; nullptr: the mesh's
 };
 
 // A worker's views for the scratch it uses, for the scope of its range.
@@ -550,7 +560,114 @@ private:
   bool agreed_ = false;
 };
 
-class Decimator;
+// The state of a run, in three parts that the passes take explicitly.
+
+// What the run is asked and where it reports; fixed for the run.
+struct RunContext
+{
+  RunContext(const DecimateOptions& options, Progress& progress_, RunStats& stats_)
+    : opt(options)
+    , progress(progress_)
+    , stats(stats_)
+    , cosThreshold(options.minNormalCosine)
+    , threads(std::min(storage::ResolveThreads(options.threads), 16))
+  {
+  }
+  const DecimateOptions& opt;
+  Progress& progress;
+  RunStats& stats;
+  double cosThreshold;
+  int threads;
+  bool emitsLevels = false; // onLevel given: each level is emitted during the passes
+  // Element i of n of the current phase: the progress every 1024 elements (and an abort check).
+  void Tick(std::uint64_t i, std::uint64_t n)
+  {
+    if ((i & 1023) == 0)
+    {
+      this->progress.Tick(n ? double(i) / double(n) : 0.0);
+    }
+  }
+};
+
+// The mesh the passes transform: its blocks in the DML, their counts, the input's description.
+struct MeshState
+{
+  explicit MeshState(const DecimateOptions& options)
+    : ownDml(options.dml ? nullptr : new DML())
+    , dml(options.dml ? *options.dml : *ownDml)
+  {
+  }
+  // The DML: the caller's (options.dml) or our own; declared before every block so that the
+  // blocks close first.
+  std::unique_ptr<DML> ownDml;
+  DML& dml;
+
+  // Input description.
+  io::VertexLayout layout;
+  std::size_t nFloats = 0; // normals, texcoords, scalars as floats
+  std::size_t recSize = 0; // bytes of one vertex's attribute record
+  std::uint64_t announcedV = 0, announcedF = 0;
+  bool begun = false;
+  Vec3 origin{ 0, 0, 0 };
+  bool haveOrigin = false;
+  std::uint64_t vCap = 0, fCap = 0;
+  std::uint64_t readerDropped = 0, dropped = 0;
+
+  // The current mesh.
+  std::uint64_t nv = 0, nf = 0, liveFaces = 0;
+  Array<Vec3> pos;
+  Array<Quadric> quad;
+  Array<std::uint8_t> attr; // nv * recSize bytes
+  Array<State> state;
+  Array<Tri> faces;
+  Array<std::uint32_t> ringOff;  // nv + 1
+  Array<std::uint32_t> ringFace; // ringOff[nv]
+  Array<Cand> cand;
+  Array<std::uint32_t> order; // the pass's candidates in processing order (<= nv of them)
+  Array<std::uint32_t> remap; // compaction: old vertex -> new
+
+  // The views of the blocks through the DML (BindViews after anything that opens, resizes or
+  // reconfigures), and those of a worker (through its DML, within its write ranges).
+  Views views;
+  void BindViews();
+  void BindViews(Views& w, DML& on) const;
+  void BindViews(Views& w, const Workers& workers, int t) const;
+  // The views a thread uses: its scratch's, else the mesh's own.
+  Views& W(const Scratch& s) { return s.w ? *s.w : this->views; }
+
+  // Buffers of the read and the output.
+  std::vector<Vec3> vbuf;
+  std::vector<std::uint8_t> abuf;
+  std::vector<Tri> tbuf;
+};
+
+// The state of the passes: what one pass leaves for its steps (and the next pass reuses).
+struct PassState
+{
+  // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
+  // (nothing reads a survivor's quadric before: it is busy for the rest of the pass), so the
+  // collapse step, which sweeps the vertices once per cost group, does not page the largest
+  // array in and out each time. The same sums either way.
+  bool lazySums = false;
+  // The middle chunk boundary of a pass's collapse rounds (StepChunks) also splits the faces
+  // (FaceSplit): a chunk below splitMid collapses only faces below splitFace, one above only
+  // faces at or above it; other collapses are deferred. Out of core, the two halves of the
+  // chunks then write disjoint ranges of every block, and run on two threads (DML::Fork). The
+  // split is used when the faces follow the vertices (scanner order: few faces on the wrong
+  // side), in every mode and for any thread count, so the result does not depend on them.
+  std::uint64_t splitMid = 0, splitFace = 0;
+  bool splitOn = false;
+  std::uint64_t stepTotal = 1; // the candidates the pass takes (the step's progress unit)
+  // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
+  std::vector<Scratch> scratch = std::vector<Scratch>(1);
+  std::vector<std::uint32_t> partStart; // first vertex of each sweep thread's range
+  std::vector<std::uint32_t> hist = std::vector<std::uint32_t>(kCostBins, 0);
+  std::vector<std::uint64_t> starts;
+};
+
+// No candidate (yet): no partner, infinite costs.
+const Cand kNoCandidate = { std::numeric_limits<float>::infinity(), { 0, 0, 0 }, kNone, 0.0f,
+  std::numeric_limits<float>::infinity(), kNone };
 
 // Progress weights: seconds per element of each phase, measured in core on one thread on a
 // 2M-triangle scan (docs/architecture.md, "Progress and abort"). Only their ratios matter.
@@ -571,9 +688,9 @@ constexpr double kWrite = 5.0e-8;    // per output vertex + face
 class Loader final : public io::MeshSink
 {
 public:
-  Loader(Decimator& d, Progress& p)
-    : d_(d)
-    , progress_(p)
+  Loader(RunContext& ctx, MeshState& mesh)
+    : ctx_(ctx)
+    , mesh_(mesh)
   {
   }
   void Begin(const io::MeshHeader& header) override;
@@ -611,247 +728,171 @@ private:
       throw detail::ReorderNeeded{};
     }
   }
-  Decimator& d_;
-  Progress& progress_;
+  RunContext& ctx_;
+  MeshState& mesh_;
   bool aborted_ = false;
   bool measure_ = false;
   detail::LayoutMeter meter_;
 };
 
-class Decimator
+// A collapse candidate's fate in step 3.
+enum class Try
 {
-public:
-  // The loader measures the input's layout: a run on a DML of its own, layout Automatic.
-  bool MeasuresLayout() const
-  {
-    return !this->opt_.dml && this->opt_.layout == LayoutPolicy::Automatic;
-  }
-  Decimator(const DecimateOptions& options, Progress& progress, RunStats& stats)
-    : opt_(options)
-    , progress_(progress)
-    , stats_(stats)
-    , ownDml_(options.dml ? nullptr : new DML())
-    , dml_(options.dml ? *options.dml : *ownDml_)
-    , hist_(kCostBins, 0)
-  {
-    this->cosThreshold_ = options.minNormalCosine;
-    this->threads_ = storage::ResolveThreads(options.threads);
-    this->threads_ = std::min(this->threads_, 16);
-  }
-
-  void Run(const MeshSource& input, io::MeshSink& output,
-    const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel);
-  // The estimated work of a run on V vertices and F faces (EstimateDecimateWork).
-  double Plan(std::uint64_t V, std::uint64_t F)
-  {
-    this->announcedV_ = V;
-    this->announcedF_ = F;
-    return kWork::kRead * double(V + F) + this->WorkAfterRead(V, F);
-  }
-
-  // Loader callbacks.
-  void BeginInput(const io::MeshHeader& header);
-  void AddVertices(const io::VertexChunk& chunk);
-  void AddTriangles(const std::uint32_t* indices, std::size_t count);
-  void EndInput(const io::ReadStats& stats) { this->readerDropped_ = stats.droppedFaces; }
-  double ReadFraction() const
-  {
-    double total = double(this->announcedV_ + this->announcedF_);
-    return total > 0 ? double(this->nv_ + this->nf_) / total : 0.5;
-  }
-
-private:
-  void Read(const MeshSource& input);
-  void Weld();
-  void BuildRings();
-  void FillRings(std::uint64_t nf, std::uint64_t tickBase, std::uint64_t tickTotal);
-  void CountDegrees(std::uint64_t nf, std::uint64_t parallelMin, std::uint64_t tickBase,
-    std::uint64_t tickTotal, const Array<std::uint32_t>* spare = nullptr);
-  void BuildQuadrics();
-  // One pass down to `goal` faces; workAfter: the estimated work of the rest of the run.
-  bool Pass(std::uint64_t goal, bool exact, double workAfter);
-  void Compact();
-  void Emit(io::MeshSink& sink);
-
-  void BindViews();
-  void BindViews(Views& w, DML& dml) const;
-  // Worker t's views of a parallel phase: through its DML, restricted to its write ranges.
-  void BindViews(Views& w, const Workers& workers, int t) const;
-  void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
-  // The length of x's face list (its live faces and those that died in this pass).
-  static std::uint32_t RingLength(const Views& w, std::uint32_t x)
-  {
-    return w.RO.Get(x + 1) - w.RO.Get(x);
-  }
-  void LoadFaces(Views& w, std::uint32_t x, Ring& r);
-  void BuildNeighbours(Views& w, Ring& r, bool positions);
-  // Out of core, a collapse leaves the survivor's quadric alone and Compact adds the partner's
-  // (nothing reads a survivor's quadric before: it is busy for the rest of the pass), so the
-  // collapse step, which sweeps the vertices once per cost group, does not page the largest
-  // array in and out each time. The same sums either way.
-  bool lazySums_ = false;
-  // The middle chunk boundary of a pass's collapse rounds (StepChunks) also splits the faces
-  // (FaceSplit): a chunk below splitMid_ collapses only faces below splitFace_, one above only
-  // faces at or above it; other collapses are deferred. Out of core, the two halves of the
-  // chunks then write disjoint ranges of every block, and run on two threads (DML::Fork). The
-  // split is used when the faces follow the vertices (scanner order: few faces on the wrong
-  // side), in every mode and for any thread count, so the result does not depend on them.
-  std::uint64_t splitMid_ = 0, splitFace_ = 0;
-  bool splitOn_ = false;
-  void FaceSplit(std::uint64_t nv);
-  void Sweep(std::uint64_t nv);
-  // In core: the faces of an active vertex kAhead ahead in the sweep (out of core there is
-  // nothing to prefetch: a template over the access kind, see WithAccess).
-  template <class SA, class ROA, class RFA, class FA>
-  static void PrefetchSweep(
-    const SA& S, const ROA& RO, const RFA& RF, const FA& F, std::uint64_t u, std::uint64_t end)
-  {
-    if constexpr (SA::kInCore)
-    {
-      constexpr std::uint64_t kAhead = 8;
-      const State* Sp = S.Data();
-      const std::uint32_t* ROp = RO.Data();
-      const std::uint32_t* RFp = RF.Data();
-      const Tri* Fp = F.Data();
-      if (u + kAhead < end && Active(Sp[u + kAhead]))
-      {
-        for (std::uint32_t k = ROp[u + kAhead], e = ROp[u + kAhead + 1]; k < e; ++k)
-        {
-          Prefetch(Fp + RFp[k]);
-        }
-      }
-      // (The neighbours' records are fetched by Evaluate once it has the ring: fetching them
-      // here too, for every corner of the ring's faces, cost more than it saved.)
-    }
-    else
-    {
-      (void)S, (void)RO, (void)RF, (void)F, (void)u, (void)end;
-    }
-  }
-  void Evaluate(std::uint32_t u, Scratch& s);
-  // (tally: next and prev's LinkTally for a large ring, else nullptr: they are scanned)
-  void EvaluateEdge(std::uint32_t u, State su, const Quadric& Qu, const Vec3& pu,
-    std::uint32_t v, const std::uint32_t* next, const std::uint32_t* prev, std::size_t n,
-    const LinkTally* tally, Scratch& s);
-  void FlushEdges(Scratch& s);
-  void OfferEdge(std::uint32_t u, std::uint32_t v, const Placement& pl, double trace, bool offerV,
-    Scratch& s);
-  void EvaluateFull(std::uint32_t u, State su, Scratch& s);
-  void Offer(std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner,
-    Scratch& s);
-  void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
-  bool Legal(std::uint32_t u, const Nb& nb, const Vec3& p, Scratch& s, bool rvLoaded = false);
-  bool FaceOk(const Ring& r, std::size_t slot, const Vec3& p) const;
-  bool FaceOk(Vec3 c[3], int corner, const Vec3& p) const;
-  bool LegalFaces(std::uint32_t u, std::uint32_t v, std::uint32_t m, const std::uint32_t opp[2],
-    const Vec3& p, Scratch& s);
-  Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv) const;
-  std::uint64_t Collapse(std::uint32_t u, const Cand& c, Scratch& s);
-  void InterpolateAttributes(std::uint32_t u, std::uint32_t v, double t, Scratch& s);
-  enum class Try
-  {
-    Skip,
-    Done,
-    Illegal,
-    Defer
-  };
-  Try TryCollapse(std::uint32_t u, Scratch& s, std::uint32_t lo, std::uint32_t hi,
-    std::uint64_t& removed);
-  struct StepRun
-  {
-    std::uint64_t removed = 0, done = 0, illegal = 0;
-  };
-  std::uint64_t StepChunkSize(std::uint64_t nv) const
-  {
-    return this->opt_.stepChunkSize ? this->opt_.stepChunkSize
-                                    : std::max(kStepChunkMinSize, (nv + kStepChunks - 1) / kStepChunks);
-  }
-  // tickAt >= 0 (the calling thread only): ticks the step's progress at position tickAt +
-  // tickScale * (i - first) of the pass's stepTotal_ candidates every 1024 candidates.
-  std::uint64_t Step(std::uint64_t first, std::uint64_t last, std::uint32_t lo, std::uint32_t hi,
-    std::uint64_t budget, Scratch& s, StepRun& run, std::int64_t tickAt = -1,
-    std::uint64_t tickScale = 1);
-  std::uint64_t stepTotal_ = 1; // the candidates the pass takes (the step's progress unit)
-  void StepChunks(std::uint64_t groupBegin, std::uint64_t groupEnd, std::uint64_t nv,
-    std::uint64_t goal, StepRun& total);
-  void EnsureVertexCapacity(std::uint64_t n);
-  void EnsureFaceCapacity(std::uint64_t n);
-  // The levels' targets for F0 faces (the last one is the final target).
-  std::vector<std::uint64_t> Levels(std::uint64_t F0) const;
-  // Progress planning: estimated work of the passes from `faces` live faces at `level` (the
-  // pass schedule of Run simulated, vertices per face as now), and of writing the result.
-  // The face count a pass from T faces aims at, for the level's target (the pass schedule).
-  std::uint64_t PassGoal(std::uint64_t T, std::uint64_t level) const;
-  double PassesWork(std::uint64_t faces, std::size_t level, const std::vector<std::uint64_t>& levels) const;
-  double VerticesPerFace() const
-  {
-    const double v = double(this->nv_ ? this->nv_ : this->announcedV_);
-    const double f = double(this->liveFaces_ ? this->liveFaces_ : (this->nf_ ? this->nf_ : this->announcedF_));
-    return f > 0 ? v / f : 0.5;
-  }
-  // Work after the read: weld, rings, quadrics, the passes and the write, for V and F.
-  double WorkAfterRead(std::uint64_t V, std::uint64_t F) const { return this->RestWork(0, V, F); }
-  // Work of the stages from `stage` on (0 weld, 1 rings, 2 quadrics, 3 passes and write).
-  double RestWork(int stage, std::uint64_t V, std::uint64_t F) const;
-  bool emitsLevels_ = false; // onLevel given: each level is emitted during the passes
-  void Tick(std::uint64_t i, std::uint64_t n)
-  {
-    if ((i & 1023) == 0)
-    {
-      this->progress_.Tick(n ? double(i) / double(n) : 0.0);
-    }
-  }
-
-  const DecimateOptions& opt_;
-  Progress& progress_;
-  RunStats& stats_;
-  double cosThreshold_ = 0.2;
-  int threads_ = 1;
-
-  // The DML: the caller's (options.dml) or our own; declared before every block so that the
-  // blocks close first.
-  std::unique_ptr<DML> ownDml_;
-  DML& dml_;
-
-  // Input description.
-  io::VertexLayout layout_;
-  std::size_t nFloats_ = 0; // normals, texcoords, scalars as floats
-  std::size_t recSize_ = 0; // bytes of one vertex's attribute record
-  std::uint64_t announcedV_ = 0, announcedF_ = 0;
-  bool begun_ = false;
-  Vec3 origin_{ 0, 0, 0 };
-  bool haveOrigin_ = false;
-  std::uint64_t vCap_ = 0, fCap_ = 0;
-  std::uint64_t readerDropped_ = 0, dropped_ = 0;
-
-  // The current mesh.
-  std::uint64_t nv_ = 0, nf_ = 0, liveFaces_ = 0;
-  Array<Vec3> pos_;
-  Array<Quadric> quad_;
-  Array<std::uint8_t> attr_; // nv_ * recSize_ bytes
-  Array<State> state_;
-  Array<Tri> faces_;
-  Array<std::uint32_t> ringOff_;  // nv_ + 1
-  Array<std::uint32_t> ringFace_; // ringOff_[nv_]
-  Array<Cand> cand_;
-  Array<std::uint32_t> order_; // the pass's candidates in processing order (<= nv_ of them)
-  Array<std::uint32_t> remap_; // compaction: old vertex -> new
-
-  Views v_;
-  Views& W(const Scratch& s) { return s.w ? *s.w : this->v_; }
-
-  // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
-  std::vector<Scratch> scratch_ = std::vector<Scratch>(1);
-  std::vector<std::uint32_t> partStart_; // first vertex of each sweep thread's range
-  const Cand none_ = { std::numeric_limits<float>::infinity(), { 0, 0, 0 }, kNone, 0.0f,
-    std::numeric_limits<float>::infinity(), kNone };
-  std::vector<std::uint32_t> hist_;
-  std::vector<std::uint64_t> starts_;
-  std::vector<Vec3> vbuf_;
-  std::vector<std::uint8_t> abuf_;
-  std::vector<Tri> tbuf_;
+  Skip,
+  Done,
+  Illegal,
+  Defer
+};
+struct StepRun
+{
+  std::uint64_t removed = 0, done = 0, illegal = 0;
 };
 
+// The passes, as free functions over the state they use (in the order of the files).
+// ---------------------------------------------------------------------------------------------
+// The loader measures the input's layout: a run on a DML of its own, layout Automatic.
+inline bool MeasuresLayout(const RunContext& ctx)
+{
+  return !ctx.opt.dml && ctx.opt.layout == LayoutPolicy::Automatic;
+}
+// How far the read is (announced counts).
+inline double ReadFraction(const MeshState& mesh)
+{
+  double total = double(mesh.announcedV + mesh.announcedF);
+  return total > 0 ? double(mesh.nv + mesh.nf) / total : 0.5;
+}
+// The length of x's face list (its live faces and those that died in this pass).
+inline std::uint32_t RingLength(const Views& w, std::uint32_t x)
+{
+  return w.RO.Get(x + 1) - w.RO.Get(x);
+}
+// In core: the faces of an active vertex kAhead ahead in the sweep (out of core there is
+// nothing to prefetch: a template over the access kind, see WithAccess).
+template <class SA, class ROA, class RFA, class FA>
+void PrefetchSweep(
+  const SA& S, const ROA& RO, const RFA& RF, const FA& F, std::uint64_t u, std::uint64_t end)
+{
+  if constexpr (SA::kInCore)
+  {
+    constexpr std::uint64_t kAhead = 8;
+    const State* Sp = S.Data();
+    const std::uint32_t* ROp = RO.Data();
+    const std::uint32_t* RFp = RF.Data();
+    const Tri* Fp = F.Data();
+    if (u + kAhead < end && Active(Sp[u + kAhead]))
+    {
+      for (std::uint32_t k = ROp[u + kAhead], e = ROp[u + kAhead + 1]; k < e; ++k)
+      {
+        Prefetch(Fp + RFp[k]);
+      }
+    }
+    // (The neighbours' records are fetched by Evaluate once it has the ring: fetching them
+    // here too, for every corner of the ring's faces, cost more than it saved.)
+  }
+  else
+  {
+    (void)S, (void)RO, (void)RF, (void)F, (void)u, (void)end;
+  }
+}
+// Step 3's vertex chunks: options.stepChunkSize, else at most kStepChunks chunks of at least
+// kStepChunkMinSize vertices.
+inline std::uint64_t StepChunkSize(const RunContext& ctx, std::uint64_t nv)
+{
+  return ctx.opt.stepChunkSize ? ctx.opt.stepChunkSize
+                               : std::max(kStepChunkMinSize, (nv + kStepChunks - 1) / kStepChunks);
+}
+// Vertices per face of the mesh now (or as announced).
+inline double VerticesPerFace(const MeshState& mesh)
+{
+  const double v = double(mesh.nv ? mesh.nv : mesh.announcedV);
+  const double f = double(mesh.liveFaces ? mesh.liveFaces : (mesh.nf ? mesh.nf : mesh.announcedF));
+  return f > 0 ? v / f : 0.5;
+}
+
+// read and weld (Read.inl)
+void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header);
+void EnsureVertexCapacity(MeshState& mesh, std::uint64_t n);
+void EnsureFaceCapacity(MeshState& mesh, std::uint64_t n);
+void AddVertices(MeshState& mesh, const io::VertexChunk& c);
+void AddTriangles(MeshState& mesh, const std::uint32_t* idx, std::size_t count);
+void Read(RunContext& ctx, MeshState& mesh, const MeshSource& input);
+void Weld(RunContext& ctx, MeshState& mesh);
+
+// rings and quadrics (Rings.inl)
+void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t parallelMin,
+  std::uint64_t tickBase, std::uint64_t tickTotal, const Array<std::uint32_t>* spare = nullptr);
+void FillRings(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t tickBase,
+  std::uint64_t tickTotal);
+void BuildRings(RunContext& ctx, MeshState& mesh);
+void BuildQuadrics(RunContext& ctx, MeshState& mesh);
+
+// step 1 of a pass, the candidate sweep (Sweep.inl)
+void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
+Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv);
+void Offer(MeshState& mesh, PassState& pass, std::uint32_t x, std::uint32_t partner,
+  const Placement& pl, bool fromPartner, Scratch& s);
+void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv);
+void Evaluate(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u, Scratch& s);
+void EvaluateEdge(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u, State su,
+  const Quadric& Qu, const Vec3& pu, std::uint32_t v, const std::uint32_t* next,
+  const std::uint32_t* prev, std::size_t n, const LinkTally* tally, Scratch& s);
+void FlushEdges(RunContext& ctx, MeshState& mesh, PassState& pass, Scratch& s);
+void OfferEdge(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u, std::uint32_t v,
+  const Placement& pl, double trace, bool offerV, Scratch& s);
+void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, Scratch& s);
+
+// legality, the collapse and step 3 of a pass (Step.inl)
+void LoadFaces(Views& w, std::uint32_t x, Ring& r);
+void LoadRing(Views& w, std::uint32_t x, Ring& r, bool positions);
+void BuildNeighbours(Views& w, Ring& r, bool positions);
+bool FaceOk(const RunContext& ctx, const Ring& r, std::size_t slot, const Vec3& p);
+bool FaceOk(const RunContext& ctx, Vec3 c[3], int corner, const Vec3& p);
+bool Legal(RunContext& ctx, MeshState& mesh, std::uint32_t u, const Nb& nb, const Vec3& p,
+  Scratch& s, bool rvLoaded = false);
+bool LegalFaces(RunContext& ctx, MeshState& mesh, std::uint32_t u, std::uint32_t v, std::uint32_t m,
+  const std::uint32_t opp[2], const Vec3& p, Scratch& s);
+void InterpolateAttributes(MeshState& mesh, std::uint32_t u, std::uint32_t v, double t, Scratch& s);
+std::uint64_t Collapse(
+  MeshState& mesh, PassState& pass, std::uint32_t u, const Cand& c, Scratch& s);
+Try TryCollapse(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u, Scratch& s,
+  std::uint32_t lo, std::uint32_t hi, std::uint64_t& removed);
+std::uint64_t Step(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t first,
+  std::uint64_t last, std::uint32_t lo, std::uint32_t hi, std::uint64_t budget, Scratch& s,
+  StepRun& run, std::int64_t tickAt = -1, std::uint64_t tickScale = 1);
+void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv);
+void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t groupBegin,
+  std::uint64_t groupEnd, std::uint64_t nv, std::uint64_t goal, StepRun& total);
+bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal, bool exact,
+  double workAfter);
+
+// compaction and output (Compact.inl)
+void Compact(RunContext& ctx, MeshState& mesh, PassState& pass);
+void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink);
+
+// the pass schedule and the run (../Decimate.cpp)
+std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0);
+std::uint64_t PassGoal(const RunContext& ctx, std::uint64_t T, std::uint64_t level);
+double PassesWork(const RunContext& ctx, const MeshState& mesh, std::uint64_t T, std::size_t level,
+  const std::vector<std::uint64_t>& levels);
+double RestWork(
+  const RunContext& ctx, const MeshState& mesh, int stage, std::uint64_t V, std::uint64_t F);
+void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& input,
+  io::MeshSink& output,
+  const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel);
+
+// Work after the read: weld, rings, quadrics, the passes and the write, for V and F.
+inline double WorkAfterRead(
+  const RunContext& ctx, const MeshState& mesh, std::uint64_t V, std::uint64_t F)
+{
+  return RestWork(ctx, mesh, 0, V, F);
+}
+// The estimated work of a run on V vertices and F faces (EstimateDecimateWork).
+inline double Plan(const RunContext& ctx, MeshState& mesh, std::uint64_t V, std::uint64_t F)
+{
+  mesh.announcedV = V;
+  mesh.announcedF = F;
+  return kWork::kRead * double(V + F) + WorkAfterRead(ctx, mesh, V, F);
+}
 
 } // namespace
 } // namespace sipmss::algorithms
