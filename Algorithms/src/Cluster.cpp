@@ -37,692 +37,753 @@ namespace sipmss::algorithms
 {
 namespace
 {
-// The clustering pass: vertices to cells, faces to quadrics and output triangles.
-class ClusterSink final : public io::MeshSink
+// The clustering pass: vertices to cells, faces to quadrics and output triangles. Its state is
+// one struct (the grid, the run's options and progress, its blocks in the DML); its steps are
+// free functions over it, called by the reader's sink (ClusterSink) and then by ClusterRun.
+struct ClusterState
 {
-public:
-  ClusterSink(DML& dml, const ClusterGrid& grid, const ClusterOptions& options, bool configure,
+  ClusterState(DML& dml, const ClusterGrid& grid, const ClusterOptions& options, bool configure,
     Progress& progress)
-    : dml_(dml)
-    , grid_(grid)
-    , options_(options)
-    , configure_(configure)
-    , progress_(progress)
-    , cellMap_(dml, progress)
-    , triangles_(dml)
+    : dml(dml)
+    , grid(grid)
+    , options(options)
+    , configure(configure)
+    , progress(progress)
+    , cellMap(dml, progress)
+    , triangles(dml)
   {
   }
-
-  void Begin(const io::MeshHeader& h) override
-  {
-    if (this->configure_ && h.vertexCount)
-    {
-      // The paper's Config: the table of structures with their maximum counts decides the mode.
-      storage::Profile profile = this->options_.storage;
-      const std::uint64_t gridCells =
-        std::uint64_t(this->grid_.dims[0]) * this->grid_.dims[1] * this->grid_.dims[2];
-      profile.structures.clear();
-      AddClusterStructures(profile, h.vertexCount, h.faceCount, gridCells);
-      this->dml_.Config(profile);
-    }
-    this->header_ = h;
-    this->layout_ = h.layout;
-    this->attrStride_ = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 4 : 0) +
-      (h.layout.texcoords ? 2 : 0) + h.layout.scalars.size();
-    this->vertices_ = Array<VertexRec>(this->dml_, std::max<std::uint64_t>(h.vertexCount, 1024));
-    this->cells_ = Array<CellRec>(this->dml_, 1024);
-    if (this->attrStride_)
-    {
-      this->attrBlock_ = this->dml_.OpenBlock(this->attrStride_ * sizeof(float), 1024);
-      this->attrBuf_.assign(this->attrStride_, 0.f);
-    }
-    this->expected_ = h.vertexCount + h.faceCount;
-    if (!this->expected_)
-    {
-      this->expected_ = this->expectedHint_; // (compressed inputs announce no sizes)
-    }
-    else
-    {
-      // (nothing done yet in this phase: the announced sizes replace the estimate)
-      this->progress_.Sized(h.vertexCount, h.faceCount);
-      this->progress_.BeginPhase("cluster", kWork::kCluster * double(this->expected_),
-        ClusterWorkAfterRead(
-          h.vertexCount, h.faceCount, this->options_.maximumGridDimension, this->options_));
-    }
-  }
-
-  void Vertices(const io::VertexChunk& c) override
-  {
-    if (c.first + c.count > this->vertices_.Size())
-    {
-      this->vertexWindow_.Release();
-      this->vertices_.Resize(std::max<std::uint64_t>(c.first + c.count, this->vertices_.Size() * 2));
-    }
-    std::uint64_t lastKey = std::numeric_limits<std::uint64_t>::max();
-    std::uint32_t lastCell = kNoCell;
-    for (std::size_t i = 0; i < c.count; ++i)
-    {
-      if ((i & 4095) == 4095)
-      {
-        this->Tick(i);
-      }
-      const float* p = c.xyz + 3 * i;
-      const std::uint64_t key = this->grid_.Key(p[0], p[1], p[2]);
-      std::uint32_t cell = lastCell;
-      if (key != lastKey)
-      {
-        KeySlot& cached = this->recent_[Mix(key) & (kRecent - 1)];
-        if (cached.key == key + 1)
-        {
-          cell = static_cast<std::uint32_t>(cached.cell);
-        }
-        else
-        {
-          bool inserted = false;
-          cell = this->cellMap_.FindOrInsert(key, this->numCells_, &inserted);
-          if (inserted)
-          {
-            this->AddCell(p);
-          }
-          cached = KeySlot{ key + 1, cell };
-        }
-        lastKey = key;
-        lastCell = cell;
-      }
-      this->vertexWindow_.At(this->vertices_.Id(), c.first + i) = VertexRec{ p[0], p[1], p[2], cell };
-      this->UpdateCell(cell, [p](CellRec& rec) {
-        rec.sum[0] += p[0];
-        rec.sum[1] += p[1];
-        rec.sum[2] += p[2];
-        ++rec.count;
-      });
-      if (this->attrStride_)
-      {
-        this->AccumulateAttributes(c, i, cell);
-      }
-    }
-    this->verticesSeen_ = std::max<std::uint64_t>(this->verticesSeen_, c.first + c.count);
-    this->done_ += c.count;
-    this->Tick();
-  }
-
-  void Triangles(const std::uint32_t* idx, std::size_t count) override
-  {
-    for (std::size_t t = 0; t < count; ++t)
-    {
-      if ((t & 4095) == 4095)
-      {
-        this->Tick(t);
-      }
-      const std::uint32_t* f = idx + 3 * t;
-      if (f[0] >= this->verticesSeen_ || f[1] >= this->verticesSeen_ || f[2] >= this->verticesSeen_)
-      {
-        // faces before their vertices (e.g. a PLY with the face element first): keep for End()
-        this->Defer(f);
-        continue;
-      }
-      this->AddTriangle(f);
-    }
-    this->done_ += count;
-    this->Tick();
-  }
-
-  void End(const io::ReadStats&) override
-  {
-    if (this->deferredCount_)
-    {
-      for (std::uint64_t i = 0; i < this->deferredCount_; ++i)
-      {
-        TriSlot s = this->deferred_.Get(i);
-        if (s.v[0] >= this->verticesSeen_ || s.v[1] >= this->verticesSeen_ ||
-          s.v[2] >= this->verticesSeen_)
-        {
-          throw io::MeshIOError("a face references vertex " +
-            std::to_string(std::max({ s.v[0], s.v[1], s.v[2] })) + " but the mesh has only " +
-            std::to_string(this->verticesSeen_) + " vertices");
-        }
-        this->AddTriangle(s.v);
-      }
-      this->deferred_.Close();
-    }
-  }
-  bool AbortRequested() override { return this->progress_.Aborted(); }
-
-  // --- after the read
-  void ReleaseInputBlocks()
-  {
-    this->vertexWindow_.Release();
-    this->cellWindow_.Release();
-    this->vertices_.Close();
-    this->cellMap_.Release();
-  }
-
-  void FinishTriangles() { this->triangles_.Finish(this->cells_, this->numCells_, this->progress_); }
-  void FinishBoundaries() { this->AddBoundaryQuadrics(); }
-  // The bounds pass's estimate of vertices + faces, for inputs whose header has no sizes.
-  void ExpectSizes(std::uint64_t verticesAndFaces) { this->expectedHint_ = verticesAndFaces; }
-  std::uint64_t Cells() const { return this->numCells_; }
-  std::uint64_t Candidates() const { return this->triangles_.Candidates(); }
-  std::uint64_t OutputTriangles() const { return this->triangles_.Size(); }
-
-  void Emit(io::MeshSink& out, RunStats& stats)
-  {
-    const std::uint64_t numTris = this->triangles_.Size();
-    // Number the cells used by output triangles, in cell order.
-    Array<std::uint32_t> outIndex(this->dml_, std::max<std::uint64_t>(this->numCells_, 1));
-    {
-      const std::uint32_t unused = kNoCell;
-      this->dml_.Fill(outIndex.Id(), &unused);
-    }
-    auto& order = this->triangles_.Order();
-    // Progress: 4 steps over cells + triangles (mark, number, vertices, triangles).
-    const double total = 2.0 * double(this->numCells_) + 2.0 * double(numTris) + 1.0;
-    order.ForEachChunk(0, numTris, storage::Access::Read,
-      [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
-        for (std::uint64_t j = 0; j < n; ++j)
-        {
-          if (((f + j) & 4095) == 0)
-          {
-            this->progress_.Tick(double(f + j) / total);
-          }
-          for (int k = 0; k < 3; ++k)
-          {
-            outIndex.Set(d[j].v[k], 0);
-          }
-        }
-      });
-    std::uint32_t numOut = 0;
-    for (std::uint32_t c = 0; c < this->numCells_; ++c)
-    {
-      if ((c & 4095) == 0)
-      {
-        this->progress_.Tick(double(numTris + c) / total);
-      }
-      if (outIndex.Get(c) != kNoCell)
-      {
-        outIndex.Set(c, numOut++);
-      }
-    }
-    this->dml_.Reconfigure(); // the input-sized blocks are gone: in core from here if it fits
-
-    io::MeshHeader h;
-    h.format = this->header_.format;
-    h.vertexCount = numOut;
-    h.faceCount = numTris;
-    h.layout = this->layout_;
-    out.Begin(h);
-
-    const std::size_t chunk = 1 << 13;
-    std::vector<float> xyz, normals, texcoords, scalars;
-    std::vector<std::uint8_t> rgba;
-    xyz.reserve(3 * chunk);
-    std::vector<float> attr(this->attrStride_);
-    std::uint64_t first = 0;
-    auto flush = [&]() {
-      io::VertexChunk vc;
-      vc.first = first;
-      vc.count = xyz.size() / 3;
-      vc.xyz = xyz.data();
-      vc.normals = this->layout_.normals ? normals.data() : nullptr;
-      vc.rgba = this->layout_.colors ? rgba.data() : nullptr;
-      vc.texcoords = this->layout_.texcoords ? texcoords.data() : nullptr;
-      vc.scalars = this->layout_.scalars.empty() ? nullptr : scalars.data();
-      if (vc.count)
-      {
-        out.Vertices(vc);
-      }
-      first += vc.count;
-      xyz.clear();
-      normals.clear();
-      rgba.clear();
-      texcoords.clear();
-      scalars.clear();
-    };
-    for (std::uint32_t c = 0; c < this->numCells_; ++c)
-    {
-      if (outIndex.Get(c) == kNoCell)
-      {
-        continue;
-      }
-      const CellRec rec = this->cells_.Get(c);
-      double p[3];
-      this->Representative(rec, p);
-      if (this->options_.exportQuadric)
-      {
-        this->options_.exportQuadric(first + xyz.size() / 3, rec.q.q);
-      }
-      xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
-      if (this->attrStride_)
-      {
-        this->dml_.Read(this->attrBlock_, this->attrStride_ * sizeof(float), c, attr.data());
-        const float inv = rec.count ? 1.0f / float(rec.count) : 0.f;
-        std::size_t k = 0;
-        if (this->layout_.normals)
-        {
-          float n[3] = { attr[0], attr[1], attr[2] };
-          const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-          const float s = len > 0 ? 1.0f / len : 0.f;
-          normals.insert(normals.end(), { n[0] * s, n[1] * s, n[2] * s });
-          k = 3;
-        }
-        if (this->layout_.colors)
-        {
-          for (int j = 0; j < 4; ++j)
-          {
-            const float v = std::round(attr[k + j] * inv);
-            rgba.push_back(static_cast<std::uint8_t>(std::clamp(v, 0.f, 255.f)));
-          }
-          k += 4;
-        }
-        if (this->layout_.texcoords)
-        {
-          texcoords.insert(texcoords.end(), { attr[k] * inv, attr[k + 1] * inv });
-          k += 2;
-        }
-        for (std::size_t j = 0; j < this->layout_.scalars.size(); ++j)
-        {
-          scalars.push_back(attr[k + j] * inv);
-        }
-      }
-      if (xyz.size() / 3 == chunk)
-      {
-        flush();
-        this->progress_.Tick(double(numTris + this->numCells_ + c) / total);
-      }
-    }
-    flush();
-
-    std::vector<std::uint32_t> tri;
-    tri.reserve(3 * chunk);
-    order.ForEachChunk(0, numTris, storage::Access::Read,
-      [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
-        for (std::uint64_t j = 0; j < n; ++j)
-        {
-          if (((f + j) & 4095) == 0)
-          {
-            this->progress_.Tick(
-              double(numTris + 2 * std::uint64_t(this->numCells_) + f + j) / total);
-          }
-          for (int k = 0; k < 3; ++k)
-          {
-            tri.push_back(outIndex.Get(d[j].v[k]));
-          }
-          if (tri.size() == 3 * chunk)
-          {
-            out.Triangles(tri.data(), chunk);
-            tri.clear();
-          }
-        }
-      });
-    if (!tri.empty())
-    {
-      out.Triangles(tri.data(), tri.size() / 3);
-    }
-    io::ReadStats os;
-    os.vertices = numOut;
-    os.triangles = numTris;
-    os.polygons = numTris;
-    out.End(os);
-    stats.outputVertices = numOut;
-    stats.outputTriangles = numTris;
-  }
-
-
-private:
-  void Tick(std::uint64_t more = 0)
-  {
-    const double done = double(this->done_ + more);
-    this->progress_.Tick(this->expected_ ? done / double(this->expected_) : 0.0);
-  }
-
-  void AddCell(const float* p)
-  {
-    if (this->numCells_ == kNoCell - 1)
-    {
-      throw std::runtime_error("more than 4 billion grid cells are occupied");
-    }
-    if (this->numCells_ == this->cells_.Size())
-    {
-      this->cellWindow_.Release();
-      this->cells_.Resize(this->cells_.Size() * 2);
-      if (this->attrStride_)
-      {
-        this->dml_.Resize(this->attrBlock_, this->cells_.Size());
-      }
-    }
-    CellRec rec{};
-    rec.first[0] = p[0];
-    rec.first[1] = p[1];
-    rec.first[2] = p[2];
-    this->cells_.Set(this->numCells_, rec);
-    ++this->numCells_;
-  }
-
-  void AccumulateAttributes(const io::VertexChunk& c, std::size_t i, std::uint32_t cell)
-  {
-    const std::size_t es = this->attrStride_ * sizeof(float);
-    this->dml_.Read(this->attrBlock_, es, cell, this->attrBuf_.data());
-    std::size_t k = 0;
-    if (c.normals)
-    {
-      for (int j = 0; j < 3; ++j)
-      {
-        this->attrBuf_[k + j] += c.normals[3 * i + j];
-      }
-      k += 3;
-    }
-    if (c.rgba)
-    {
-      for (int j = 0; j < 4; ++j)
-      {
-        this->attrBuf_[k + j] += c.rgba[4 * i + j];
-      }
-      k += 4;
-    }
-    if (c.texcoords)
-    {
-      this->attrBuf_[k] += c.texcoords[2 * i];
-      this->attrBuf_[k + 1] += c.texcoords[2 * i + 1];
-      k += 2;
-    }
-    const std::size_t ns = this->layout_.scalars.size();
-    if (c.scalars)
-    {
-      for (std::size_t j = 0; j < ns; ++j)
-      {
-        this->attrBuf_[k + j] += c.scalars[ns * i + j];
-      }
-    }
-    this->dml_.Write(this->attrBlock_, es, cell, this->attrBuf_.data());
-  }
-
-  void Defer(const std::uint32_t* f)
-  {
-    if (!this->deferred_.IsOpen())
-    {
-      this->deferred_ = Array<TriSlot>(this->dml_, 1024);
-    }
-    if (this->deferredCount_ == this->deferred_.Size())
-    {
-      this->deferred_.Resize(this->deferred_.Size() * 2);
-    }
-    this->deferred_.Set(this->deferredCount_++, TriSlot{ { f[0], f[1], f[2] }, 1 });
-  }
-
-  // Boundary quadrics (optional): every face's three undirected edges are kept in a DML block and
-  // counted per smaller vertex; after the read they are bucketed by that vertex (the same
-  // counting sort as the output triangles), and an edge met exactly once is a boundary edge of
-  // the input: a plane through it, perpendicular to its face, weighted by boundaryWeight times
-  // its squared length, goes into the quadrics of both endpoints' cells.
-  void AppendEdges(const std::uint32_t* f)
-  {
-    if (!this->edges_.IsOpen())
-    {
-      // Three edges per face: sized from the header when it announces the faces (as the
-      // vertices are), so that no doubling copies the whole block at once (a gap in the polls
-      // that grows with the input).
-      this->edges_ = Array<EdgeRec>(
-        this->dml_, std::max<std::uint64_t>(1024, 3 * this->header_.faceCount));
-      this->edgeCount_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(this->vertices_.Size(), 1));
-    }
-    for (int k = 0; k < 3; ++k)
-    {
-      const std::uint32_t u = f[k], v = f[(k + 1) % 3], w = f[(k + 2) % 3];
-      const EdgeRec e{ std::min(u, v), std::max(u, v), w, u > v ? 1u : 0u };
-      if (this->numEdges_ == this->edges_.Size())
-      {
-        this->edges_.Resize(this->edges_.Size() * 2);
-      }
-      this->edges_.Set(this->numEdges_++, e);
-      if (e.a >= this->edgeCount_.Size())
-      {
-        this->edgeCount_.Resize(std::max<std::uint64_t>(e.a + 1, 2 * this->edgeCount_.Size()));
-      }
-      this->edgeCount_.Set(e.a, this->edgeCount_.Get(e.a) + 1);
-    }
-  }
-
-  void AddBoundaryQuadrics()
-  {
-    if (!this->edges_.IsOpen())
-    {
-      return;
-    }
-    this->vertexWindow_.Release();
-    this->cellWindow_.Release();
-    const std::uint64_t nv = this->edgeCount_.Size();
-    std::uint64_t total = 0;
-    for (std::uint64_t v = 0; v < nv; ++v)
-    {
-      total += this->edgeCount_.Get(v);
-      this->edgeCount_.Set(v, static_cast<std::uint32_t>(total)); // bucket end
-    }
-    Array<EdgeRec> buckets(this->dml_, std::max<std::uint64_t>(total, 1));
-    for (std::uint64_t i = 0; i < this->numEdges_; ++i)
-    {
-      const EdgeRec e = this->edges_.Get(i);
-      const std::uint32_t end = this->edgeCount_.Get(e.a) - 1;
-      this->edgeCount_.Set(e.a, end);
-      buckets.Set(end, e);
-      if ((i & 1023) == 0)
-      {
-        this->progress_.Tick(0.5 * double(i) / double(this->numEdges_));
-      }
-    }
-    this->edges_.Close();
-    std::vector<EdgeRec> bucket;
-    for (std::uint64_t v = 0; v < nv; ++v)
-    {
-      const std::uint64_t begin = this->edgeCount_.Get(v);
-      const std::uint64_t end = v + 1 < nv ? this->edgeCount_.Get(v + 1) : total;
-      if (begin == end)
-      {
-        continue;
-      }
-      bucket.resize(end - begin);
-      buckets.Read(begin, end - begin, bucket.data());
-      std::sort(bucket.begin(), bucket.end(),
-        [](const EdgeRec& x, const EdgeRec& y) { return x.b < y.b; });
-      for (std::size_t k = 0; k < bucket.size(); ++k)
-      {
-        const bool single = (k == 0 || bucket[k - 1].b != bucket[k].b) &&
-          (k + 1 == bucket.size() || bucket[k + 1].b != bucket[k].b);
-        if (single)
-        {
-          this->AddBoundaryPlane(bucket[k]);
-        }
-      }
-      if ((v & 1023) == 0)
-      {
-        this->progress_.Tick(0.5 + 0.5 * double(v) / double(nv));
-      }
-    }
-    this->edgeCount_.Close();
-  }
-
-  void AddBoundaryPlane(const EdgeRec& e)
-  {
-    const VertexRec a = this->vertices_.Get(e.a);
-    const VertexRec b = this->vertices_.Get(e.b);
-    const VertexRec c = this->vertices_.Get(e.third);
-    const double ed[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
-    const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
-    const double fn[3] = { ed[1] * e2[2] - ed[2] * e2[1], ed[2] * e2[0] - ed[0] * e2[2],
-      ed[0] * e2[1] - ed[1] * e2[0] };
-    // normal of the constraint plane: perpendicular to the edge, in the face's plane
-    double n[3] = { ed[1] * fn[2] - ed[2] * fn[1], ed[2] * fn[0] - ed[0] * fn[2],
-      ed[0] * fn[1] - ed[1] * fn[0] };
-    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-    const double el2 = ed[0] * ed[0] + ed[1] * ed[1] + ed[2] * ed[2];
-    if (!(len > 0) || !(el2 > 0))
-    {
-      return;
-    }
-    n[0] /= len;
-    n[1] /= len;
-    n[2] /= len;
-    const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
-    const double w = this->options_.boundaryWeight * el2;
-    const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
-    for (std::uint32_t cell : { a.cell, b.cell })
-    {
-      this->UpdateCell(cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
-    }
-  }
-
-  // Applies f to cell record `cell` in place: the block's memory in core, a pinned page out of
-  // core (no read and write of the whole record).
-  template <class F>
-  void UpdateCell(std::uint32_t cell, F&& f)
-  {
-    f(this->cellWindow_.At(this->cells_.Id(), cell));
-  }
-
-  void AddTriangle(const std::uint32_t* f)
-  {
-    if (this->options_.boundaryQuadrics)
-    {
-      this->AppendEdges(f);
-    }
-    const storage::BlockId vid = this->vertices_.Id();
-    const VertexRec a = this->vertexWindow_.At(vid, f[0]);
-    const VertexRec b = this->vertexWindow_.At(vid, f[1]);
-    const VertexRec c = this->vertexWindow_.At(vid, f[2]);
-    // Area-weighted plane quadric of the face (Garland-Heckbert), added to each corner's cell.
-    const double e1[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
-    const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
-    double n[3] = { e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-      e1[0] * e2[1] - e1[1] * e2[0] };
-    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-    if (len > 0)
-    {
-      n[0] /= len;
-      n[1] /= len;
-      n[2] /= len;
-      const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
-      const double w = 0.5 * len; // area
-      const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
-      const std::uint32_t cs[3] = { a.cell, b.cell, c.cell };
-      for (std::uint32_t cell : cs)
-      {
-        this->UpdateCell(cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
-      }
-    }
-    if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
-    {
-      // rotate the smallest cell first (orientation kept) and count it in that cell's bucket
-      std::uint32_t t[3] = { a.cell, b.cell, c.cell };
-      const int m = t[0] < t[1] ? (t[0] < t[2] ? 0 : 2) : (t[1] < t[2] ? 1 : 2);
-      const std::uint32_t r0 = t[m], r1 = t[(m + 1) % 3], r2 = t[(m + 2) % 3];
-      this->UpdateCell(r0, [](CellRec& rec) { ++rec.triangles; });
-      this->triangles_.Append(r0, r1, r2);
-    }
-  }
-
-  // Minimizes the cell quadric with a pseudo-inverse about the cell's mean (Lindstrom); when the
-  // minimizer leaves the cell (by more than placementSlack), the fallback is used.
-  void Representative(const CellRec& rec, double p[3])
-  {
-    const double inv = 1.0 / double(std::max<std::uint32_t>(rec.count, 1));
-    const Eigen::Vector3d mean(rec.sum[0] * inv, rec.sum[1] * inv, rec.sum[2] * inv);
-    Eigen::Matrix3d A;
-    const double* q = rec.q.q;
-    A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
-    const Eigen::Vector3d b(q[3], q[6], q[8]);
-    Eigen::Vector3d x = mean;
-    Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(A);
-    const Eigen::Vector3d ev = es.eigenvalues();
-    const double maxEv = ev.cwiseAbs().maxCoeff();
-    if (maxEv > 0)
-    {
-      Eigen::Vector3d inverse = Eigen::Vector3d::Zero();
-      for (int k = 0; k < 3; ++k)
-      {
-        if (std::abs(ev[k]) > this->options_.singularThreshold * maxEv)
-        {
-          inverse[k] = 1.0 / ev[k];
-        }
-      }
-      const Eigen::Matrix3d& V = es.eigenvectors();
-      x = mean + V * inverse.asDiagonal() * V.transpose() * (-b - A * mean);
-    }
-    // inside the cell (with a tolerance for points on its faces)?
-    const std::uint64_t key = this->grid_.Key(mean[0], mean[1], mean[2]);
-    const double eps = std::max(this->options_.placementSlack, 1e-6) * this->grid_.cellSize;
-    bool inside = true;
-    {
-      std::uint64_t k = key;
-      const std::uint32_t iz = k % this->grid_.dims[2];
-      k /= this->grid_.dims[2];
-      const std::uint32_t iy = k % this->grid_.dims[1];
-      const std::uint32_t ix = static_cast<std::uint32_t>(k / this->grid_.dims[1]);
-      const std::uint32_t idx[3] = { ix, iy, iz };
-      for (int d = 0; d < 3; ++d)
-      {
-        const double lo = this->grid_.origin[d] + idx[d] * this->grid_.cellSize;
-        const double hi = lo + this->grid_.cellSize;
-        if (x[d] < lo - eps || x[d] > hi + eps)
-        {
-          inside = false;
-        }
-      }
-    }
-    if (!std::isfinite(x[0]) || !std::isfinite(x[1]) || !std::isfinite(x[2]))
-    {
-      inside = false;
-    }
-    if (inside)
-    {
-      p[0] = x[0];
-      p[1] = x[1];
-      p[2] = x[2];
-      return;
-    }
-    if (this->options_.fallback == ClusterFallback::SampledVertex)
-    {
-      p[0] = rec.first[0];
-      p[1] = rec.first[1];
-      p[2] = rec.first[2];
-    }
-    else
-    {
-      p[0] = mean[0];
-      p[1] = mean[1];
-      p[2] = mean[2];
-    }
-  }
-
-  DML& dml_;
-  ClusterGrid grid_;
-  const ClusterOptions& options_;
-  bool configure_;
-  Progress& progress_;
-  io::MeshHeader header_;
-  io::VertexLayout layout_;
-  std::size_t attrStride_ = 0;
-  std::vector<float> attrBuf_;
-  Array<VertexRec> vertices_;
-  Array<CellRec> cells_;
-  PinWindow<VertexRec> vertexWindow_{ dml_, storage::Access::Write };
-  PinWindow<CellRec> cellWindow_{ dml_, storage::Access::Write };
-  storage::BlockId attrBlock_ = -1;
-  CellMap cellMap_;
+  DML& dml;
+  ClusterGrid grid;
+  const ClusterOptions& options;
+  bool configure;
+  Progress& progress;
+  io::MeshHeader header;
+  io::VertexLayout layout;
+  std::size_t attrStride = 0;
+  std::vector<float> attrBuf;
+  Array<VertexRec> vertices;
+  Array<CellRec> cells;
+  PinWindow<VertexRec> vertexWindow{ dml, storage::Access::Write };
+  PinWindow<CellRec> cellWindow{ dml, storage::Access::Write };
+  storage::BlockId attrBlock = -1;
+  CellMap cellMap;
   // Direct-mapped cache of recent key -> cell lookups in front of the cell map (a fixed 128 KiB
   // working set): scanner-ordered input revisits the cells of the sweep front all the time, and
   // this keeps those lookups off the DML's pages.
   static constexpr std::size_t kRecent = 8192;
-  std::vector<KeySlot> recent_ = std::vector<KeySlot>(kRecent, KeySlot{ 0, 0 });
-  TriangleSet triangles_;
-  Array<TriSlot> deferred_;
-  Array<EdgeRec> edges_;
-  Array<std::uint32_t> edgeCount_;
-  std::uint64_t numEdges_ = 0;
-  std::uint64_t deferredCount_ = 0;
-  std::uint32_t numCells_ = 0;
-  std::uint64_t verticesSeen_ = 0;
-  std::uint64_t expected_ = 0, done_ = 0;
-  std::uint64_t expectedHint_ = 0; // see ExpectSizes
+  std::vector<KeySlot> recent = std::vector<KeySlot>(kRecent, KeySlot{ 0, 0 });
+  TriangleSet triangles;
+  Array<TriSlot> deferred;
+  Array<EdgeRec> edges;
+  Array<std::uint32_t> edgeCount;
+  std::uint64_t numEdges = 0;
+  std::uint64_t deferredCount = 0;
+  std::uint32_t numCells = 0;
+  std::uint64_t verticesSeen = 0;
+  std::uint64_t expected = 0, done = 0;
+  std::uint64_t expectedHint = 0; // see ExpectSizes
 };
+
+// The clustering pass, as free functions over the state.
+void BeginInput(ClusterState& cluster, const io::MeshHeader& h);
+void AddVertices(ClusterState& cluster, const io::VertexChunk& c);
+void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count);
+void EndInput(ClusterState& cluster, const io::ReadStats&);
+void ReleaseInputBlocks(ClusterState& cluster);
+void FinishTriangles(ClusterState& cluster);
+void FinishBoundaries(ClusterState& cluster);
+void ExpectSizes(ClusterState& cluster, std::uint64_t verticesAndFaces);
+std::uint64_t Cells(const ClusterState& cluster);
+std::uint64_t Candidates(const ClusterState& cluster);
+std::uint64_t OutputTriangles(const ClusterState& cluster);
+void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats);
+void Tick(ClusterState& cluster, std::uint64_t more = 0);
+void AddCell(ClusterState& cluster, const float* p);
+void AccumulateAttributes(
+  ClusterState& cluster, const io::VertexChunk& c, std::size_t i, std::uint32_t cell);
+void Defer(ClusterState& cluster, const std::uint32_t* f);
+void AppendEdges(ClusterState& cluster, const std::uint32_t* f);
+void AddBoundaryQuadrics(ClusterState& cluster);
+void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e);
+template <class F>
+void UpdateCell(ClusterState& cluster, std::uint32_t cell, F&& f);
+void AddTriangle(ClusterState& cluster, const std::uint32_t* f);
+void Representative(ClusterState& cluster, const CellRec& rec, double p[3]);
+
+void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
+{
+  if (cluster.configure && h.vertexCount)
+  {
+    // The paper's Config: the table of structures with their maximum counts decides the mode.
+    storage::Profile profile = cluster.options.storage;
+    const std::uint64_t gridCells =
+      std::uint64_t(cluster.grid.dims[0]) * cluster.grid.dims[1] * cluster.grid.dims[2];
+    profile.structures.clear();
+    AddClusterStructures(profile, h.vertexCount, h.faceCount, gridCells);
+    cluster.dml.Config(profile);
+  }
+  cluster.header = h;
+  cluster.layout = h.layout;
+  cluster.attrStride = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 4 : 0) +
+    (h.layout.texcoords ? 2 : 0) + h.layout.scalars.size();
+  cluster.vertices = Array<VertexRec>(cluster.dml, std::max<std::uint64_t>(h.vertexCount, 1024));
+  cluster.cells = Array<CellRec>(cluster.dml, 1024);
+  if (cluster.attrStride)
+  {
+    cluster.attrBlock = cluster.dml.OpenBlock(cluster.attrStride * sizeof(float), 1024);
+    cluster.attrBuf.assign(cluster.attrStride, 0.f);
+  }
+  cluster.expected = h.vertexCount + h.faceCount;
+  if (!cluster.expected)
+  {
+    cluster.expected = cluster.expectedHint; // (compressed inputs announce no sizes)
+  }
+  else
+  {
+    // (nothing done yet in this phase: the announced sizes replace the estimate)
+    cluster.progress.Sized(h.vertexCount, h.faceCount);
+    cluster.progress.BeginPhase("cluster", kWork::kCluster * double(cluster.expected),
+      ClusterWorkAfterRead(
+        h.vertexCount, h.faceCount, cluster.options.maximumGridDimension, cluster.options));
+  }
+}
+
+void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
+{
+  if (c.first + c.count > cluster.vertices.Size())
+  {
+    cluster.vertexWindow.Release();
+    cluster.vertices.Resize(
+      std::max<std::uint64_t>(c.first + c.count, cluster.vertices.Size() * 2));
+  }
+  std::uint64_t lastKey = std::numeric_limits<std::uint64_t>::max();
+  std::uint32_t lastCell = kNoCell;
+  for (std::size_t i = 0; i < c.count; ++i)
+  {
+    if ((i & 4095) == 4095)
+    {
+      Tick(cluster, i);
+    }
+    const float* p = c.xyz + 3 * i;
+    const std::uint64_t key = cluster.grid.Key(p[0], p[1], p[2]);
+    std::uint32_t cell = lastCell;
+    if (key != lastKey)
+    {
+      KeySlot& cached = cluster.recent[Mix(key) & (ClusterState::kRecent - 1)];
+      if (cached.key == key + 1)
+      {
+        cell = static_cast<std::uint32_t>(cached.cell);
+      }
+      else
+      {
+        bool inserted = false;
+        cell = cluster.cellMap.FindOrInsert(key, cluster.numCells, &inserted);
+        if (inserted)
+        {
+          AddCell(cluster, p);
+        }
+        cached = KeySlot{ key + 1, cell };
+      }
+      lastKey = key;
+      lastCell = cell;
+    }
+    cluster.vertexWindow.At(cluster.vertices.Id(), c.first + i) =
+      VertexRec{ p[0], p[1], p[2], cell };
+    UpdateCell(cluster, cell, [p](CellRec& rec) {
+      rec.sum[0] += p[0];
+      rec.sum[1] += p[1];
+      rec.sum[2] += p[2];
+      ++rec.count;
+    });
+    if (cluster.attrStride)
+    {
+      AccumulateAttributes(cluster, c, i, cell);
+    }
+  }
+  cluster.verticesSeen = std::max<std::uint64_t>(cluster.verticesSeen, c.first + c.count);
+  cluster.done += c.count;
+  Tick(cluster);
+}
+
+void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count)
+{
+  for (std::size_t t = 0; t < count; ++t)
+  {
+    if ((t & 4095) == 4095)
+    {
+      Tick(cluster, t);
+    }
+    const std::uint32_t* f = idx + 3 * t;
+    if (f[0] >= cluster.verticesSeen || f[1] >= cluster.verticesSeen ||
+      f[2] >= cluster.verticesSeen)
+    {
+      // faces before their vertices (e.g. a PLY with the face element first): keep for End()
+      Defer(cluster, f);
+      continue;
+    }
+    AddTriangle(cluster, f);
+  }
+  cluster.done += count;
+  Tick(cluster);
+}
+
+void EndInput(ClusterState& cluster, const io::ReadStats&)
+{
+  if (cluster.deferredCount)
+  {
+    for (std::uint64_t i = 0; i < cluster.deferredCount; ++i)
+    {
+      TriSlot s = cluster.deferred.Get(i);
+      if (s.v[0] >= cluster.verticesSeen || s.v[1] >= cluster.verticesSeen ||
+        s.v[2] >= cluster.verticesSeen)
+      {
+        throw io::MeshIOError("a face references vertex " +
+          std::to_string(std::max({ s.v[0], s.v[1], s.v[2] })) + " but the mesh has only " +
+          std::to_string(cluster.verticesSeen) + " vertices");
+      }
+      AddTriangle(cluster, s.v);
+    }
+    cluster.deferred.Close();
+  }
+}
+
+// --- after the read
+void ReleaseInputBlocks(ClusterState& cluster)
+{
+  cluster.vertexWindow.Release();
+  cluster.cellWindow.Release();
+  cluster.vertices.Close();
+  cluster.cellMap.Release();
+}
+
+void FinishTriangles(ClusterState& cluster)
+{
+  cluster.triangles.Finish(cluster.cells, cluster.numCells, cluster.progress);
+}
+
+void FinishBoundaries(ClusterState& cluster) { AddBoundaryQuadrics(cluster); }
+
+// The bounds pass's estimate of vertices + faces, for inputs whose header has no sizes.
+void ExpectSizes(ClusterState& cluster, std::uint64_t verticesAndFaces)
+{
+  cluster.expectedHint = verticesAndFaces;
+}
+
+std::uint64_t Cells(const ClusterState& cluster) { return cluster.numCells; }
+
+std::uint64_t Candidates(const ClusterState& cluster) { return cluster.triangles.Candidates(); }
+
+std::uint64_t OutputTriangles(const ClusterState& cluster) { return cluster.triangles.Size(); }
+
+void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
+{
+  const std::uint64_t numTris = cluster.triangles.Size();
+  // Number the cells used by output triangles, in cell order.
+  Array<std::uint32_t> outIndex(cluster.dml, std::max<std::uint64_t>(cluster.numCells, 1));
+  {
+    const std::uint32_t unused = kNoCell;
+    cluster.dml.Fill(outIndex.Id(), &unused);
+  }
+  auto& order = cluster.triangles.Order();
+  // Progress: 4 steps over cells + triangles (mark, number, vertices, triangles).
+  const double total = 2.0 * double(cluster.numCells) + 2.0 * double(numTris) + 1.0;
+  order.ForEachChunk(0, numTris, storage::Access::Read,
+    [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
+      for (std::uint64_t j = 0; j < n; ++j)
+      {
+        if (((f + j) & 4095) == 0)
+        {
+          cluster.progress.Tick(double(f + j) / total);
+        }
+        for (int k = 0; k < 3; ++k)
+        {
+          outIndex.Set(d[j].v[k], 0);
+        }
+      }
+    });
+  std::uint32_t numOut = 0;
+  for (std::uint32_t c = 0; c < cluster.numCells; ++c)
+  {
+    if ((c & 4095) == 0)
+    {
+      cluster.progress.Tick(double(numTris + c) / total);
+    }
+    if (outIndex.Get(c) != kNoCell)
+    {
+      outIndex.Set(c, numOut++);
+    }
+  }
+  cluster.dml.Reconfigure(); // the input-sized blocks are gone: in core from here if it fits
+
+  io::MeshHeader h;
+  h.format = cluster.header.format;
+  h.vertexCount = numOut;
+  h.faceCount = numTris;
+  h.layout = cluster.layout;
+  out.Begin(h);
+
+  const std::size_t chunk = 1 << 13;
+  std::vector<float> xyz, normals, texcoords, scalars;
+  std::vector<std::uint8_t> rgba;
+  xyz.reserve(3 * chunk);
+  std::vector<float> attr(cluster.attrStride);
+  std::uint64_t first = 0;
+  auto flush = [&]() {
+    io::VertexChunk vc;
+    vc.first = first;
+    vc.count = xyz.size() / 3;
+    vc.xyz = xyz.data();
+    vc.normals = cluster.layout.normals ? normals.data() : nullptr;
+    vc.rgba = cluster.layout.colors ? rgba.data() : nullptr;
+    vc.texcoords = cluster.layout.texcoords ? texcoords.data() : nullptr;
+    vc.scalars = cluster.layout.scalars.empty() ? nullptr : scalars.data();
+    if (vc.count)
+    {
+      out.Vertices(vc);
+    }
+    first += vc.count;
+    xyz.clear();
+    normals.clear();
+    rgba.clear();
+    texcoords.clear();
+    scalars.clear();
+  };
+  for (std::uint32_t c = 0; c < cluster.numCells; ++c)
+  {
+    if (outIndex.Get(c) == kNoCell)
+    {
+      continue;
+    }
+    const CellRec rec = cluster.cells.Get(c);
+    double p[3];
+    Representative(cluster, rec, p);
+    if (cluster.options.exportQuadric)
+    {
+      cluster.options.exportQuadric(first + xyz.size() / 3, rec.q.q);
+    }
+    xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
+    if (cluster.attrStride)
+    {
+      cluster.dml.Read(cluster.attrBlock, cluster.attrStride * sizeof(float), c, attr.data());
+      const float inv = rec.count ? 1.0f / float(rec.count) : 0.f;
+      std::size_t k = 0;
+      if (cluster.layout.normals)
+      {
+        float n[3] = { attr[0], attr[1], attr[2] };
+        const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+        const float s = len > 0 ? 1.0f / len : 0.f;
+        normals.insert(normals.end(), { n[0] * s, n[1] * s, n[2] * s });
+        k = 3;
+      }
+      if (cluster.layout.colors)
+      {
+        for (int j = 0; j < 4; ++j)
+        {
+          const float v = std::round(attr[k + j] * inv);
+          rgba.push_back(static_cast<std::uint8_t>(std::clamp(v, 0.f, 255.f)));
+        }
+        k += 4;
+      }
+      if (cluster.layout.texcoords)
+      {
+        texcoords.insert(texcoords.end(), { attr[k] * inv, attr[k + 1] * inv });
+        k += 2;
+      }
+      for (std::size_t j = 0; j < cluster.layout.scalars.size(); ++j)
+      {
+        scalars.push_back(attr[k + j] * inv);
+      }
+    }
+    if (xyz.size() / 3 == chunk)
+    {
+      flush();
+      cluster.progress.Tick(double(numTris + cluster.numCells + c) / total);
+    }
+  }
+  flush();
+
+  std::vector<std::uint32_t> tri;
+  tri.reserve(3 * chunk);
+  order.ForEachChunk(0, numTris, storage::Access::Read,
+    [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
+      for (std::uint64_t j = 0; j < n; ++j)
+      {
+        if (((f + j) & 4095) == 0)
+        {
+          cluster.progress.Tick(
+            double(numTris + 2 * std::uint64_t(cluster.numCells) + f + j) / total);
+        }
+        for (int k = 0; k < 3; ++k)
+        {
+          tri.push_back(outIndex.Get(d[j].v[k]));
+        }
+        if (tri.size() == 3 * chunk)
+        {
+          out.Triangles(tri.data(), chunk);
+          tri.clear();
+        }
+      }
+    });
+  if (!tri.empty())
+  {
+    out.Triangles(tri.data(), tri.size() / 3);
+  }
+  io::ReadStats os;
+  os.vertices = numOut;
+  os.triangles = numTris;
+  os.polygons = numTris;
+  out.End(os);
+  stats.outputVertices = numOut;
+  stats.outputTriangles = numTris;
+}
+
+void Tick(ClusterState& cluster, std::uint64_t more)
+{
+  const double done = double(cluster.done + more);
+  cluster.progress.Tick(cluster.expected ? done / double(cluster.expected) : 0.0);
+}
+
+void AddCell(ClusterState& cluster, const float* p)
+{
+  if (cluster.numCells == kNoCell - 1)
+  {
+    throw std::runtime_error("more than 4 billion grid cells are occupied");
+  }
+  if (cluster.numCells == cluster.cells.Size())
+  {
+    cluster.cellWindow.Release();
+    cluster.cells.Resize(cluster.cells.Size() * 2);
+    if (cluster.attrStride)
+    {
+      cluster.dml.Resize(cluster.attrBlock, cluster.cells.Size());
+    }
+  }
+  CellRec rec{};
+  rec.first[0] = p[0];
+  rec.first[1] = p[1];
+  rec.first[2] = p[2];
+  cluster.cells.Set(cluster.numCells, rec);
+  ++cluster.numCells;
+}
+
+void AccumulateAttributes(
+  ClusterState& cluster, const io::VertexChunk& c, std::size_t i, std::uint32_t cell)
+{
+  const std::size_t es = cluster.attrStride * sizeof(float);
+  cluster.dml.Read(cluster.attrBlock, es, cell, cluster.attrBuf.data());
+  std::size_t k = 0;
+  if (c.normals)
+  {
+    for (int j = 0; j < 3; ++j)
+    {
+      cluster.attrBuf[k + j] += c.normals[3 * i + j];
+    }
+    k += 3;
+  }
+  if (c.rgba)
+  {
+    for (int j = 0; j < 4; ++j)
+    {
+      cluster.attrBuf[k + j] += c.rgba[4 * i + j];
+    }
+    k += 4;
+  }
+  if (c.texcoords)
+  {
+    cluster.attrBuf[k] += c.texcoords[2 * i];
+    cluster.attrBuf[k + 1] += c.texcoords[2 * i + 1];
+    k += 2;
+  }
+  const std::size_t ns = cluster.layout.scalars.size();
+  if (c.scalars)
+  {
+    for (std::size_t j = 0; j < ns; ++j)
+    {
+      cluster.attrBuf[k + j] += c.scalars[ns * i + j];
+    }
+  }
+  cluster.dml.Write(cluster.attrBlock, es, cell, cluster.attrBuf.data());
+}
+
+void Defer(ClusterState& cluster, const std::uint32_t* f)
+{
+  if (!cluster.deferred.IsOpen())
+  {
+    cluster.deferred = Array<TriSlot>(cluster.dml, 1024);
+  }
+  if (cluster.deferredCount == cluster.deferred.Size())
+  {
+    cluster.deferred.Resize(cluster.deferred.Size() * 2);
+  }
+  cluster.deferred.Set(cluster.deferredCount++, TriSlot{ { f[0], f[1], f[2] }, 1 });
+}
+
+// Boundary quadrics (optional): every face's three undirected edges are kept in a DML block and
+// counted per smaller vertex; after the read they are bucketed by that vertex (the same
+// counting sort as the output triangles), and an edge met exactly once is a boundary edge of
+// the input: a plane through it, perpendicular to its face, weighted by boundaryWeight times
+// its squared length, goes into the quadrics of both endpoints' cells.
+void AppendEdges(ClusterState& cluster, const std::uint32_t* f)
+{
+  if (!cluster.edges.IsOpen())
+  {
+    // Three edges per face: sized from the header when it announces the faces (as the
+    // vertices are), so that no doubling copies the whole block at once (a gap in the polls
+    // that grows with the input).
+    cluster.edges = Array<EdgeRec>(
+      cluster.dml, std::max<std::uint64_t>(1024, 3 * cluster.header.faceCount));
+    cluster.edgeCount =
+      Array<std::uint32_t>(cluster.dml, std::max<std::uint64_t>(cluster.vertices.Size(), 1));
+  }
+  for (int k = 0; k < 3; ++k)
+  {
+    const std::uint32_t u = f[k], v = f[(k + 1) % 3], w = f[(k + 2) % 3];
+    const EdgeRec e{ std::min(u, v), std::max(u, v), w, u > v ? 1u : 0u };
+    if (cluster.numEdges == cluster.edges.Size())
+    {
+      cluster.edges.Resize(cluster.edges.Size() * 2);
+    }
+    cluster.edges.Set(cluster.numEdges++, e);
+    if (e.a >= cluster.edgeCount.Size())
+    {
+      cluster.edgeCount.Resize(std::max<std::uint64_t>(e.a + 1, 2 * cluster.edgeCount.Size()));
+    }
+    cluster.edgeCount.Set(e.a, cluster.edgeCount.Get(e.a) + 1);
+  }
+}
+
+void AddBoundaryQuadrics(ClusterState& cluster)
+{
+  if (!cluster.edges.IsOpen())
+  {
+    return;
+  }
+  cluster.vertexWindow.Release();
+  cluster.cellWindow.Release();
+  const std::uint64_t nv = cluster.edgeCount.Size();
+  std::uint64_t total = 0;
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    total += cluster.edgeCount.Get(v);
+    cluster.edgeCount.Set(v, static_cast<std::uint32_t>(total)); // bucket end
+  }
+  Array<EdgeRec> buckets(cluster.dml, std::max<std::uint64_t>(total, 1));
+  for (std::uint64_t i = 0; i < cluster.numEdges; ++i)
+  {
+    const EdgeRec e = cluster.edges.Get(i);
+    const std::uint32_t end = cluster.edgeCount.Get(e.a) - 1;
+    cluster.edgeCount.Set(e.a, end);
+    buckets.Set(end, e);
+    if ((i & 1023) == 0)
+    {
+      cluster.progress.Tick(0.5 * double(i) / double(cluster.numEdges));
+    }
+  }
+  cluster.edges.Close();
+  std::vector<EdgeRec> bucket;
+  for (std::uint64_t v = 0; v < nv; ++v)
+  {
+    const std::uint64_t begin = cluster.edgeCount.Get(v);
+    const std::uint64_t end = v + 1 < nv ? cluster.edgeCount.Get(v + 1) : total;
+    if (begin == end)
+    {
+      continue;
+    }
+    bucket.resize(end - begin);
+    buckets.Read(begin, end - begin, bucket.data());
+    std::sort(bucket.begin(), bucket.end(),
+      [](const EdgeRec& x, const EdgeRec& y) { return x.b < y.b; });
+    for (std::size_t k = 0; k < bucket.size(); ++k)
+    {
+      const bool single = (k == 0 || bucket[k - 1].b != bucket[k].b) &&
+        (k + 1 == bucket.size() || bucket[k + 1].b != bucket[k].b);
+      if (single)
+      {
+        AddBoundaryPlane(cluster, bucket[k]);
+      }
+    }
+    if ((v & 1023) == 0)
+    {
+      cluster.progress.Tick(0.5 + 0.5 * double(v) / double(nv));
+    }
+  }
+  cluster.edgeCount.Close();
+}
+
+void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e)
+{
+  const VertexRec a = cluster.vertices.Get(e.a);
+  const VertexRec b = cluster.vertices.Get(e.b);
+  const VertexRec c = cluster.vertices.Get(e.third);
+  const double ed[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
+  const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
+  const double fn[3] = { ed[1] * e2[2] - ed[2] * e2[1], ed[2] * e2[0] - ed[0] * e2[2],
+    ed[0] * e2[1] - ed[1] * e2[0] };
+  // normal of the constraint plane: perpendicular to the edge, in the face's plane
+  double n[3] = { ed[1] * fn[2] - ed[2] * fn[1], ed[2] * fn[0] - ed[0] * fn[2],
+    ed[0] * fn[1] - ed[1] * fn[0] };
+  const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  const double el2 = ed[0] * ed[0] + ed[1] * ed[1] + ed[2] * ed[2];
+  if (!(len > 0) || !(el2 > 0))
+  {
+    return;
+  }
+  n[0] /= len;
+  n[1] /= len;
+  n[2] /= len;
+  const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
+  const double w = cluster.options.boundaryWeight * el2;
+  const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
+  for (std::uint32_t cell : { a.cell, b.cell })
+  {
+    UpdateCell(cluster, cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
+  }
+}
+
+// Applies f to cell record `cell` in place: the block's memory in core, a pinned page out of
+// core (no read and write of the whole record).
+template <class F>
+void UpdateCell(ClusterState& cluster, std::uint32_t cell, F&& f)
+{
+  f(cluster.cellWindow.At(cluster.cells.Id(), cell));
+}
+
+void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
+{
+  if (cluster.options.boundaryQuadrics)
+  {
+    AppendEdges(cluster, f);
+  }
+  const storage::BlockId vid = cluster.vertices.Id();
+  const VertexRec a = cluster.vertexWindow.At(vid, f[0]);
+  const VertexRec b = cluster.vertexWindow.At(vid, f[1]);
+  const VertexRec c = cluster.vertexWindow.At(vid, f[2]);
+  // Area-weighted plane quadric of the face (Garland-Heckbert), added to each corner's cell.
+  const double e1[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
+  const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
+  double n[3] = { e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+    e1[0] * e2[1] - e1[1] * e2[0] };
+  const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  if (len > 0)
+  {
+    n[0] /= len;
+    n[1] /= len;
+    n[2] /= len;
+    const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
+    const double w = 0.5 * len; // area
+    const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
+    const std::uint32_t cs[3] = { a.cell, b.cell, c.cell };
+    for (std::uint32_t cell : cs)
+    {
+      UpdateCell(cluster, cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
+    }
+  }
+  if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
+  {
+    // rotate the smallest cell first (orientation kept) and count it in that cell's bucket
+    std::uint32_t t[3] = { a.cell, b.cell, c.cell };
+    const int m = t[0] < t[1] ? (t[0] < t[2] ? 0 : 2) : (t[1] < t[2] ? 1 : 2);
+    const std::uint32_t r0 = t[m], r1 = t[(m + 1) % 3], r2 = t[(m + 2) % 3];
+    UpdateCell(cluster, r0, [](CellRec& rec) { ++rec.triangles; });
+    cluster.triangles.Append(r0, r1, r2);
+  }
+}
+
+// Minimizes the cell quadric with a pseudo-inverse about the cell's mean (Lindstrom); when the
+// minimizer leaves the cell (by more than placementSlack), the fallback is used.
+void Representative(ClusterState& cluster, const CellRec& rec, double p[3])
+{
+  const double inv = 1.0 / double(std::max<std::uint32_t>(rec.count, 1));
+  const Eigen::Vector3d mean(rec.sum[0] * inv, rec.sum[1] * inv, rec.sum[2] * inv);
+  Eigen::Matrix3d A;
+  const double* q = rec.q.q;
+  A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
+  const Eigen::Vector3d b(q[3], q[6], q[8]);
+  Eigen::Vector3d x = mean;
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(A);
+  const Eigen::Vector3d ev = es.eigenvalues();
+  const double maxEv = ev.cwiseAbs().maxCoeff();
+  if (maxEv > 0)
+  {
+    Eigen::Vector3d inverse = Eigen::Vector3d::Zero();
+    for (int k = 0; k < 3; ++k)
+    {
+      if (std::abs(ev[k]) > cluster.options.singularThreshold * maxEv)
+      {
+        inverse[k] = 1.0 / ev[k];
+      }
+    }
+    const Eigen::Matrix3d& V = es.eigenvectors();
+    x = mean + V * inverse.asDiagonal() * V.transpose() * (-b - A * mean);
+  }
+  // inside the cell (with a tolerance for points on its faces)?
+  const std::uint64_t key = cluster.grid.Key(mean[0], mean[1], mean[2]);
+  const double eps = std::max(cluster.options.placementSlack, 1e-6) * cluster.grid.cellSize;
+  bool inside = true;
+  {
+    std::uint64_t k = key;
+    const std::uint32_t iz = k % cluster.grid.dims[2];
+    k /= cluster.grid.dims[2];
+    const std::uint32_t iy = k % cluster.grid.dims[1];
+    const std::uint32_t ix = static_cast<std::uint32_t>(k / cluster.grid.dims[1]);
+    const std::uint32_t idx[3] = { ix, iy, iz };
+    for (int d = 0; d < 3; ++d)
+    {
+      const double lo = cluster.grid.origin[d] + idx[d] * cluster.grid.cellSize;
+      const double hi = lo + cluster.grid.cellSize;
+      if (x[d] < lo - eps || x[d] > hi + eps)
+      {
+        inside = false;
+      }
+    }
+  }
+  if (!std::isfinite(x[0]) || !std::isfinite(x[1]) || !std::isfinite(x[2]))
+  {
+    inside = false;
+  }
+  if (inside)
+  {
+    p[0] = x[0];
+    p[1] = x[1];
+    p[2] = x[2];
+    return;
+  }
+  if (cluster.options.fallback == ClusterFallback::SampledVertex)
+  {
+    p[0] = rec.first[0];
+    p[1] = rec.first[1];
+    p[2] = rec.first[2];
+  }
+  else
+  {
+    p[0] = mean[0];
+    p[1] = mean[1];
+    p[2] = mean[2];
+  }
+}
+
+// The reader's sink: the clustering pass reads as it comes.
+class ClusterSink final : public io::MeshSink
+{
+public:
+  explicit ClusterSink(ClusterState& cluster)
+    : cluster_(cluster)
+  {
+  }
+  void Begin(const io::MeshHeader& h) override { BeginInput(this->cluster_, h); }
+  void Vertices(const io::VertexChunk& c) override { AddVertices(this->cluster_, c); }
+  void Triangles(const std::uint32_t* idx, std::size_t count) override
+  {
+    AddTriangles(this->cluster_, idx, count);
+  }
+  void End(const io::ReadStats& stats) override { EndInput(this->cluster_, stats); }
+  bool AbortRequested() override { return this->cluster_.progress.Aborted(); }
+
+private:
+  ClusterState& cluster_;
+};
+
 
 } // namespace
 
@@ -760,7 +821,8 @@ ClusterGrid ClusterGrid::Make(const std::array<double, 6>& b, int maximumGridDim
     g.origin[d] = b[2 * d];
     const double extent = b[2 * d + 1] - b[2 * d];
     g.dims[d] = std::max<std::uint32_t>(1,
-      static_cast<std::uint32_t>(std::min<double>(maximumGridDimension, std::ceil(extent / g.cellSize))));
+      static_cast<std::uint32_t>(
+        std::min<double>(maximumGridDimension, std::ceil(extent / g.cellSize))));
   }
   return g;
 }
@@ -842,8 +904,9 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
   }
   const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
 
-  ClusterSink sink(dml, grid, options, own.has_value(), progress);
-  sink.ExpectSizes(V + F);
+  ClusterState cluster(dml, grid, options, own.has_value(), progress);
+  ExpectSizes(cluster, V + F);
+  ClusterSink sink(cluster);
   {
     // (re-planned by the sink when the header announces the sizes)
     progress.BeginPhase("cluster", kWork::kCluster * double(V + F),
@@ -858,7 +921,7 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
   {
     options.sourceConsumed();
   }
-  const double cells = double(sink.Cells()), candidates = double(sink.Candidates());
+  const double cells = double(Cells(cluster)), candidates = double(Candidates(cluster));
   ClusterOptions noBoundaries = options;
   noBoundaries.boundaryQuadrics = false;
   if (options.boundaryQuadrics)
@@ -866,19 +929,19 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
     progress.BeginPhase("boundaries", kWork::kBoundaries * double(stats.inputTriangles),
       ClusterWorkAfter(cells, candidates, 0, noBoundaries));
     PhaseTimer timer(stats, dml, "boundaries");
-    sink.FinishBoundaries();
+    FinishBoundaries(cluster);
   }
-  sink.ReleaseInputBlocks();
+  ReleaseInputBlocks(cluster);
   {
     progress.BeginPhase("triangles", kWork::kTriangles * (candidates + cells),
       kWork::kOutput * (cells + candidates));
     PhaseTimer timer(stats, dml, "triangles");
-    sink.FinishTriangles();
+    FinishTriangles(cluster);
   }
   {
-    progress.BeginPhase("output", kWork::kOutput * (cells + double(sink.OutputTriangles())), 0.0);
+    progress.BeginPhase("output", kWork::kOutput * (cells + double(OutputTriangles(cluster))), 0.0);
     PhaseTimer timer(stats, dml, "output");
-    sink.Emit(output, stats);
+    Emit(cluster, output, stats);
   }
   progress.Finish();
   stats.storage = dml.GetStats();

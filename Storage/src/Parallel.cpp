@@ -58,12 +58,14 @@ void RethrowFirst(const std::vector<std::exception_ptr>& errors)
   }
 }
 
-void ForRanges(int T, std::uint64_t n, const RangeBody& body,
-  const std::function<void()>& beforeFallback, const std::function<void()>& poll)
+namespace
 {
-  auto begin = [n, T](int t) { return n * std::uint64_t(t) / std::uint64_t(T); };
+// body(t, begin(t), begin(t + 1), stop) on T threads; returns how many started (the caller runs
+// the rest). The first exception of any thread (or of poll) is rethrown once all are done.
+int RunRanges(int T, const std::function<std::uint64_t(int)>& begin, const RangeBody& body,
+  const std::function<void()>& poll, std::atomic<bool>& stop)
+{
   std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
-  std::atomic<bool> stop{ false };
   const int started = RunOnThreads(
     T,
     [&](int t) {
@@ -95,15 +97,9 @@ void ForRanges(int T, std::uint64_t n, const RangeBody& body,
     })
          : std::function<void()>());
   RethrowFirst(errors);
-  if (started < T)
-  {
-    if (beforeFallback)
-    {
-      beforeFallback();
-    }
-    body(0, begin(started), n, stop);
-  }
+  return started;
 }
+} // namespace
 
 Workers::Workers(DML& dml, const Phase& phase)
   : dml_(dml)
@@ -203,41 +199,10 @@ void Workers::Join()
 
 void Workers::Run(const RangeBody& body, const std::function<void()>& poll)
 {
-  const int T = this->count_;
-  std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
   std::atomic<bool> stop{ false };
-  const int started = RunOnThreads(
-    T,
-    [&](int t) {
-      try
-      {
-        body(t, this->Begin(t), this->Begin(t + 1), stop);
-      }
-      catch (...)
-      {
-        errors[std::size_t(t)] = std::current_exception();
-        stop = true;
-      }
-    },
-    nullptr,
-    poll ? std::function<void()>([&]() {
-      if (stop.load())
-      {
-        return;
-      }
-      try
-      {
-        poll();
-      }
-      catch (...)
-      {
-        errors[0] = std::current_exception();
-        stop = true;
-      }
-    })
-         : std::function<void()>());
-  RethrowFirst(errors);
-  if (started < T)
+  const int started =
+    RunRanges(this->count_, [this](int t) { return this->Begin(t); }, body, poll, stop);
+  if (started < this->count_)
   {
     const std::uint64_t from = this->Begin(started);
     this->Join();

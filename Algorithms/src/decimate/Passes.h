@@ -118,8 +118,6 @@ using placement::Lanes2;
 using storage::Array;
 using storage::BlockId;
 using storage::DML;
-using storage::ForRanges;
-using storage::RangeBody;
 using storage::RethrowFirst;
 using storage::RunOnThreads;
 using storage::View;

@@ -37,17 +37,11 @@ int RunOnThreads(int T, const std::function<void(int)>& work,
 // Rethrows the first exception of a phase's threads, if any.
 void RethrowFirst(const std::vector<std::exception_ptr>& errors);
 
-// Runs body(t, begin, end, stop) on [0, n) cut into T ranges, range t on thread t (0: the
-// calling one); the ranges of threads that could not be started run on the calling thread
-// afterwards, after beforeFallback. The bodies must be independent of each other (each writes
-// only its own range's records) and should return early once `stop` is set (another one threw,
-// e.g. an abort). With poll (e.g. a progress check), the calling thread polls while it waits for
-// the others: a range with one costly element is then still stopped by an abort, if the body
-// also checks `stop` inside that element.
+// A worker's body: its index t, its elements [begin, end), and the phase's stop flag (set when
+// another worker threw, e.g. an abort: return early). The bodies must be independent of each
+// other (each writes only its own ranges).
 using RangeBody =
   std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
-void ForRanges(int T, std::uint64_t n, const RangeBody& body,
-  const std::function<void()>& beforeFallback = nullptr, const std::function<void()>& poll = nullptr);
 
 // What a phase over [0, elements) needs to know to run in parallel.
 struct Phase
@@ -101,9 +95,11 @@ public:
   // Ends the helper: its writes become visible to the algorithm's DML (DML::Join). Call once
   // the workers are done, before the algorithm's DML is used for anything else; errors throw.
   void Join();
-  // body(t, Begin(t), Begin(t + 1), stop) on each worker, as ForRanges; the range of a worker
-  // that cannot be started runs on the calling thread afterwards (after the helper is joined,
-  // through the algorithm's DML, with every write allowed). Joins at the end.
+  // body(t, Begin(t), Begin(t + 1), stop) on each worker (0: the calling thread); the range of
+  // a worker that cannot be started runs on the calling thread afterwards (after the helper is
+  // joined, through the algorithm's DML, with every write allowed). With poll (e.g. a progress
+  // check), the calling thread polls every 2 ms while it waits for the others, so that one
+  // costly element on another worker does not hold an abort back. Joins at the end.
   void Run(const RangeBody& body, const std::function<void()>& poll = nullptr);
   // A phase of `tasks` different jobs over the same elements (e.g. one moves the quadrics, the
   // other the rest; their write ranges as declared for workers 0 and 1): task k on worker k
