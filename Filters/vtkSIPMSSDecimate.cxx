@@ -62,6 +62,14 @@ void vtkSIPMSSDecimate::FillRequest(sipmss::algorithms::SimplifyRequest& request
   request.lockBoundary = this->LockBoundary;
   request.boundaryWeight = this->BoundaryWeight;
   request.weldDistance = this->WeldDistance;
+  request.lockArray = this->LockArray ? this->LockArray : "";
+  request.selectionArray = this->SelectionArray ? this->SelectionArray : "";
+}
+
+vtkSIPMSSDecimate::~vtkSIPMSSDecimate()
+{
+  this->SetLockArray(nullptr);
+  this->SetSelectionArray(nullptr);
 }
 
 const char* vtkSIPMSSDecimate::PropertyName(sipmss::algorithms::Parameter parameter)
@@ -81,4 +89,7 @@ void vtkSIPMSSDecimate::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "BoundaryWeight: " << this->BoundaryWeight << "\n";
   os << indent << "WeldDistance: " << this->WeldDistance << "\n";
   os << indent << "PreClusterGridDimension: " << this->PreClusterGridDimension << "\n";
+  os << indent << "LockArray: " << (this->LockArray ? this->LockArray : "(none)") << "\n";
+  os << indent << "SelectionArray: " << (this->SelectionArray ? this->SelectionArray : "(none)")
+     << "\n";
 }

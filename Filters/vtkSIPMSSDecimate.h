@@ -89,9 +89,23 @@ public:
   vtkGetMacro(WeldDistance, double);
   ///@}
 
+  ///@{
+  /**
+   * Locks and selections by a point-data array of the input (its name; empty or null, the
+   * default: none). LockArray: vertices where it is not 0 never move and are never removed.
+   * SelectionArray: only vertices where it is not 0 move or go, and every triangle without one
+   * is kept as it was. A multi-component array is named NAME_K per component. Decimation only
+   * (not with PreClusterGridDimension > 0, whose clustering moves every vertex).
+   */
+  vtkSetStringMacro(LockArray);
+  vtkGetStringMacro(LockArray);
+  vtkSetStringMacro(SelectionArray);
+  vtkGetStringMacro(SelectionArray);
+  ///@}
+
 protected:
   vtkSIPMSSDecimate();
-  ~vtkSIPMSSDecimate() override = default;
+  ~vtkSIPMSSDecimate() override;
 
   int FillOutputPortInformation(int port, vtkInformation* info) override;
   int RequestData(vtkInformation*, vtkInformationVector**, vtkInformationVector*) override;
@@ -108,6 +122,8 @@ protected:
   double BoundaryWeight = 100.0;
   double WeldDistance = -1.0;
   int PreClusterGridDimension = 0;
+  char* LockArray = nullptr;
+  char* SelectionArray = nullptr;
 
 private:
   vtkSIPMSSDecimate(const vtkSIPMSSDecimate&) = delete;

@@ -56,6 +56,10 @@ const char* vtkSIPMSSFilterBase::PropertyName(sipmss::algorithms::Parameter para
       return "BoundaryWeight";
     case Parameter::WeldDistance:
       return "WeldDistance";
+    case Parameter::LockArray:
+      return "LockArray";
+    case Parameter::SelectionArray:
+      return "SelectionArray";
     case Parameter::MemoryBudget:
       return "MemoryBudgetMB";
     default:

@@ -58,6 +58,10 @@ const char* CliOption(Parameter p)
       return "--boundary-weight";
     case Parameter::WeldDistance:
       return "--weld";
+    case Parameter::LockArray:
+      return "--lock-array";
+    case Parameter::SelectionArray:
+      return "--selection-array";
     case Parameter::MemoryBudget:
       return "--memory-mb";
     default:
@@ -138,6 +142,17 @@ std::vector<ParameterProblem> Problems(const SimplifyRequest& r)
       "must be a finite number (negative: no welding), not " + Shown(r.weldDistance));
   }
   check(Parameter::Threads, IntegerInRange(r.threads, 0, kMaximumThreads));
+  // (two-stage moves every vertex in its first stage: nothing could stay as it was)
+  const std::string decimateOnly = std::string("applies to decimation only, not to ") +
+    ToString(r.algorithm) + " (whose clustering moves every vertex)";
+  if (!r.lockArray.empty() && r.algorithm != Algorithm::Decimate)
+  {
+    check(Parameter::LockArray, decimateOnly);
+  }
+  if (!r.selectionArray.empty() && r.algorithm != Algorithm::Decimate)
+  {
+    check(Parameter::SelectionArray, decimateOnly);
+  }
   return out;
 }
 
@@ -178,6 +193,8 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   o.lockBoundary = r.lockBoundary;
   o.boundaryWeight = r.EffectiveBoundaryWeight();
   o.weldDistance = r.weldDistance;
+  o.lockArray = r.lockArray;
+  o.selectionArray = r.selectionArray;
   o.storage = profile;
   o.threads = r.threads;
   if (r.algorithm == Algorithm::Decimate)

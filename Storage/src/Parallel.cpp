@@ -22,7 +22,7 @@ int RunOnThreads(int T, const std::function<void(int)>& work, const std::functio
         finished.fetch_add(1);
       }, started);
     }
-    catch (const std::system_error&)
+    catch (...) // (std::system_error, or std::bad_alloc for the thread's state)
     {
       if (onShort)
       {
@@ -112,6 +112,10 @@ Workers::Workers(DML& dml, const Phase& phase)
     if (phase.inCoreThreads && phase.elements >= phase.inCoreMin)
     {
       this->count_ = std::max(1, phase.threads);
+      if (phase.helperFirst != Phase::kHalf)
+      {
+        this->count_ = std::min(this->count_, 2); // (a split point makes two parts)
+      }
     }
     return;
   }
@@ -193,6 +197,7 @@ void Workers::Join()
   if (this->fork_)
   {
     std::unique_ptr<DML> fork = std::move(this->fork_);
+    this->count_ = 1; // (the helper is gone: what is left of the phase runs on one worker)
     this->dml_.Join(*fork);
   }
 }

@@ -16,7 +16,7 @@ import unittest
 
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
-from vtkmodules.vtkIOPLY import vtkPLYReader, vtkPLYWriter
+from vtkmodules.vtkIOPLY import vtkPLYReader
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
 from sipmss import vtkSIPMSSCluster, vtkSIPMSSDecimate
@@ -51,6 +51,27 @@ def sheet_with_a_seam(n=48, seed=3):
     return pd
 
 
+def write_ply(pd, path, point_arrays):
+    """A binary PLY of pd's points and triangles with float vertex properties (vtkPLYWriter writes
+    no other point arrays): point_arrays maps a name to a function of the point (x, y, z)."""
+    import struct
+    pts = vtk_to_numpy(pd.GetPoints().GetData())
+    conn = vtk_to_numpy(pd.GetPolys().GetConnectivityArray())
+    names = sorted(point_arrays)
+    with open(path, "wb") as f:
+        f.write(("ply\nformat binary_little_endian 1.0\nelement vertex %d\n"
+                 "property float x\nproperty float y\nproperty float z\n" % len(pts)).encode())
+        for name in names:
+            f.write(("property float %s\n" % name).encode())
+        f.write(("element face %d\nproperty list uchar int vertex_indices\nend_header\n"
+                 % (len(conn) // 3)).encode())
+        for p in pts:
+            values = [float(p[0]), float(p[1]), float(p[2])] + [float(point_arrays[n](*p)) for n in names]
+            f.write(struct.pack("<%df" % len(values), *values))
+        for t in range(len(conn) // 3):
+            f.write(struct.pack("<B3i", 3, *(int(i) for i in conn[3 * t:3 * t + 3])))
+
+
 def arrays(pd):
     return (vtk_to_numpy(pd.GetPoints().GetData()).astype("float64"),
             vtk_to_numpy(pd.GetPolys().GetConnectivityArray()).astype("int64"))
@@ -75,6 +96,8 @@ CASES = [
     (vtkSIPMSSDecimate, {"LockBoundary": True}, ["--lock-boundary"], True),
     (vtkSIPMSSDecimate, {"BoundaryWeight": 0.0}, ["--boundary-weight", "0"], True),
     (vtkSIPMSSDecimate, {"WeldDistance": 1e-6}, ["--weld", "1e-6"], True),
+    (vtkSIPMSSDecimate, {"LockArray": "keep"}, ["--lock-array", "keep"], True),
+    (vtkSIPMSSDecimate, {"SelectionArray": "region"}, ["--selection-array", "region"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 30}, ["--algorithm", "two-stage", "--grid", "30"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 300}, ["--algorithm", "two-stage"], True),
     (vtkSIPMSSDecimate, {"NumberOfThreads": 1, "OperationMode": 1},
@@ -90,11 +113,10 @@ class FrontEnds(unittest.TestCase):
     def setUpClass(cls):
         cls.tmp = tempfile.TemporaryDirectory()
         cls.input = os.path.join(cls.tmp.name, "sheet.ply")
-        w = vtkPLYWriter()
-        w.SetInputData(sheet_with_a_seam())
-        w.SetFileName(cls.input)
-        w.SetFileTypeToBinary()
-        assert w.Write() == 1
+        # (point arrays for the locks and the selection: a diagonal band, the right half)
+        write_ply(sheet_with_a_seam(), cls.input,
+                  {"keep": lambda x, y, z: 1.0 if abs(x - y) < 0.05 else 0.0,
+                   "region": lambda x, y, z: 1.0 if x > 0.5 else 0.0})
         cls.defaults = {}
 
     @classmethod

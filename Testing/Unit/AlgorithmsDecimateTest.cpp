@@ -563,6 +563,110 @@ TEST(AlgorithmsDecimate, LockBoundaryKeepsEveryBoundaryVertex)
   }
 }
 
+// Locks by a point array: every vertex where it is not 0 keeps its position and stays, in core
+// and out of core; without the array they would go (the same target removes some of them).
+TEST(AlgorithmsDecimate, LockArrayKeepsItsVerticesWhereTheyAre)
+{
+  Mesh g = Grid(24, Bumps);
+  g.scalarNames = { "lock" };
+  std::vector<std::size_t> locked;
+  for (std::size_t i = 0; i < g.Vertices(); ++i)
+  {
+    const bool lock = (i % 7) == 3;
+    g.scalars.push_back(lock ? 1.0f : 0.0f);
+    if (lock)
+    {
+      locked.push_back(i);
+    }
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 200;
+  Outcome free = Simplify(MemorySource(g), o);
+  std::size_t kept = 0;
+  for (std::size_t i : locked)
+  {
+    auto p = g.P(i);
+    kept += HasVertex(free.out, p[0], p[1], p[2]) ? 1 : 0;
+  }
+  EXPECT_LT(kept, locked.size() / 2) << "the test needs a target that removes locked vertices";
+  o.lockArray = "lock";
+  for (const bool outOfCore : { false, true })
+  {
+    o.storage.policy = outOfCore ? st::ModePolicy::OutOfCore : st::ModePolicy::Automatic;
+    o.storage.memoryBudget = outOfCore ? 64 * 1024 : 0;
+    Outcome r = Simplify(MemorySource(g), o);
+    ExpectValid(r.out);
+    EXPECT_LT(r.out.Triangles(), g.Triangles() / 2);
+    for (std::size_t i : locked)
+    {
+      auto p = g.P(i);
+      EXPECT_TRUE(HasVertex(r.out, p[0], p[1], p[2])) << "locked vertex " << i << " moved or went";
+    }
+  }
+  // An array the input does not have is an error that names it and the input's arrays.
+  o.lockArray = "missing";
+  try
+  {
+    Simplify(MemorySource(g), o);
+    ADD_FAILURE() << "no error for a missing lock array";
+  }
+  catch (const io::MeshIOError& e)
+  {
+    EXPECT_NE(std::string(e.what()).find("'missing'"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("lock"), std::string::npos) << e.what();
+  }
+}
+
+// A selection by a point array: every triangle with no selected vertex is in the output as it
+// was (the same corners, the same order); the selected part is simplified.
+TEST(AlgorithmsDecimate, SelectionArrayKeepsEverythingOutsideIt)
+{
+  Mesh g = Grid(24, Bumps);
+  g.scalarNames = { "region" };
+  for (std::size_t i = 0; i < g.Vertices(); ++i)
+  {
+    g.scalars.push_back(g.P(i)[0] > 0.5 ? 1.0f : 0.0f);
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 10;
+  o.selectionArray = "region";
+  Outcome r = Simplify(MemorySource(g), o);
+  ExpectValid(r.out);
+  EXPECT_LT(r.out.Triangles(), g.Triangles() * 3 / 4) << "the selected half is simplified";
+  using Corner = std::array<float, 3>;
+  auto corners = [](const Mesh& m, std::size_t f) {
+    std::array<Corner, 3> c;
+    for (int k = 0; k < 3; ++k)
+    {
+      const std::uint32_t v = m.tris[3 * f + k];
+      c[k] = { m.xyz[3 * v], m.xyz[3 * v + 1], m.xyz[3 * v + 2] };
+    }
+    // (a rotation that starts at the smallest corner: the same triangle whatever its first)
+    const int m0 = int(std::min_element(c.begin(), c.end()) - c.begin());
+    return std::array<Corner, 3>{ c[m0], c[(m0 + 1) % 3], c[(m0 + 2) % 3] };
+  };
+  std::set<std::array<Corner, 3>> output;
+  for (std::size_t f = 0; f < r.out.Triangles(); ++f)
+  {
+    output.insert(corners(r.out, f));
+  }
+  std::size_t outside = 0;
+  for (std::size_t f = 0; f < g.Triangles(); ++f)
+  {
+    bool selected = false;
+    for (int k = 0; k < 3; ++k)
+    {
+      selected |= g.scalars[g.tris[3 * f + k]] != 0.0f;
+    }
+    if (!selected)
+    {
+      ++outside;
+      EXPECT_EQ(output.count(corners(g, f)), 1u) << "triangle " << f << " outside the selection";
+    }
+  }
+  EXPECT_GT(outside, g.Triangles() / 3);
+}
+
 TEST(AlgorithmsDecimate, NoFlippedFacesOnBumpySphereAndTerrain)
 {
   {

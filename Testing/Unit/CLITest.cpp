@@ -8,6 +8,8 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <set>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -434,6 +436,8 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     "--algorithm cluster --max-error 1",         // the options of decimation only
     "--algorithm cluster --lock-boundary",
     "--algorithm cluster --weld 0.1",
+    "--lock-array s",                            // locks and selections: decimation only
+    "--algorithm two-stage --selection-array s",
     "--algorithm decimate --bounds 0 1 0 1 0 1", // the clustering's box
     "--algorithm two-stage --bounds 0 1 0 1 0 1",
     "--algorithm decimate --max-error nan",
@@ -484,6 +488,71 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     Result r = RunCli(io + args);
     EXPECT_EQ(r.status, 0) << args << "\n" << r.out;
   }
+}
+
+// --lock-array and --selection-array name a vertex property of the input: the locked vertices
+// are in the output where they were; a name the input does not have is an error that names the
+// file and the property, and writes nothing.
+TEST_F(CLI, LockAndSelectionArraysNameAVertexProperty)
+{
+  const int n = 20;
+  const std::string in = this->P("locks.ply");
+  {
+    std::ofstream f(in);
+    f << "ply\nformat ascii 1.0\nelement vertex " << (n + 1) * (n + 1)
+      << "\nproperty float x\nproperty float y\nproperty float z\nproperty uchar keep\n"
+         "element face "
+      << 2 * n * n << "\nproperty list uchar int vertex_indices\nend_header\n";
+    for (int j = 0; j <= n; ++j)
+    {
+      for (int i = 0; i <= n; ++i)
+      {
+        f << i << " " << j << " " << (i * j) % 7 << " " << (i == j ? 1 : 0) << "\n";
+      }
+    }
+    for (int j = 0; j < n; ++j)
+    {
+      for (int i = 0; i < n; ++i)
+      {
+        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+        f << "3 " << a << " " << b << " " << c << "\n3 " << a << " " << c << " " << d << "\n";
+      }
+    }
+  }
+  const std::string out = this->P("locked.ply");
+  Result r = RunCli("simplify " + in + " " + out +
+    " --algorithm decimate --target 60 --lock-array keep --quiet");
+  ASSERT_EQ(r.status, 0) << r.out;
+  // The output: a binary PLY whose vertices are x y z keep, as floats.
+  const std::string bytes = ReadAll(out);
+  const std::size_t header = bytes.find("end_header\n");
+  ASSERT_NE(header, std::string::npos);
+  ASSERT_NE(bytes.find("property float keep\n"), std::string::npos) << bytes.substr(0, header);
+  const std::size_t vertices =
+    std::stoul(bytes.substr(bytes.find("element vertex ") + 15, 12));
+  std::set<std::pair<int, int>> diagonal;
+  for (std::size_t i = 0; i < vertices; ++i)
+  {
+    float v[4];
+    std::memcpy(v, bytes.data() + header + 11 + 16 * i, 16);
+    if (v[3] != 0)
+    {
+      EXPECT_EQ(v[0], v[1]) << "vertex " << i;
+      EXPECT_EQ(v[2], float((int(v[0]) * int(v[1])) % 7)) << "vertex " << i;
+      diagonal.insert({ int(v[0]), int(v[1]) });
+    }
+  }
+  EXPECT_EQ(diagonal.size(), std::size_t(n + 1)) << "every locked vertex is in the output";
+  Result missing = RunCli("simplify " + in + " " + this->P("m.ply") +
+    " --algorithm decimate --lock-array kept --quiet");
+  EXPECT_EQ(missing.status, 1) << missing.out;
+  EXPECT_NE(missing.out.find("locks.ply"), std::string::npos) << missing.out;
+  EXPECT_NE(missing.out.find("'kept'"), std::string::npos) << missing.out;
+  EXPECT_NE(missing.out.find("keep"), std::string::npos) << missing.out;
+  EXPECT_FALSE(fs::exists(this->P("m.ply")));
+  Result selected = RunCli("simplify " + in + " " + this->P("s.ply") +
+    " --algorithm decimate --target 60 --selection-array keep --quiet");
+  EXPECT_EQ(selected.status, 0) << selected.out;
 }
 
 TEST_F(CLI, RepairsAreReported)

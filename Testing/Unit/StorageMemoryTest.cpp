@@ -62,7 +62,10 @@ TEST(StorageMemory, ThisMachineHasAnAnswer)
   EXPECT_GT(m.bytes, 0u);
   for (const MemoryLimit& l : MemoryLimits())
   {
-    EXPECT_GE(l.bytes, m.bytes) << l.source;
+    // (MemAvailable is read again here: other processes, e.g. tests running beside this one,
+    // may have taken some since)
+    const std::uint64_t moved = l.source.find("MemAvailable") != std::string::npos ? (1ull << 30) : 0;
+    EXPECT_GE(l.bytes + moved, m.bytes) << l.source;
   }
 }
 

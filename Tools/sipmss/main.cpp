@@ -461,7 +461,23 @@ int RunSimplify(const SimplifyArgs& a)
     };
   }
   const auto start = std::chrono::steady_clock::now();
-  const algorithms::RunStats stats = algorithms::Simplify(request, source, sink, progress, onLevel);
+  const algorithms::RunStats stats = [&] {
+    try
+    {
+      return algorithms::Simplify(request, source, sink, progress, onLevel);
+    }
+    catch (const io::MeshIOError& e)
+    {
+      // (the readers name the file; what the cores find in the mesh, e.g. a missing point
+      // array, gets the input's name here)
+      const std::string what = e.what();
+      if (what.find(a.input) != std::string::npos)
+      {
+        throw;
+      }
+      throw io::MeshIOError(a.input + ": " + what);
+    }
+  }();
   progress.Clear();
   const double seconds =
     std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -667,7 +683,7 @@ int main(int argc, char** argv)
     "cluster: the grid's box, xmin xmax ymin ymax zmin zmax (default: the input's bounds)")
     ->expected(6)
     ->allow_extra_args(false);
-  CLI::Option_group* boundaries = simplify->add_option_group("Boundaries and welding");
+  CLI::Option_group* boundaries = simplify->add_option_group("Boundaries, locks and welding");
   boundaries->add_option("--boundary-weight", rq.boundaryWeight,
     "weight of the boundary quadrics that keep holes in place (cluster: default 0 = off, slower "
     "when on; decimate, two-stage: default 100)");
@@ -675,6 +691,12 @@ int main(int argc, char** argv)
     "decimate, two-stage: boundary vertices never move");
   auto* weld = boundaries->add_option("--weld", rq.weldDistance,
     "decimate, two-stage: weld input vertices closer than this distance first (default: off)");
+  auto* lockArray = boundaries->add_option("--lock-array", rq.lockArray,
+    "decimate: a vertex property (point array) of INPUT; vertices where it is not 0 never move "
+    "and are never removed");
+  auto* selectionArray = boundaries->add_option("--selection-array", rq.selectionArray,
+    "decimate: a vertex property (point array) of INPUT; only vertices where it is not 0 move "
+    "or go, faces without one are kept as they were");
   CLI::Option_group* storageGroup = simplify->add_option_group("Memory and storage");
   storageGroup->add_option("--memory-mb", sa.memory,
     "memory budget in MiB (at least 0.0625), auto (= 0, the default: half of what this process "
@@ -708,7 +730,9 @@ int main(int argc, char** argv)
     const std::pair<CLI::Option*, bool> applies[] = {
       { grid, rq.algorithm != algorithms::Algorithm::Decimate }, { bounds, cluster },
       { targetOption, !cluster }, { reduction, !cluster }, { maxError, !cluster },
-      { lods, !cluster }, { lockBoundary, !cluster }, { weld, !cluster } };
+      { lods, !cluster }, { lockBoundary, !cluster }, { weld, !cluster },
+      { lockArray, rq.algorithm == algorithms::Algorithm::Decimate },
+      { selectionArray, rq.algorithm == algorithms::Algorithm::Decimate } };
     for (const auto& [option, ok] : applies)
     {
       if (option->count() > 0 && !ok)

@@ -65,7 +65,8 @@
 // scratch). A phase reads and writes the blocks through the accessor (storage::View, and a
 // template over the access kind with storage::WithAccess where a loop is hot) and runs on the
 // workers storage::Workers gives it (in core on every thread, out of core on a helper with a
-// forked DML, or on one): no pass tests the storage mode.
+// forked DML, or on one); docs/architecture.md lists the few places that still depend on the
+// mode (prefetch hints, the lazy quadric sums, the collapse rounds' schedule).
 //
 // Files: this header (the types, the state, the declarations of the passes), read and weld
 // (Read.inl), rings and quadrics (Rings.inl), the candidate sweep (Sweep.inl), legality, the
@@ -157,7 +158,7 @@ constexpr State kRemoved = 1;      // collapsed into another vertex during this 
 constexpr State kMarked = 2;       // touched by a collapse of this pass
 constexpr State kBoundary = 4;     // has boundary edges
 constexpr State kLocked = 8;       // never collapsed (reserved: nothing sets it at present)
-constexpr State kFixed = 16;       // lockBoundary: never moves, never removed (may absorb)
+constexpr State kFixed = 16;       // lockBoundary, locks, selections: never moves, never removed (may absorb)
 constexpr State kNeedsLegal = 32;  // its cheapest collapse was illegal: evaluate with legality
 constexpr State kSurvivor = 64;    // survived a collapse of the last pass: all its edges changed
 constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edges
@@ -470,7 +471,11 @@ private:
   std::vector<std::uint64_t> next_, prev_;
 };
 
-struct Scratch
+// A cache line of its own for each thread's scratch (and each chunk's counters): the threads
+// write them all the time, and two of them sharing a line cost up to 30% of a run, depending
+// on where the heap happened to put them.
+constexpr std::size_t kCacheLine = 64;
+struct alignas(kCacheLine) Scratch
 {
   Ring ru, rv;
   LinkTally tally; // Evaluate's, for rings of more than LinkTally::kMinEntries
@@ -604,6 +609,8 @@ struct MeshState
   io::VertexLayout layout;
   std::size_t nFloats = 0; // normals, texcoords, scalars as floats
   std::size_t recSize = 0; // bytes of one vertex's attribute record
+  // The float index in the attribute record of the lock and selection scalars (-1: none).
+  int lockFloat = -1, selectFloat = -1;
   std::uint64_t announcedV = 0, announcedF = 0;
   bool begun = false;
   Vec3 origin{ 0, 0, 0 };
@@ -741,7 +748,7 @@ enum class Try
   Illegal,
   Defer
 };
-struct StepRun
+struct alignas(kCacheLine) StepRun
 {
   std::uint64_t removed = 0, done = 0, illegal = 0;
 };

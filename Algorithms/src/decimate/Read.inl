@@ -64,6 +64,30 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
   mesh.nFloats = (mesh.layout.normals ? 3 : 0) + (mesh.layout.texcoords ? 2 : 0) +
     mesh.layout.scalars.size();
   mesh.recSize = mesh.nFloats * sizeof(float) + (mesh.layout.colors ? 4 : 0);
+  // The lock and selection scalars: their place among the record's floats (after the normals
+  // and the texture coordinates).
+  auto scalarFloat = [&mesh](const std::string& name, const char* what) {
+    if (name.empty())
+    {
+      return -1;
+    }
+    const std::vector<std::string>& names = mesh.layout.scalars;
+    const auto it = std::find(names.begin(), names.end(), name);
+    if (it == names.end())
+    {
+      std::string have;
+      for (const std::string& n : names)
+      {
+        have += (have.empty() ? "" : ", ") + n;
+      }
+      throw io::MeshIOError(std::string("the input has no point array '") + name + "' to use as " +
+        what + " (its point arrays: " + (have.empty() ? "none" : have) + ")");
+    }
+    return int((mesh.layout.normals ? 3 : 0) + (mesh.layout.texcoords ? 2 : 0) +
+      (it - names.begin()));
+  };
+  mesh.lockFloat = scalarFloat(ctx.opt.lockArray, "the lock array");
+  mesh.selectFloat = scalarFloat(ctx.opt.selectionArray, "the selection array");
   mesh.announcedV = header.vertexCount;
   mesh.announcedF = header.faceCount;
   if (header.vertexCount + header.faceCount > 0)

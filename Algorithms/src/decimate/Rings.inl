@@ -213,6 +213,8 @@ void BuildRings(RunContext& ctx, MeshState& mesh)
     auto pass1 = [&](int th, std::uint64_t fb, std::uint64_t fe, const std::atomic<bool>& stop) {
       View<Tri> Fv = workers.Bind(th, mesh.faces);
       const View<Vec3> Pv = workers.Bind(th, mesh.pos);
+      // (counted here, stored at the end: the threads' counters share a cache line)
+      std::uint64_t liveHere = 0, dropsHere = 0;
       for (std::uint64_t f = fb; f < fe && !stop.load(std::memory_order_relaxed); ++f)
       {
         if (th == 0 && ((f - fb) & 1023) == 0)
@@ -234,7 +236,7 @@ void BuildRings(RunContext& ctx, MeshState& mesh)
         if (Dot(n, n) == 0.0)
         {
           Fv.Set(f, kDeadTri);
-          ++drops[std::size_t(th)];
+          ++dropsHere;
           continue;
         }
         if (T1 <= 1)
@@ -244,8 +246,10 @@ void BuildRings(RunContext& ctx, MeshState& mesh)
             RO.Set(t.v[k], RO.Get(t.v[k]) + 1);
           }
         }
-        ++lives[std::size_t(th)];
+        ++liveHere;
       }
+      lives[std::size_t(th)] += liveHere; // (+=: a fallback range runs as worker 0 again)
+      drops[std::size_t(th)] += dropsHere;
     };
     workers.Run(pass1);
     F.Refresh();
@@ -710,6 +714,21 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
         flags |= kComplex; // several fans meet here: the link condition keeps them apart
       }
       if (ctx.opt.lockBoundary)
+      {
+        flags |= kFixed;
+      }
+    }
+    if (mesh.lockFloat >= 0 || mesh.selectFloat >= 0)
+    {
+      // A lock (not 0) or outside the selection (0): never moves, never removed.
+      auto scalar = [&](int index) {
+        float value = 0.0f;
+        w.A.GetRange(std::uint64_t(u) * mesh.recSize + std::uint64_t(index) * sizeof(float),
+          sizeof(float), reinterpret_cast<std::uint8_t*>(&value));
+        return value;
+      };
+      if ((mesh.lockFloat >= 0 && scalar(mesh.lockFloat) != 0.0f) ||
+        (mesh.selectFloat >= 0 && scalar(mesh.selectFloat) == 0.0f))
       {
         flags |= kFixed;
       }

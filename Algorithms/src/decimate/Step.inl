@@ -691,6 +691,22 @@ void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t 
   pass.splitOn = wrong <= mesh.liveFaces / kSplitWrongShare;
 }
 
+// Restricts a collapse chunk's views to what its collapses write: the records of the vertices
+// [lo, hi) (states, positions, quadrics, point data) and any face; nothing else.
+void ChunkBounds(Views& w, std::uint64_t lo, std::uint64_t hi, std::size_t recSize)
+{
+  const storage::WriteBounds vertices{ lo, hi, 0, 0 };
+  w.S.Restrict(vertices);
+  w.P.Restrict(vertices);
+  w.Q.Restrict(vertices);
+  w.A.Restrict({ lo * recSize, hi * recSize, 0, 0 });
+  for (View<std::uint32_t>* v : { &w.RO, &w.RF, &w.O })
+  {
+    v->Restrict(storage::WriteBounds::None());
+  }
+  w.C.Restrict(storage::WriteBounds::None());
+}
+
 // Step 3 for the candidates at positions [groupBegin, groupEnd) of the order, which are in
 // vertex order. The vertices are cut into fixed chunks (their size depends on nv only). In
 // rounds: every chunk runs its candidates up to a quota (a share of the faces still to remove
@@ -804,6 +820,12 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
         {
           const std::uint32_t lo = std::uint32_t(c * size);
           const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+          // The chunk's views: its collapses write only its vertices' records (and faces of its
+          // vertices, whose ids are anywhere); checked in builds with SIPMSS_CHECK_WRITES.
+          Views chunk;
+          mesh.BindViews(chunk, mesh.dml);
+          ChunkBounds(chunk, lo, hi, mesh.recSize);
+          ScratchViews use(s, chunk);
           // progress and abort: the calling thread only
           cursor[c] = Step(ctx, mesh, pass, cursor[c], end[c], lo, hi, quota[c], s, runs[c],
             t == 0 ? std::int64_t(at + done + mine) : -1);

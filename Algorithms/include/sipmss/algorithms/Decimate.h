@@ -6,6 +6,7 @@
 #include <functional>
 #include <limits>
 #include <memory>
+#include <string>
 
 namespace sipmss::algorithms
 {
@@ -19,6 +20,12 @@ struct DecimateOptions
                                      // the area-weighted cost divided by the quadric's weight)
   int levelsOfDetail = 1;            // > 1: emit that many levels, evenly spaced in log(count)
   bool lockBoundary = false;         // boundary vertices never move
+  // Locks and selections by a point-data scalar of the input (a name of its layout's scalars;
+  // empty: none). lockArray: vertices where it is not 0 never move and are never removed (they
+  // may absorb a neighbour). selectionArray: only vertices where it is not 0 move or go; the
+  // others are locked, so every face with no selected vertex is kept as it was.
+  std::string lockArray;
+  std::string selectionArray;
   double boundaryWeight = kDefaultDecimateBoundaryWeight; // weight of the boundary constraint quadrics
   double weldDistance = kNoWeld;    // >= 0: weld input vertices closer than this first
   storage::Profile storage;          // memory budget, directories, mode policy

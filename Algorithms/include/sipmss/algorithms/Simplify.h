@@ -55,6 +55,10 @@ struct SimplifyRequest
   std::optional<double> boundaryWeight;
   bool lockBoundary = false;      // decimate, two-stage: boundary vertices never move
   double weldDistance = kNoWeld;  // decimate, two-stage: >= 0 welds closer input vertices first
+  // Decimate only: point-data scalars (by name; empty: none) whose non-zero vertices never move
+  // or go (lockArray), or outside of whose non-zero vertices nothing changes (selectionArray).
+  std::string lockArray;
+  std::string selectionArray;
 
   // Storage and threads.
   double memoryBudgetMB = kAutomaticMemoryBudget; // see MemoryBudgetProblem
@@ -78,6 +82,8 @@ enum class Parameter : std::uint8_t
   Bounds,
   BoundaryWeight,
   WeldDistance,
+  LockArray,
+  SelectionArray,
   MemoryBudget,
   Threads
 };

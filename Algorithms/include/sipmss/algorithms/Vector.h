@@ -12,8 +12,8 @@ template <class T>
 struct Vector3
 {
   T x, y, z;
-  // Coordinate k (0, 1, 2): the members are consecutive (a standard-layout aggregate).
-  T operator[](int k) const { return reinterpret_cast<const T*>(this)[k]; }
+  // Coordinate k (0, 1, 2).
+  T operator[](int k) const { return k == 0 ? this->x : (k == 1 ? this->y : this->z); }
 };
 template <class T>
 inline Vector3<T> operator-(const Vector3<T>& a, const Vector3<T>& b)
@@ -43,5 +43,5 @@ inline Vector3<T> Cross(const Vector3<T>& a, const Vector3<T>& b)
 using Vec3 = Vector3<double>;
 using Float3 = Vector3<float>;
 static_assert(sizeof(Vec3) == 24 && sizeof(Float3) == 12 && std::is_standard_layout_v<Vec3>,
-  "vectors are packed coordinates");
+  "vectors are packed coordinates (their blocks are arrays of them)");
 } // namespace sipmss::algorithms

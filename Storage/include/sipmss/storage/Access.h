@@ -37,6 +37,15 @@
 #endif
 #endif
 
+// The accessors' definitions depend on SIPMSS_CHECK_WRITES: they live in an inline namespace
+// named after it, so that a checked and an unchecked translation unit never share (and the
+// linker never picks between) two different bodies of one function.
+#if SIPMSS_CHECK_WRITES
+#define SIPMSS_ACCESS_NAMESPACE checked_writes
+#else
+#define SIPMSS_ACCESS_NAMESPACE unchecked_writes
+#endif
+
 namespace sipmss::storage
 {
 // The elements an accessor may write: [first, end) without [holeFirst, holeEnd).
@@ -75,6 +84,8 @@ public:
   }
 };
 
+inline namespace SIPMSS_ACCESS_NAMESPACE
+{
 namespace detail
 {
 SIPMSS_ALWAYS_INLINE void CheckWrite(
@@ -178,12 +189,12 @@ public:
     if (this->base_)
     {
       // (as an integer: i may be past the block, e.g. a dead face's corner; never dereferenced)
-      const char* p = reinterpret_cast<const char*>(
-        reinterpret_cast<std::uintptr_t>(this->base_) + std::uintptr_t(i) * sizeof(T));
-      __builtin_prefetch(p);
+      const std::uintptr_t at =
+        reinterpret_cast<std::uintptr_t>(this->base_) + std::uintptr_t(i) * sizeof(T);
+      __builtin_prefetch(reinterpret_cast<const char*>(at));
       if constexpr (sizeof(T) > 8)
       {
-        __builtin_prefetch(p + sizeof(T) - 1);
+        __builtin_prefetch(reinterpret_cast<const char*>(at + sizeof(T) - 1));
       }
     }
 #else
@@ -285,6 +296,8 @@ private:
   WriteBounds bounds_;
 };
 
+} // inline namespace SIPMSS_ACCESS_NAMESPACE
+
 // In-place access by reference (read-modify-write of records): a few pinned pages of one block
 // kept across element accesses (out of core), so that runs of nearby accesses cost one page
 // lookup instead of one per element; in core the block's memory. Not write-checked (a
@@ -355,6 +368,8 @@ private:
   std::size_t used_ = 0, next_ = 0;
 };
 
+inline namespace SIPMSS_ACCESS_NAMESPACE
+{
 // f(CoreAccess<T>...) when every view is in core, else f(PagedAccess<T>...). A view that is not
 // bound (a block the phase does not have) counts as in core and must not be used.
 template <class F, class... T>
@@ -366,4 +381,5 @@ decltype(auto) WithAccess(F&& f, const View<T>&... views)
   }
   return f(PagedAccess<T>(views)...);
 }
+} // inline namespace SIPMSS_ACCESS_NAMESPACE
 } // namespace sipmss::storage

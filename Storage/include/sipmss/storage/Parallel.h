@@ -52,7 +52,9 @@ struct Phase
   bool inCoreThreads = true;    // in core: on `threads` threads (false: on one)
   std::uint64_t inCoreMin = 0;  // in core: fewer elements run on one thread
   bool helper = true;           // out of core: a helper thread may take the upper part
-  std::uint64_t helperFirst = kHalf; // the helper's first element (default: elements / 2)
+  // The second worker's first element (default: elements / 2); a phase with a split point has
+  // at most two workers.
+  std::uint64_t helperFirst = kHalf;
   std::vector<BlockId> writes;  // blocks written, each worker within its own element range
   std::vector<DML::Range> helperWrites; // out of core: more ranges the helper writes
   std::vector<BlockId> mainWrites; // blocks only worker 0 writes (all of them), never the others
@@ -92,8 +94,9 @@ public:
   {
     return View<T>(this->Dml(t), a, this->Bounds(t, a.Id()));
   }
-  // Ends the helper: its writes become visible to the algorithm's DML (DML::Join). Call once
-  // the workers are done, before the algorithm's DML is used for anything else; errors throw.
+  // Ends the helper: its writes become visible to the algorithm's DML (DML::Join), and a forked
+  // phase has one worker from then on. Call once the workers are done, before the algorithm's
+  // DML is used for anything else; errors throw.
   void Join();
   // body(t, Begin(t), Begin(t + 1), stop) on each worker (0: the calling thread); the range of
   // a worker that cannot be started runs on the calling thread afterwards (after the helper is
