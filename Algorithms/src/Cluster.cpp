@@ -18,6 +18,7 @@
 
 #include "sipmss/algorithms/Prefetch.h"
 #include "sipmss/algorithms/Quadric.h"
+#include "sipmss/algorithms/Vector.h"
 #include "sipmss/storage/Access.h"
 #include "sipmss/storage/Threads.h"
 
@@ -84,6 +85,16 @@ struct ClusterState
   std::uint64_t expected = 0, done = 0;
   std::uint64_t expectedHint = 0; // see ExpectSizes
 };
+
+// A vertex record's position, and n / len (componentwise).
+inline Vec3 Position(const VertexRec& v)
+{
+  return { double(v.x), double(v.y), double(v.z) };
+}
+inline Vec3 Unit(const Vec3& n, double len)
+{
+  return { n.x / len, n.y / len, n.z / len };
+}
 
 // The clustering pass, as free functions over the state.
 void BeginInput(ClusterState& cluster, const io::MeshHeader& h);
@@ -616,25 +627,21 @@ void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e)
   const VertexRec a = cluster.vertices.Get(e.a);
   const VertexRec b = cluster.vertices.Get(e.b);
   const VertexRec c = cluster.vertices.Get(e.third);
-  const double ed[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
-  const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
-  const double fn[3] = { ed[1] * e2[2] - ed[2] * e2[1], ed[2] * e2[0] - ed[0] * e2[2],
-    ed[0] * e2[1] - ed[1] * e2[0] };
+  const Vec3 pa = Position(a);
+  const Vec3 ed = Position(b) - pa;
+  const Vec3 fn = Cross(ed, Position(c) - pa);
   // normal of the constraint plane: perpendicular to the edge, in the face's plane
-  double n[3] = { ed[1] * fn[2] - ed[2] * fn[1], ed[2] * fn[0] - ed[0] * fn[2],
-    ed[0] * fn[1] - ed[1] * fn[0] };
-  const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-  const double el2 = ed[0] * ed[0] + ed[1] * ed[1] + ed[2] * ed[2];
+  const Vec3 n = Cross(ed, fn);
+  const double len = std::sqrt(Dot(n, n));
+  const double el2 = Dot(ed, ed);
   if (!(len > 0) || !(el2 > 0))
   {
     return;
   }
-  n[0] /= len;
-  n[1] /= len;
-  n[2] /= len;
-  const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
+  const Vec3 u = Unit(n, len);
+  const double d = -Dot(u, pa);
   const double w = cluster.options.boundaryWeight * el2;
-  const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
+  const Quadric q = PlaneQuadric(u.x, u.y, u.z, d, w);
   for (std::uint32_t cell : { a.cell, b.cell })
   {
     UpdateCell(cluster, cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
@@ -660,19 +667,15 @@ void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
   const VertexRec b = cluster.vertexWindow.At(vid, f[1]);
   const VertexRec c = cluster.vertexWindow.At(vid, f[2]);
   // Area-weighted plane quadric of the face (Garland-Heckbert), added to each corner's cell.
-  const double e1[3] = { double(b.x) - a.x, double(b.y) - a.y, double(b.z) - a.z };
-  const double e2[3] = { double(c.x) - a.x, double(c.y) - a.y, double(c.z) - a.z };
-  double n[3] = { e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-    e1[0] * e2[1] - e1[1] * e2[0] };
-  const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  const Vec3 pa = Position(a);
+  const Vec3 n = Cross(Position(b) - pa, Position(c) - pa);
+  const double len = std::sqrt(Dot(n, n));
   if (len > 0)
   {
-    n[0] /= len;
-    n[1] /= len;
-    n[2] /= len;
-    const double d = -(n[0] * a.x + n[1] * a.y + n[2] * a.z);
+    const Vec3 u = Unit(n, len);
+    const double d = -Dot(u, pa);
     const double w = 0.5 * len; // area
-    const Quadric q = PlaneQuadric(n[0], n[1], n[2], d, w);
+    const Quadric q = PlaneQuadric(u.x, u.y, u.z, d, w);
     const std::uint32_t cs[3] = { a.cell, b.cell, c.cell };
     for (std::uint32_t cell : cs)
     {

@@ -1,5 +1,6 @@
 // Metro-style mesh comparison; see Compare.h for the method.
 #include "sipmss/algorithms/Compare.h"
+#include "sipmss/algorithms/Vector.h"
 #include "sipmss/storage/Threads.h"
 
 #include "sipmss/storage/Parallel.h"
@@ -20,26 +21,26 @@ namespace
 {
 
 // ---------------------------------------------------------------------------------------------
-// Geometry
+// Geometry (on the cores' vector type; the arithmetic in the order written out before it)
 
-inline double Dot(const double u[3], const double v[3])
+// The products of a coordinate array with a box axis (a row of the oriented box's axes).
+inline double Dot3(const double u[3], const double v[3])
 {
   return u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
 }
-
-inline void Sub(const double u[3], const double v[3], double r[3])
+inline Vec3 At(const double p[3])
 {
-  r[0] = u[0] - v[0];
-  r[1] = u[1] - v[1];
-  r[2] = u[2] - v[2];
+  return { p[0], p[1], p[2] };
+}
+inline Vec3 At(const float* p)
+{
+  return { double(p[0]), double(p[1]), double(p[2]) };
 }
 
 // Squared distance from p to the segment [a, b] (a point when a == b).
-inline double PointSegmentDistanceSquared(const double p[3], const double a[3], const double b[3])
+inline double PointSegmentDistanceSquared(const Vec3& p, const Vec3& a, const Vec3& b)
 {
-  double ab[3], ap[3];
-  Sub(b, a, ab);
-  Sub(p, a, ap);
+  const Vec3 ab = b - a, ap = p - a;
   const double len2 = Dot(ab, ab);
   double t = 0.0;
   if (len2 > 0.0)
@@ -47,34 +48,29 @@ inline double PointSegmentDistanceSquared(const double p[3], const double a[3], 
     t = Dot(ap, ab) / len2;
     t = t < 0.0 ? 0.0 : (t > 1.0 ? 1.0 : t);
   }
-  const double d[3] = { ap[0] - t * ab[0], ap[1] - t * ab[1], ap[2] - t * ab[2] };
+  const Vec3 d = ap - t * ab;
   return Dot(d, d);
 }
 
-inline double Distance2To(const double p[3], const double q[3])
+inline double Distance2To(const Vec3& p, const Vec3& q)
 {
-  const double d[3] = { p[0] - q[0], p[1] - q[1], p[2] - q[2] };
+  const Vec3 d = p - q;
   return Dot(d, d);
 }
 
 // |n| / longest edge^2 <= 1e-10: the triangle is no wider than 1e-10 of its length (or is a
 // segment or a point). Ericson's Voronoi-region signs would be rounding noise there; the union of
 // its edges is the triangle to that accuracy.
-inline bool NearlyDegenerate(const double a[3], const double b[3], const double c[3])
+inline bool NearlyDegenerate(const Vec3& a, const Vec3& b, const Vec3& c)
 {
-  double ab[3], ac[3], bc[3];
-  Sub(b, a, ab);
-  Sub(c, a, ac);
-  Sub(c, b, bc);
-  const double n[3] = { ab[1] * ac[2] - ab[2] * ac[1], ab[2] * ac[0] - ab[0] * ac[2],
-    ab[0] * ac[1] - ab[1] * ac[0] };
+  const Vec3 ab = b - a, ac = c - a, bc = c - b;
+  const Vec3 n = Cross(ab, ac);
   const double n2 = Dot(n, n);
   const double e2 = std::max(Dot(ab, ab), std::max(Dot(ac, ac), Dot(bc, bc)));
   return !(n2 > 1e-20 * e2 * e2);
 }
 
-inline double DegenerateDistance2(const double p[3], const double a[3], const double b[3],
-  const double c[3])
+inline double DegenerateDistance2(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c)
 {
   return std::min(PointSegmentDistanceSquared(p, a, b),
     std::min(PointSegmentDistanceSquared(p, b, c), PointSegmentDistanceSquared(p, c, a)));
@@ -82,21 +78,16 @@ inline double DegenerateDistance2(const double p[3], const double a[3], const do
 
 // Ericson, Real-Time Collision Detection, 5.1.5 (ClosestPtPointTriangle), for a triangle that is
 // not NearlyDegenerate.
-inline double RegularDistance2(const double p[3], const double a[3], const double b[3],
-  const double c[3])
+inline double RegularDistance2(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c)
 {
-  double ab[3], ac[3], ap[3];
-  Sub(b, a, ab);
-  Sub(c, a, ac);
-  Sub(p, a, ap);
+  const Vec3 ab = b - a, ac = c - a, ap = p - a;
   const double d1 = Dot(ab, ap);
   const double d2 = Dot(ac, ap);
   if (d1 <= 0.0 && d2 <= 0.0)
   {
     return Dot(ap, ap); // vertex region a
   }
-  double bp[3];
-  Sub(p, b, bp);
+  const Vec3 bp = p - b;
   const double d3 = Dot(ab, bp);
   const double d4 = Dot(ac, bp);
   if (d3 >= 0.0 && d4 <= d3)
@@ -107,11 +98,9 @@ inline double RegularDistance2(const double p[3], const double a[3], const doubl
   if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0)
   {
     const double v = d1 / (d1 - d3); // edge ab
-    const double q[3] = { a[0] + v * ab[0], a[1] + v * ab[1], a[2] + v * ab[2] };
-    return Distance2To(p, q);
+    return Distance2To(p, a + v * ab);
   }
-  double cp[3];
-  Sub(p, c, cp);
+  const Vec3 cp = p - c;
   const double d5 = Dot(ab, cp);
   const double d6 = Dot(ac, cp);
   if (d6 >= 0.0 && d5 <= d6)
@@ -122,27 +111,22 @@ inline double RegularDistance2(const double p[3], const double a[3], const doubl
   if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0)
   {
     const double w = d2 / (d2 - d6); // edge ac
-    const double q[3] = { a[0] + w * ac[0], a[1] + w * ac[1], a[2] + w * ac[2] };
-    return Distance2To(p, q);
+    return Distance2To(p, a + w * ac);
   }
   const double va = d3 * d6 - d5 * d4;
   if (va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0)
   {
     const double w = (d4 - d3) / ((d4 - d3) + (d5 - d6)); // edge bc
-    const double q[3] = { b[0] + w * (c[0] - b[0]), b[1] + w * (c[1] - b[1]),
-      b[2] + w * (c[2] - b[2]) };
-    return Distance2To(p, q);
+    return Distance2To(p, b + w * (c - b));
   }
   // Face region (va, vb, vc > 0): the closest point is the projection onto the plane. The plane
   // distance is exact for points in the plane and needs no reconstruction of the foot point.
-  const double n[3] = { ab[1] * ac[2] - ab[2] * ac[1], ab[2] * ac[0] - ab[0] * ac[2],
-    ab[0] * ac[1] - ab[1] * ac[0] };
+  const Vec3 n = Cross(ab, ac);
   const double h = Dot(n, ap);
   return h * h / Dot(n, n);
 }
 
-inline double TriangleDistance2(const double p[3], const double a[3], const double b[3],
-  const double c[3])
+inline double TriangleDistance2(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c)
 {
   return NearlyDegenerate(a, b, c) ? DegenerateDistance2(p, a, b, c)
                                    : RegularDistance2(p, a, b, c);
@@ -150,11 +134,9 @@ inline double TriangleDistance2(const double p[3], const double a[3], const doub
 
 // The same value as TriangleDistance2 on the triangle's (exactly converted) coordinates, with the
 // degeneracy test precomputed.
-inline double TriangleDistance2(const double p[3], const float* t, bool degenerate)
+inline double TriangleDistance2(const Vec3& p, const float* t, bool degenerate)
 {
-  const double a[3] = { t[0], t[1], t[2] };
-  const double b[3] = { t[3], t[4], t[5] };
-  const double c[3] = { t[6], t[7], t[8] };
+  const Vec3 a = At(t), b = At(t + 3), c = At(t + 6);
   return degenerate ? DegenerateDistance2(p, a, b, c) : RegularDistance2(p, a, b, c);
 }
 
@@ -273,10 +255,8 @@ AreaTable BuildAreaTable(const TriangleMesh& mesh)
     const float* a = pts + 3 * std::size_t(mesh.triangles[3 * t]);
     const float* b = pts + 3 * std::size_t(mesh.triangles[3 * t + 1]);
     const float* c = pts + 3 * std::size_t(mesh.triangles[3 * t + 2]);
-    const double ab[3] = { double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2] };
-    const double ac[3] = { double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2] };
-    const double n[3] = { ab[1] * ac[2] - ab[2] * ac[1], ab[2] * ac[0] - ab[0] * ac[2],
-      ab[0] * ac[1] - ab[1] * ac[0] };
+    const Vec3 pa = At(a);
+    const Vec3 n = Cross(At(b) - pa, At(c) - pa);
     const double area = 0.5 * std::sqrt(Dot(n, n));
     if (area > 0.0)
     {
@@ -441,7 +421,7 @@ std::array<double, 6> TriangleMesh::Bounds() const
 double PointTriangleDistanceSquared(
   const double p[3], const double a[3], const double b[3], const double c[3])
 {
-  return TriangleDistance2(p, a, b, c);
+  return TriangleDistance2(At(p), At(a), At(b), At(c));
 }
 
 // -----------------------------------------------------------------------------------------------
@@ -518,7 +498,7 @@ double FitBox(const float axes[3][3], const ForEach& forEach, double pad, float 
   forEach([&](const double x[3]) {
     for (int a = 0; a < 3; ++a)
     {
-      const double s = Dot(x, axis[a]);
+      const double s = Dot3(x, axis[a]);
       lo[a] = std::min(lo[a], s);
       hi[a] = std::max(hi[a], s);
     }
@@ -538,7 +518,7 @@ double FitBox(const float axes[3][3], const ForEach& forEach, double pad, float 
   pad += 1e-14 * (magnitude + std::abs(c[0]) + std::abs(c[1]) + std::abs(c[2]));
   for (int a = 0; a < 3; ++a)
   {
-    const double ca = Dot(c, axis[a]);
+    const double ca = Dot3(c, axis[a]);
     const double h = std::max(hi[a] - ca, ca - lo[a]) + pad;
     const float f = static_cast<float>(h);
     half[a] = double(f) >= h ? f : std::nextafter(f, std::numeric_limits<float>::infinity());
@@ -712,7 +692,7 @@ struct MeshDistanceIndex::Builder
       },
       0.0, c.center, c.half);
 
-    const double nn = std::sqrt(Dot(out.normal, out.normal));
+    const double nn = std::sqrt(Dot3(out.normal, out.normal));
     if (!(nn > 0.0))
     {
       return;
@@ -726,7 +706,7 @@ struct MeshDistanceIndex::Builder
     const int k = std::abs(w[order3[0]]) > 0.9 ? order3[1] : order3[0];
     double u[3] = { -w[k] * w[0], -w[k] * w[1], -w[k] * w[2] };
     u[k] += 1.0;
-    const double un = std::sqrt(Dot(u, u));
+    const double un = std::sqrt(Dot3(u, u));
     const double v[3] = { w[1] * u[2] - w[2] * u[1], w[2] * u[0] - w[0] * u[2],
       w[0] * u[1] - w[1] * u[0] };
     float axes[3][3];
@@ -937,10 +917,7 @@ MeshDistanceIndex::MeshDistanceIndex(const TriangleMesh& mesh, int threads)
   {
     const float* src = triangles.data() + 9 * std::size_t(order[i]);
     std::copy_n(src, 9, this->Triangles.data() + 9 * i);
-    const double a[3] = { src[0], src[1], src[2] };
-    const double b[3] = { src[3], src[4], src[5] };
-    const double c[3] = { src[6], src[7], src[8] };
-    this->Degenerate[i] = NearlyDegenerate(a, b, c) ? 1 : 0;
+    this->Degenerate[i] = NearlyDegenerate(At(src), At(src + 3), At(src + 6)) ? 1 : 0;
   }
   this->Original = std::move(order);
   this->Position.resize(nt);
@@ -958,6 +935,7 @@ MeshDistanceIndex::Hit MeshDistanceIndex::Nearest(const double p[3], std::uint32
   // equals the brute-force minimum bit for bit.
   const double pmax = std::max(std::abs(p[0]), std::max(std::abs(p[1]), std::abs(p[2])));
   const double delta = 1e-12 * (this->Scale + pmax);
+  const Vec3 point = At(p);
 
   Hit best;
   best.distanceSquared = std::numeric_limits<double>::infinity();
@@ -966,7 +944,7 @@ MeshDistanceIndex::Hit MeshDistanceIndex::Nearest(const double p[3], std::uint32
   const float* tris = this->Triangles.data();
   const std::uint8_t* degenerate = this->Degenerate.data();
   auto consider = [&](std::uint32_t position) {
-    const double d2 = TriangleDistance2(p, tris + 9 * std::size_t(position), degenerate[position]);
+    const double d2 = TriangleDistance2(point, tris + 9 * std::size_t(position), degenerate[position]);
     if (d2 < best.distanceSquared)
     {
       best.distanceSquared = d2;
