@@ -74,15 +74,23 @@ void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint6
           },
           F, counts);
       });
-      const View<std::uint32_t> RO(mesh.dml, mesh.ringOff), extra(mesh.dml, *spare);
-      WithAccess(
-        [&](auto ROa, auto Ea) {
-          for (std::uint64_t v = 0; v < nv; ++v)
-          {
-            ROa.Set(v, ROa.Get(v) + Ea.Get(v));
-          }
-        },
-        RO, extra);
+      // The sum, by vertex range on the same threads.
+      storage::Phase add;
+      add.elements = nv;
+      add.threads = halves.threads;
+      add.helper = false;
+      add.writes = { mesh.ringOff.Id() };
+      Workers adders(mesh.dml, add);
+      adders.Run([&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>&) {
+        WithAccess(
+          [&](auto ROa, auto Ea) {
+            for (std::uint64_t v = lo; v < hi; ++v)
+            {
+              ROa.Set(v, ROa.Get(v) + Ea.Get(v));
+            }
+          },
+          adders.Bind(t, mesh.ringOff), adders.Bind(t, *spare));
+      });
       return;
     }
   }
