@@ -92,7 +92,8 @@ public:
   ///@{
   /**
    * Locks and selections by a point-data array of the input (its name; empty or null, the
-   * default: none). LockArray: vertices where it is not 0 never move and are never removed.
+   * default: none). LockArray: vertices where it is not 0 stay in the output at their exact
+   * positions, with their point data. Not with WeldDistance >= 0 (welding merges vertices).
    * SelectionArray: only vertices where it is not 0 move or go, and every triangle without one
    * is kept as it was. A multi-component array is named NAME_K per component. Decimation only
    * (not with PreClusterGridDimension > 0, whose clustering moves every vertex).

@@ -153,6 +153,12 @@ std::vector<ParameterProblem> Problems(const SimplifyRequest& r)
   {
     check(Parameter::SelectionArray, decimateOnly);
   }
+  if (r.weldDistance >= 0 && (!r.lockArray.empty() || !r.selectionArray.empty()))
+  {
+    check(Parameter::WeldDistance,
+      "cannot be combined with a lock or selection array (welding would merge locked vertices "
+      "into others)");
+  }
   return out;
 }
 

@@ -112,10 +112,6 @@ Workers::Workers(DML& dml, const Phase& phase)
     if (phase.inCoreThreads && phase.elements >= phase.inCoreMin)
     {
       this->count_ = std::max(1, phase.threads);
-      if (phase.helperFirst != Phase::kHalf)
-      {
-        this->count_ = std::min(this->count_, 2); // (a split point makes two parts)
-      }
     }
     return;
   }

@@ -1,6 +1,7 @@
 // Tests of Algorithm I (sipmss::algorithms::Decimate): topology guarantees, geometry, point data,
 // levels of detail, mode independence, abort, and timings on real and generated meshes.
 #include "sipmss/algorithms/Decimate.h"
+#include "sipmss/algorithms/Simplify.h"
 
 #include <gtest/gtest.h>
 
@@ -565,9 +566,23 @@ TEST(AlgorithmsDecimate, LockBoundaryKeepsEveryBoundaryVertex)
 
 // Locks by a point array: every vertex where it is not 0 keeps its position and stays, in core
 // and out of core; without the array they would go (the same target removes some of them).
+// Puts an unused vertex far away first: positions are kept relative to the first vertex, so the
+// mesh's own are then large numbers with fine digits (a float would round them), and a locked
+// vertex must still come back bit for bit.
+void PrependFarVertex(Mesh& m)
+{
+  m.xyz.insert(m.xyz.begin(), { -1000.0f, 700.0f, -300.0f });
+  for (std::uint32_t& v : m.tris)
+  {
+    ++v;
+  }
+  m.scalars.insert(m.scalars.begin(), m.scalarNames.size(), 0.0f);
+}
+
 TEST(AlgorithmsDecimate, LockArrayKeepsItsVerticesWhereTheyAre)
 {
   Mesh g = Grid(24, Bumps);
+  PrependFarVertex(g);
   g.scalarNames = { "lock" };
   std::vector<std::size_t> locked;
   for (std::size_t i = 0; i < g.Vertices(); ++i)
@@ -613,8 +628,17 @@ TEST(AlgorithmsDecimate, LockArrayKeepsItsVerticesWhereTheyAre)
   catch (const io::MeshIOError& e)
   {
     EXPECT_NE(std::string(e.what()).find("'missing'"), std::string::npos) << e.what();
-    EXPECT_NE(std::string(e.what()).find("lock"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("its point arrays: lock)"), std::string::npos)
+      << e.what();
   }
+  // Welding would merge locked vertices into others: refused by the request's rules.
+  alg::SimplifyRequest request;
+  request.algorithm = alg::Algorithm::Decimate;
+  request.lockArray = "lock";
+  request.weldDistance = 0.01;
+  const auto problems = alg::Problems(request);
+  ASSERT_EQ(problems.size(), 1u);
+  EXPECT_EQ(problems[0].parameter, alg::Parameter::WeldDistance);
 }
 
 // A selection by a point array: every triangle with no selected vertex is in the output as it
@@ -627,6 +651,7 @@ TEST(AlgorithmsDecimate, SelectionArrayKeepsEverythingOutsideIt)
   {
     g.scalars.push_back(g.P(i)[0] > 0.5 ? 1.0f : 0.0f);
   }
+  PrependFarVertex(g);
   alg::DecimateOptions o;
   o.targetTriangles = 10;
   o.selectionArray = "region";

@@ -553,6 +553,14 @@ TEST_F(CLI, LockAndSelectionArraysNameAVertexProperty)
   Result selected = RunCli("simplify " + in + " " + this->P("s.ply") +
     " --algorithm decimate --target 60 --selection-array keep --quiet");
   EXPECT_EQ(selected.status, 0) << selected.out;
+  // (only the diagonal is selected: at most its 21 vertices can go, so most faces stay)
+  const std::string sel = ReadAll(this->P("s.ply"));
+  EXPECT_GE(std::stoul(sel.substr(sel.find("element face ") + 13, 12)), std::size_t(2 * n * n - 80))
+    << sel.substr(0, 300);
+  Result weld = RunCli("simplify " + in + " " + this->P("w.ply") +
+    " --algorithm decimate --lock-array keep --weld 0.1 --quiet");
+  EXPECT_EQ(weld.status, 2) << weld.out;
+  EXPECT_NE(weld.out.find("--weld"), std::string::npos) << weld.out;
 }
 
 TEST_F(CLI, RepairsAreReported)

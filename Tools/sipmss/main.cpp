@@ -466,16 +466,10 @@ int RunSimplify(const SimplifyArgs& a)
     {
       return algorithms::Simplify(request, source, sink, progress, onLevel);
     }
-    catch (const io::MeshIOError& e)
+    catch (const algorithms::MissingArrayError& e)
     {
-      // (the readers name the file; what the cores find in the mesh, e.g. a missing point
-      // array, gets the input's name here)
-      const std::string what = e.what();
-      if (what.find(a.input) != std::string::npos)
-      {
-        throw;
-      }
-      throw io::MeshIOError(a.input + ": " + what);
+      // (the core does not know the file's name)
+      throw io::MeshIOError(a.input + ": " + e.what());
     }
   }();
   progress.Clear();
@@ -692,8 +686,8 @@ int main(int argc, char** argv)
   auto* weld = boundaries->add_option("--weld", rq.weldDistance,
     "decimate, two-stage: weld input vertices closer than this distance first (default: off)");
   auto* lockArray = boundaries->add_option("--lock-array", rq.lockArray,
-    "decimate: a vertex property (point array) of INPUT; vertices where it is not 0 never move "
-    "and are never removed");
+    "decimate: a vertex property (point array) of INPUT; vertices where it is not 0 stay in the "
+    "output at their exact positions (not with --weld)");
   auto* selectionArray = boundaries->add_option("--selection-array", rq.selectionArray,
     "decimate: a vertex property (point array) of INPUT; only vertices where it is not 0 move "
     "or go, faces without one are kept as they were");

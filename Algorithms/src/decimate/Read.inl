@@ -80,7 +80,7 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
       {
         have += (have.empty() ? "" : ", ") + n;
       }
-      throw io::MeshIOError(std::string("the input has no point array '") + name + "' to use as " +
+      throw MissingArrayError(std::string("the input has no point array '") + name + "' to use as " +
         what + " (its point arrays: " + (have.empty() ? "none" : have) + ")");
     }
     return int((mesh.layout.normals ? 3 : 0) + (mesh.layout.texcoords ? 2 : 0) +

@@ -357,7 +357,17 @@ std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const 
       w.S.Set(b, State(w.S.Get(b) | kMarked));
     }
   }
-  w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
+  // A fixed endpoint (a lock, a locked boundary, outside a selection) keeps its exact position:
+  // the survivor stays where it is, or takes the removed one's (the candidate's float position
+  // would round it).
+  if (sv & kFixed)
+  {
+    w.P.Set(u, w.P.Get(v));
+  }
+  else if (!(su & kFixed))
+  {
+    w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
+  }
   if (!pass.lazySums)
   {
     Quadric Q = w.Q.Get(u);

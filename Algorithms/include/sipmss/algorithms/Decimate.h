@@ -11,6 +11,13 @@
 namespace sipmss::algorithms
 {
 
+// The input has no point array of the name a lock or selection array gives (DecimateOptions).
+class MissingArrayError : public io::MeshIOError
+{
+public:
+  using io::MeshIOError::MeshIOError;
+};
+
 struct DecimateOptions
 {
   std::uint64_t targetTriangles = 0; // > 0: stop at or below this many triangles
@@ -21,9 +28,11 @@ struct DecimateOptions
   int levelsOfDetail = 1;            // > 1: emit that many levels, evenly spaced in log(count)
   bool lockBoundary = false;         // boundary vertices never move
   // Locks and selections by a point-data scalar of the input (a name of its layout's scalars;
-  // empty: none). lockArray: vertices where it is not 0 never move and are never removed (they
-  // may absorb a neighbour). selectionArray: only vertices where it is not 0 move or go; the
-  // others are locked, so every face with no selected vertex is kept as it was.
+  // empty: none). lockArray: a vertex where it is not 0 stays in the output at its exact
+  // position, with its point data (a neighbour may merge into it, or it into a neighbour that
+  // then takes its position and its lock). selectionArray: only vertices where it is not 0 move
+  // or go; the others are locked, so every face with no selected vertex is in the output with
+  // the same corners. Not with weldDistance >= 0 (welding would merge locked vertices away).
   std::string lockArray;
   std::string selectionArray;
   double boundaryWeight = kDefaultDecimateBoundaryWeight; // weight of the boundary constraint quadrics

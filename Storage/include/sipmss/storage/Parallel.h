@@ -52,8 +52,8 @@ struct Phase
   bool inCoreThreads = true;    // in core: on `threads` threads (false: on one)
   std::uint64_t inCoreMin = 0;  // in core: fewer elements run on one thread
   bool helper = true;           // out of core: a helper thread may take the upper part
-  // The second worker's first element (default: elements / 2); a phase with a split point has
-  // at most two workers.
+  // The second worker's first element when there are two (default: elements / 2); with more
+  // (in core), the range is cut evenly. A phase of two parts asks for two threads.
   std::uint64_t helperFirst = kHalf;
   std::vector<BlockId> writes;  // blocks written, each worker within its own element range
   std::vector<DML::Range> helperWrites; // out of core: more ranges the helper writes
