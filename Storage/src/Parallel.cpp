@@ -155,7 +155,7 @@ Workers::~Workers()
 
 WriteBounds Workers::Bounds(int t, BlockId id) const
 {
-  if (this->count_ == 1 || this->widened_)
+  if (this->count_ == 1)
   {
     return {};
   }
@@ -198,6 +198,12 @@ void Workers::Join()
   }
 }
 
+void Workers::Alone()
+{
+  this->Join();
+  this->count_ = 1; // (the calling thread writes anywhere from now on)
+}
+
 void Workers::Run(const RangeBody& body, const std::function<void()>& poll)
 {
   std::atomic<bool> stop{ false };
@@ -206,8 +212,7 @@ void Workers::Run(const RangeBody& body, const std::function<void()>& poll)
   if (started < this->count_)
   {
     const std::uint64_t from = this->Begin(started);
-    this->Join();
-    this->widened_ = true; // (the calling thread takes the rest of the range)
+    this->Alone(); // (the calling thread takes the rest of the range)
     body(0, from, this->phase_.elements, stop);
   }
   this->Join();
@@ -216,34 +221,20 @@ void Workers::Run(const RangeBody& body, const std::function<void()>& poll)
 void Workers::RunTasks(int tasks, const TaskBody& body)
 {
   std::atomic<bool> stop{ false };
-  if (this->count_ < tasks)
+  int started = 0;
+  if (this->count_ >= tasks)
   {
-    this->Join();
-    this->widened_ = true;
-    for (int k = 0; k < tasks && !stop.load(); ++k)
-    {
-      body(0, k, stop);
-    }
-    return;
+    // (task t is the one-element range [t, t + 1) of worker t)
+    started = RunRanges(tasks, [](int t) { return std::uint64_t(t); },
+      [&body](int t, std::uint64_t task, std::uint64_t, const std::atomic<bool>& halt) {
+        body(t, int(task), halt);
+      },
+      nullptr, stop);
   }
-  std::vector<std::exception_ptr> errors(static_cast<std::size_t>(tasks));
-  const int started = RunOnThreads(tasks, [&](int t) {
-    try
-    {
-      body(t, t, stop);
-    }
-    catch (...)
-    {
-      errors[std::size_t(t)] = std::current_exception();
-      stop = true;
-    }
-  });
-  RethrowFirst(errors);
   if (started < tasks)
   {
-    this->Join();
-    this->widened_ = true;
-    for (int k = started; k < tasks; ++k)
+    this->Alone();
+    for (int k = started; k < tasks && !stop.load(); ++k)
     {
       body(0, k, stop);
     }

@@ -117,7 +117,9 @@ private:
   Phase phase_;
   int count_ = 1;
   std::uint64_t split_ = 0; // the helper's first element
-  bool widened_ = false; // a worker could not start: the calling thread writes anywhere
+  // Joins the helper and leaves one worker, the calling thread, which then writes anywhere (a
+  // worker could not be started: its part runs there).
+  void Alone();
   std::unique_ptr<DML> fork_;
 };
 } // namespace sipmss::storage
