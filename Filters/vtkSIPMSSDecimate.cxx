@@ -58,6 +58,7 @@ void vtkSIPMSSDecimate::FillRequest(sipmss::algorithms::SimplifyRequest& request
   request.targetReduction = this->TargetReduction;
   request.maximumError =
     this->MaximumError >= VTK_DOUBLE_MAX ? std::numeric_limits<double>::infinity() : this->MaximumError;
+  request.absoluteError = this->AbsoluteError;
   request.levelsOfDetail = this->NumberOfLevelsOfDetail;
   request.lockBoundary = this->LockBoundary;
   request.boundaryWeight = this->BoundaryWeight;
@@ -84,6 +85,7 @@ void vtkSIPMSSDecimate::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "TargetNumberOfTriangles: " << this->TargetNumberOfTriangles << "\n";
   os << indent << "TargetReduction: " << this->TargetReduction << "\n";
   os << indent << "MaximumError: " << this->MaximumError << "\n";
+  os << indent << "AbsoluteError: " << this->AbsoluteError << "\n";
   os << indent << "NumberOfLevelsOfDetail: " << this->NumberOfLevelsOfDetail << "\n";
   os << indent << "LockBoundary: " << this->LockBoundary << "\n";
   os << indent << "BoundaryWeight: " << this->BoundaryWeight << "\n";

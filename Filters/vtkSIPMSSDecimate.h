@@ -27,7 +27,8 @@ public:
 
   ///@{
   /**
-   * Stop at this many triangles. 0 (default): use TargetReduction.
+   * Stop at this many triangles. 0 (default): use TargetReduction, or with a MaximumError go as
+   * far as the bound allows.
    */
   vtkSetClampMacro(TargetNumberOfTriangles, vtkIdType, 0, VTK_ID_MAX);
   vtkGetMacro(TargetNumberOfTriangles, vtkIdType);
@@ -35,7 +36,8 @@ public:
 
   ///@{
   /**
-   * Fraction of the triangles to remove when TargetNumberOfTriangles is 0 (default 0.9).
+   * Fraction of the triangles to remove when TargetNumberOfTriangles is 0 and MaximumError is
+   * not set (default 0.9).
    */
   vtkSetClampMacro(TargetReduction, double, 0.0, 1.0);
   vtkGetMacro(TargetReduction, double);
@@ -43,11 +45,17 @@ public:
 
   ///@{
   /**
-   * Stop early when the cheapest collapse exceeds this quadric error (a squared distance).
-   * Default: no limit.
+   * An error bound: no collapse whose error (the RMS distance of the merged vertex to the
+   * input's planes it stands for, GetAchievedError's measure) exceeds this fraction of the
+   * input's bounding-box diagonal, or this distance in the input's units when AbsoluteError is
+   * on. Default: no bound. With a bound and TargetNumberOfTriangles 0, the bound is the only stop
+   * (TargetReduction is not used): the run goes as far as the bound allows.
    */
   vtkSetClampMacro(MaximumError, double, 0.0, VTK_DOUBLE_MAX);
   vtkGetMacro(MaximumError, double);
+  vtkSetMacro(AbsoluteError, bool);
+  vtkGetMacro(AbsoluteError, bool);
+  vtkBooleanMacro(AbsoluteError, bool);
   ///@}
 
   ///@{
@@ -118,6 +126,7 @@ protected:
   vtkIdType TargetNumberOfTriangles = 0;
   double TargetReduction = 0.9;
   double MaximumError = VTK_DOUBLE_MAX;
+  bool AbsoluteError = false;
   int NumberOfLevelsOfDetail = 1;
   bool LockBoundary = false;
   double BoundaryWeight = 100.0;

@@ -80,6 +80,8 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->ElapsedSeconds = 0;
   this->InputTriangles = this->OutputTriangles = 0;
   this->AchievedReduction = 0;
+  this->AchievedError = -1;
+  this->ErrorDiagonal = 0;
 
   // The request, and the same rules as the CLI's: NaN, infinities and meaningless values are
   // errors before any work.
@@ -239,6 +241,8 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       ? 1.0 - double(stats.outputTriangles) / double(stats.inputTriangles)
       : 0.0;
     this->LayoutFarFraction = stats.layoutFarFraction;
+    this->AchievedError = stats.achievedError;
+    this->ErrorDiagonal = stats.errorDiagonal;
     this->Reordered = stats.reordered;
     this->UsedInCore = stats.storage.usedInCore;
     this->UsedOutOfCore = stats.storage.usedOutOfCore;
@@ -295,4 +299,6 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "InputTriangles: " << this->InputTriangles << "\n";
   os << indent << "OutputTriangles: " << this->OutputTriangles << "\n";
   os << indent << "AchievedReduction: " << this->AchievedReduction << "\n";
+  os << indent << "AchievedError: " << this->AchievedError << "\n";
+  os << indent << "ErrorDiagonal: " << this->ErrorDiagonal << "\n";
 }

@@ -127,6 +127,11 @@ public:
   vtkGetMacro(InputTriangles, vtkTypeUInt64);
   vtkGetMacro(OutputTriangles, vtkTypeUInt64);
   vtkGetMacro(AchievedReduction, double);
+  // The error of the run's merges (the largest RMS distance of a merged vertex to the input's
+  // planes it stands for) as a fraction of the input's bounding-box diagonal, and that diagonal
+  // (-1 and 0 before a run; docs/architecture.md, "Error bound").
+  vtkGetMacro(AchievedError, double);
+  vtkGetMacro(ErrorDiagonal, double);
   ///@}
 
 protected:
@@ -175,6 +180,8 @@ protected:
   vtkTypeUInt64 InputTriangles = 0;
   vtkTypeUInt64 OutputTriangles = 0;
   double AchievedReduction = 0.0;
+  double AchievedError = -1.0;
+  double ErrorDiagonal = 0.0;
 
 private:
   vtkSIPMSSFilterBase(const vtkSIPMSSFilterBase&) = delete;

@@ -61,6 +61,7 @@ struct ClusterState
   Progress& progress;
   io::MeshHeader header;
   io::VertexLayout layout;
+  double achievedErr2 = 0; // the largest representative's error (Emit; RunStats::achievedError)
   std::size_t attrStride = 0;
   std::vector<float> attrBuf;
   Array<VertexRec> vertices;
@@ -369,6 +370,14 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
     const CellRec rec = cluster.cells.Get(c);
     double p[3];
     Representative(cluster, rec, p);
+    // The representative's error, at its position as written.
+    const double trace = QuadricTrace(rec.q.q);
+    if (trace > 0)
+    {
+      cluster.achievedErr2 = std::max(cluster.achievedErr2,
+        QuadricValue(rec.q.q, double(float(p[0])), double(float(p[1])), double(float(p[2]))) /
+          trace);
+    }
     if (cluster.options.exportQuadric)
     {
       cluster.options.exportQuadric(first + xyz.size() / 3, rec.q.q);
@@ -946,6 +955,10 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
     PhaseTimer timer(stats, dml, "output");
     Emit(cluster, output, stats);
   }
+  stats.errorDiagonal = std::sqrt((bounds[1] - bounds[0]) * (bounds[1] - bounds[0]) +
+    (bounds[3] - bounds[2]) * (bounds[3] - bounds[2]) +
+    (bounds[5] - bounds[4]) * (bounds[5] - bounds[4]));
+  stats.achievedError = RelativeError(cluster.achievedErr2, stats.errorDiagonal);
   progress.Finish();
   stats.storage = dml.GetStats();
   return stats;

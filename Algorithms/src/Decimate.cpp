@@ -20,8 +20,9 @@ namespace
 std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0)
 {
   std::uint64_t target = ctx.opt.targetTriangles;
-  if (target == 0)
+  if (target == 0 && !std::isfinite(ctx.opt.maximumError))
   {
+    // (with a bound and no target the bound is the only stop)
     double r = std::min(1.0, std::max(0.0, ctx.opt.targetReduction));
     target = std::uint64_t(std::llround(double(F0) * (1.0 - r)));
   }
@@ -103,12 +104,27 @@ double RestWork(
   return work + PassesWork(ctx, mesh, F, 0, Levels(ctx, F));
 }
 
+// The error bound in the units of the costs (a squared distance per unit of trace), once the
+// input's bounds are known.
+void SetErrorBound(RunContext& ctx, const MeshState& mesh)
+{
+  const Vec3 d = mesh.hi - mesh.lo;
+  ctx.diagonal =
+    ctx.opt.errorDiagonal > 0 ? ctx.opt.errorDiagonal : std::sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
+  if (std::isfinite(ctx.opt.maximumError))
+  {
+    const double e = ctx.opt.maximumError * (ctx.opt.absoluteError ? 1.0 : ctx.diagonal);
+    ctx.maxErr2 = e * e;
+  }
+}
+
 void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& input,
   io::MeshSink& output,
   const std::function<void(int, const std::function<void(io::MeshSink&)>&)>& onLevel)
 {
   ctx.emitsLevels = bool(onLevel);
   Read(ctx, mesh, input);
+  SetErrorBound(ctx, mesh);
   if (ctx.opt.weldDistance >= 0)
   {
     PhaseTimer timer(ctx.stats, mesh.dml, "weld");
@@ -177,6 +193,8 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
   ctx.stats.outputVertices = mesh.nv;
   ctx.stats.outputTriangles = mesh.nf;
   ctx.stats.droppedInputFaces = mesh.dropped + mesh.readerDropped;
+  ctx.stats.errorDiagonal = ctx.diagonal;
+  ctx.stats.achievedError = RelativeError(ctx.achievedErr2, ctx.diagonal);
   ctx.stats.storage = mesh.dml.GetStats();
 }
 

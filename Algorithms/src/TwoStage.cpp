@@ -111,6 +111,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   }
 
   // Stage 1: clustering into the hand-off mesh, cell quadrics kept per output vertex.
+  RunStats s1;
   detail::StoredMesh handoff(dml);
   Array<Quadric> quadrics(dml, 1);
   {
@@ -153,7 +154,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
       co.sourceConsumed = [&reordered] { reordered.reset(); };
       co.threads = 1; // (no reader thread: the copy is read from this DML, single-threaded)
     }
-    RunStats s1 = Cluster(stage1Input, handoff, co, p1);
+    s1 = Cluster(stage1Input, handoff, co, p1);
     stats.inputVertices = s1.inputVertices;
     stats.inputTriangles = s1.inputTriangles;
     stats.droppedInputFaces = s1.droppedInputFaces;
@@ -166,6 +167,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   // Stage 2: edge collapse on the DML-resident clustered mesh.
   DecimateOptions dopt = options.decimate;
   dopt.dml = &dml;
+  dopt.errorDiagonal = s1.errorDiagonal; // (the bound and the errors refer to the input's box)
   if (options.carryQuadrics)
   {
     dopt.initialQuadric = [&quadrics](std::uint64_t v, double q[10]) {
@@ -194,6 +196,13 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   Prefix(stats.phases, from, "stage 2 ");
   stats.outputVertices = s2.outputVertices;
   stats.outputTriangles = s2.outputTriangles;
+  // With the cell quadrics carried, a collapse's error is measured against the input's planes
+  // and a vertex that did not collapse keeps its cell's: the larger of the two stages'. Without,
+  // stage 2 measures against the clustered mesh, and the errors add up (a bound, not a measure).
+  stats.errorDiagonal = s1.errorDiagonal;
+  stats.achievedError = options.carryQuadrics
+    ? std::max(s1.achievedError, s2.achievedError)
+    : s1.achievedError + s2.achievedError;
   stats.storage = dml.GetStats();
   return stats;
 }

@@ -29,7 +29,7 @@ PROXIES = [("filters", "SIPMSSCluster"), ("filters", "SIPMSSDecimate"),
 STORAGE = ["MemoryBudgetMB", "TemporaryDirectories", "OperationMode", "NumberOfThreads"]
 STATISTICS = ["UsedOutOfCore", "MemoryBudgetBytes", "PeakStorageBytes", "PeakTemporaryFileBytes",
               "InputTriangles", "OutputTriangles", "AchievedReduction", "ElapsedSeconds",
-              "LayoutFarFraction", "Reordered"]
+              "LayoutFarFraction", "Reordered", "AchievedError", "ErrorDiagonal"]
 
 pxm = servermanager.ProxyManager()
 errors = []
@@ -146,6 +146,10 @@ check(dec.GetProperty("OutputTriangles").GetData() <= 500 < dec.GetProperty("Inp
       "triangle counts: %r -> %r" % (dec.GetProperty("InputTriangles").GetData(),
                                     dec.GetProperty("OutputTriangles").GetData()))
 check(dec.GetProperty("PeakTemporaryFileBytes").GetData() > 0, "no block file bytes out of core")
+check(0 < dec.GetProperty("AchievedError").GetData() < 1, "achieved error %r" %
+      dec.GetProperty("AchievedError").GetData())
+check(abs(dec.GetProperty("ErrorDiagonal").GetData() - 3 ** 0.5) < 0.01, "diagonal %r" %
+      dec.GetProperty("ErrorDiagonal").GetData())  # (the unit sphere's box: side 1)
 
 for e in errors:
     print("FAIL:", e)

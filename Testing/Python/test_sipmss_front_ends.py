@@ -90,8 +90,11 @@ CASES = [
     (vtkSIPMSSDecimate, {}, [], False),
     (vtkSIPMSSDecimate, {"TargetNumberOfTriangles": 200}, ["--target", "200"], True),
     (vtkSIPMSSDecimate, {"TargetReduction": 0.5}, ["--reduction", "0.5"], True),
-    (vtkSIPMSSDecimate, {"TargetNumberOfTriangles": 20, "MaximumError": 1e-6},
-     ["--target", "20", "--max-error", "1e-6"], True),
+    (vtkSIPMSSDecimate, {"TargetNumberOfTriangles": 20, "MaximumError": 1e-3},
+     ["--target", "20", "--max-error", "1e-3"], True),
+    (vtkSIPMSSDecimate, {"MaximumError": 2e-3}, ["--max-error", "2e-3"], True),  # (no target)
+    (vtkSIPMSSDecimate, {"MaximumError": 2e-3, "AbsoluteError": True},
+     ["--max-error", "2e-3", "--absolute-error"], True),
     (vtkSIPMSSDecimate, {"NumberOfLevelsOfDetail": 3}, ["--lods", "3"], True),  # (the schedule)
     (vtkSIPMSSDecimate, {"LockBoundary": True}, ["--lock-boundary"], True),
     (vtkSIPMSSDecimate, {"BoundaryWeight": 0.0}, ["--boundary-weight", "0"], True),
@@ -158,6 +161,12 @@ class FrontEnds(unittest.TestCase):
                 self.assertTrue((fp == cp).all(), "points differ")
                 self.assertTrue((ft == ct).all(), "triangles differ")
                 self.assertEqual(f.GetOutputTriangles(), stats["output_triangles"])
+                self.assertEqual(f.GetAchievedError(), stats["achieved_error"])
+                self.assertEqual(f.GetErrorDiagonal(), stats["diagonal"])
+                self.assertGreater(f.GetAchievedError(), 0)
+                if "MaximumError" in props:
+                    bound = props["MaximumError"] / (f.GetErrorDiagonal() if props.get("AbsoluteError") else 1)
+                    self.assertLessEqual(f.GetAchievedError(), bound * (1 + 1e-6))
                 self.assertEqual(bool(f.GetUsedOutOfCore()), stats["storage"]["used_out_of_core"])
                 if props.get("OperationMode") == 2:
                     self.assertTrue(f.GetUsedOutOfCore())

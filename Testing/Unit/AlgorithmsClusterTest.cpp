@@ -241,3 +241,35 @@ TEST(Cluster, BoundaryQuadricsPinTheCorners)
   EXPECT_EQ(out.m.p, out2.m.p);
   EXPECT_EQ(out.m.t, out2.m.t);
 }
+
+// The reported error: each representative's RMS distance to its cell's planes. Every such plane
+// passes through a vertex in the cell, and the representative lies in the cell widened by
+// placementSlack cells, so the error is at most sqrt(3) (1 + slack) cell sizes.
+TEST(Cluster, AchievedErrorIsBoundedByTheCells)
+{
+  Mesh wavy = Plane(40);
+  for (std::size_t i = 0; i < wavy.p.size(); i += 3)
+  {
+    wavy.p[i + 2] = float(0.3 * std::sin(3.0 * wavy.p[i]) * std::cos(2.0 * wavy.p[i + 1]));
+  }
+  double previous = 1;
+  for (int grid : { 4, 8, 16 })
+  {
+    RunStats s;
+    RunCluster(wavy, grid, storage::ModePolicy::Automatic, 0, &s);
+    ClusterOptions o;
+    const double D = s.errorDiagonal; // (x and y over [0, 1], |z| below 0.3)
+    EXPECT_GT(D, std::sqrt(2.0));
+    EXPECT_LT(D, std::sqrt(2.0 + 0.36));
+    const double cellSize = 1.0 / grid; // (the longest side over the grid)
+    EXPECT_GT(s.achievedError, 0.0) << grid;
+    EXPECT_LE(s.achievedError, std::sqrt(3.0) * (1 + o.placementSlack) * cellSize / D) << grid;
+    EXPECT_LT(s.achievedError, previous) << grid; // finer cells, smaller error
+    previous = s.achievedError;
+  }
+  // A plane: every representative is on it.
+  RunStats flat;
+  RunCluster(Plane(16), 4, storage::ModePolicy::Automatic, 0, &flat);
+  EXPECT_GE(flat.achievedError, 0.0);
+  EXPECT_LT(flat.achievedError, 1e-6);
+}

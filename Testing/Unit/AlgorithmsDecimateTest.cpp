@@ -1,5 +1,6 @@
 // Tests of Algorithm I (sipmss::algorithms::Decimate): topology guarantees, geometry, point data,
 // levels of detail, mode independence, abort, and timings on real and generated meshes.
+#include "sipmss/algorithms/Compare.h"
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Simplify.h"
 
@@ -1053,13 +1054,81 @@ TEST(AlgorithmsDecimate, MaximumErrorStopsEarly)
   Mesh g = Grid(32, Bumps);
   alg::DecimateOptions o;
   o.targetTriangles = 10;
-  o.maximumError = 1e-8;
-  Outcome tight = Simplify(MemorySource(g), o);
   o.maximumError = 1e-4;
+  Outcome tight = Simplify(MemorySource(g), o);
+  o.maximumError = 1e-2;
   Outcome loose = Simplify(MemorySource(g), o);
   EXPECT_GT(tight.out.Triangles(), loose.out.Triangles());
   EXPECT_GT(tight.out.Triangles(), 10u);
   EXPECT_LT(tight.out.Triangles(), g.Triangles());
+}
+
+alg::TriangleMesh AsTriangleMesh(const Mesh& m)
+{
+  return { m.xyz, m.tris };
+}
+
+Mesh Scaled(Mesh m, double s)
+{
+  for (float& x : m.xyz)
+  {
+    x = float(x * s);
+  }
+  return m;
+}
+
+// The bound is relative to the diagonal, the error reached is reported, and without a target the
+// bound is the only stop.
+TEST(AlgorithmsDecimate, ErrorBoundIsRelativeToTheDiagonalAndReported)
+{
+  const Mesh g = BumpySphere(4); // 5120 triangles, diagonal about 2 sqrt(3)
+  for (double e : { 1e-3, 4e-3, 1.6e-2 })
+  {
+    alg::DecimateOptions o;
+    o.maximumError = e;
+    const Outcome r = Simplify(MemorySource(g), o);
+    const double D = r.stats.errorDiagonal;
+    EXPECT_GT(D, 3.3);
+    EXPECT_LT(D, 3.6);
+    // (a float cost against the double bound: within float rounding)
+    EXPECT_LE(r.stats.achievedError, e * (1 + 1e-6)) << e;
+    EXPECT_GT(r.stats.achievedError, 0.5 * e) << e; // it went as far as the bound allowed
+    EXPECT_LT(r.out.Triangles(), g.Triangles());
+    // The measured distances: documented in docs/architecture.md, "Error bound".
+    const alg::CompareResult c = alg::CompareMeshes(AsTriangleMesh(g), AsTriangleMesh(r.out));
+    EXPECT_LE(c.rms, e) << e;
+    EXPECT_LE(c.hausdorff, 4 * e) << e;
+    std::printf("e %g: %zu triangles, achieved %g, rms %g (%.2f e), hausdorff %g (%.2f e)\n", e,
+      r.out.Triangles(), r.stats.achievedError, c.rms, c.rms / e, c.hausdorff, c.hausdorff / e);
+
+    // The same relative bound on the mesh scaled by 8 (exact in floats): the same triangles and
+    // error.
+    const Outcome big = Simplify(MemorySource(Scaled(g, 8.0)), o);
+    EXPECT_EQ(big.out.Triangles(), r.out.Triangles()) << e;
+    EXPECT_EQ(big.stats.achievedError, r.stats.achievedError) << e;
+    EXPECT_EQ(big.stats.errorDiagonal, 8 * D) << e;
+    // An absolute bound of e times the diagonal is the same bound.
+    o.absoluteError = true;
+    o.maximumError = e * D;
+    const Outcome abs = Simplify(MemorySource(g), o);
+    EXPECT_EQ(abs.out.Triangles(), r.out.Triangles()) << e;
+    EXPECT_EQ(abs.stats.achievedError, r.stats.achievedError) << e;
+  }
+  // A loose bound without a target goes further than the default reduction (0.9) would; with a
+  // target the target stops first.
+  alg::DecimateOptions o;
+  o.maximumError = 0.05;
+  const Outcome loose = Simplify(MemorySource(g), o);
+  EXPECT_LT(loose.out.Triangles(), g.Triangles() / 10);
+  o.targetTriangles = 1000;
+  const Outcome both = Simplify(MemorySource(g), o);
+  EXPECT_LE(both.out.Triangles(), 1000u);
+  EXPECT_GE(both.out.Triangles(), 998u);
+  // No bound: the error is still reported.
+  alg::DecimateOptions none;
+  const Outcome free = Simplify(MemorySource(g), none);
+  EXPECT_GT(free.stats.achievedError, 0.0);
+  EXPECT_LT(free.stats.achievedError, loose.stats.achievedError);
 }
 
 TEST(AlgorithmsDecimate, PointDataFollowsThePositions)

@@ -112,3 +112,39 @@ TEST(TwoStage, CarriedCellQuadricsReachStage2InEveryMode)
   EXPECT_EQ(carried.m.p, carriedOut.m.p);
   EXPECT_EQ(carried.m.t, carriedOut.m.t);
 }
+
+// The error reported for the two stages, relative to the input's diagonal: the clustering's and
+// the collapses', added up when stage 2 measures against the clustered mesh, the larger of the
+// two when it carries the cell quadrics (measured against the input's planes). A bound limits
+// stage 2.
+TEST(TwoStage, ErrorOfBothStagesIsReported)
+{
+  const Mesh in = Sphere(48);
+  NullProgress progress;
+  TwoStageOptions o;
+  o.gridDimension = 40;
+  o.decimate.targetTriangles = 500;
+  ClusterOptions co;
+  co.maximumGridDimension = 40;
+  Collect clustered;
+  const RunStats s1 = Cluster(MemorySource(in), clustered, co, progress);
+  ASSERT_GT(s1.achievedError, 0.0);
+  for (bool carry : { false, true })
+  {
+    o.carryQuadrics = carry;
+    Collect a;
+    const RunStats s = TwoStage(MemorySource(in), a, o, progress);
+    EXPECT_EQ(s.errorDiagonal, s1.errorDiagonal);
+    EXPECT_GT(s.achievedError, s1.achievedError) << carry; // (500 triangles: far coarser)
+    // A bound of half that error (the run goes as far as it allows)...
+    TwoStageOptions b = o;
+    b.decimate.targetTriangles = 0;
+    b.decimate.maximumError = 0.5 * s.achievedError;
+    Collect c;
+    const RunStats bounded = TwoStage(MemorySource(in), c, b, progress);
+    EXPECT_GT(c.m.t.size(), a.m.t.size()) << carry;
+    EXPECT_LE(bounded.achievedError,
+      carry ? std::max(s1.achievedError, b.decimate.maximumError * (1 + 1e-6))
+            : s1.achievedError + b.decimate.maximumError * (1 + 1e-6)) << carry;
+  }
+}

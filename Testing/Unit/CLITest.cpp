@@ -490,6 +490,74 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
   }
 }
 
+// --max-error is a fraction of the input's diagonal (or a distance with --absolute-error); the
+// error reached is in the summary line and the statistics.
+TEST_F(CLI, ErrorBoundAndAchievedError)
+{
+  const int n = 30;
+  const std::string in = this->P("wavy.ply");
+  {
+    std::ofstream f(in);
+    f << "ply\nformat ascii 1.0\nelement vertex " << (n + 1) * (n + 1)
+      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
+      << "\nproperty list uchar int vertex_indices\nend_header\n";
+    for (int j = 0; j <= n; ++j)
+    {
+      for (int i = 0; i <= n; ++i)
+      {
+        f << i << " " << j << " " << 3 * std::sin(0.3 * i) * std::cos(0.2 * j) << "\n";
+      }
+    }
+    for (int j = 0; j < n; ++j)
+    {
+      for (int i = 0; i < n; ++i)
+      {
+        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+        f << "3 " << a << " " << b << " " << c << "\n3 " << a << " " << c << " " << d << "\n";
+      }
+    }
+  }
+  auto number = [](const std::string& json, const std::string& key) {
+    const std::size_t k = json.find("\"" + key + "\": ");
+    EXPECT_NE(k, std::string::npos) << key << "\n" << json;
+    return k == std::string::npos ? -1.0 : std::stod(json.substr(k + key.size() + 4));
+  };
+  Result r = RunCli("simplify " + in + " " + this->P("rel.ply") +
+    " --algorithm decimate --max-error 0.002 --stats-json " + this->P("rel.json"));
+  ASSERT_EQ(r.status, 0) << r.out;
+  EXPECT_NE(r.out.find(" of the diagonal)"), std::string::npos) << r.out;
+  const std::string rel = ReadAll(this->P("rel.json"));
+  const double achieved = number(rel, "achieved_error"), diagonal = number(rel, "diagonal");
+  EXPECT_GT(achieved, 0.001) << rel; // (no target: as far as the bound allows)
+  EXPECT_LE(achieved, 0.002 * (1 + 1e-6)) << rel;
+  EXPECT_NEAR(diagonal, std::sqrt(2.0 * n * n + 36.0), 0.1) << rel;
+  EXPECT_LT(number(rel, "output_triangles"), 0.5 * 2 * n * n) << rel;
+  // The same bound as a distance: the same output.
+  char absolute[64];
+  std::snprintf(absolute, sizeof(absolute), "%.17g", 0.002 * diagonal);
+  Result a = RunCli("simplify " + in + " " + this->P("abs.ply") +
+    " --algorithm decimate --quiet --absolute-error --max-error " + absolute);
+  ASSERT_EQ(a.status, 0) << a.out;
+  EXPECT_EQ(ReadAll(this->P("rel.ply")), ReadAll(this->P("abs.ply")));
+  // A cluster run reports its error too.
+  Result c = RunCli("simplify " + in + " " + this->P("c.ply") + " --grid 8 --quiet --stats-json " +
+    this->P("c.json"));
+  ASSERT_EQ(c.status, 0) << c.out;
+  EXPECT_GT(number(ReadAll(this->P("c.json")), "achieved_error"), 0.0);
+  // Options that cannot mean anything are refused.
+  for (const char* bad : { " --algorithm decimate --absolute-error",
+         " --algorithm decimate --max-error 0.01 --reduction 0.5",
+         " --algorithm decimate --max-error 0.01 --lods 3", " --absolute-error --max-error 1" })
+  {
+    Result b = RunCli("simplify " + in + " " + this->P("b.ply") + bad);
+    EXPECT_EQ(b.status, 2) << bad << "\n" << b.out;
+    EXPECT_FALSE(fs::exists(this->P("b.ply"))) << bad;
+  }
+  Result lods = RunCli("simplify " + in + " " + this->P("l.ply") +
+    " --algorithm decimate --quiet --max-error 0.01 --target 100 --lods 3");
+  EXPECT_EQ(lods.status, 0) << lods.out;
+}
+
 // --lock-array and --selection-array name a vertex property of the input: the locked vertices
 // are in the output where they were; a name the input does not have is an error that names the
 // file and the property, and writes nothing.

@@ -505,6 +505,17 @@ int RunSimplify(const SimplifyArgs& a)
       j["layout_far_fraction"] = nullptr;
     }
     j["reordered"] = stats.reordered;
+    // The error of the run's merges relative to the input's bounding-box diagonal, and that
+    // diagonal (docs/architecture.md, "Error bound").
+    if (stats.achievedError >= 0)
+    {
+      j["achieved_error"] = stats.achievedError;
+    }
+    else
+    {
+      j["achieved_error"] = nullptr;
+    }
+    j["diagonal"] = stats.errorDiagonal;
     nlohmann::json phases = nlohmann::json::array();
     for (const auto& p : stats.phases)
     {
@@ -552,10 +563,16 @@ int RunSimplify(const SimplifyArgs& a)
       std::snprintf(disk, sizeof(disk), " (temporary files: %.1f MB at most)",
         double(stats.storage.peakFileBytes) / 1e6);
     }
-    std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices) in %.2f s, peak RSS %.1f MB, "
-                "%s%s\n",
+    char error[64] = "";
+    if (stats.achievedError >= 0)
+    {
+      std::snprintf(error, sizeof(error), ", error %.3g of the diagonal", stats.achievedError);
+    }
+    std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices%s) in %.2f s, peak RSS "
+                "%.1f MB, %s%s\n",
       a.algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
-      (unsigned long long)stats.outputTriangles, (unsigned long long)stats.outputVertices, seconds,
+      (unsigned long long)stats.outputTriangles, (unsigned long long)stats.outputVertices, error,
+      seconds,
       PeakRssMB(),
       stats.storage.usedOutOfCore ? (stats.storage.usedInCore ? "out of core then in core" : "out of core")
                                   : "in core",
@@ -664,8 +681,11 @@ int main(int argc, char** argv)
     "fraction of the triangles to remove (default 0.9 without --target)")
     ->excludes(targetOption);
   auto* maxError = targets->add_option("--max-error", rq.maximumError,
-    "stop when the cheapest collapse costs more than this quadric error (a squared distance in "
-    "the input's units; default: no bound)");
+    "an error bound: no collapse whose error (the RMS distance of the merged vertex to the "
+    "input's planes it stands for) exceeds this fraction of the input's bounding-box diagonal "
+    "(default: no bound); without --target the run goes as far as the bound allows");
+  auto* absoluteError = targets->add_flag("--absolute-error", rq.absoluteError,
+    "--max-error is a distance in the input's units, not a fraction of the diagonal");
   auto* lods = targets->add_option("--lods", rq.levelsOfDetail,
     "levels of detail, written as OUTPUT_lodK (default 1)");
   CLI::Option_group* clustering = simplify->add_option_group("Clustering",
@@ -724,6 +744,7 @@ int main(int argc, char** argv)
     const std::pair<CLI::Option*, bool> applies[] = {
       { grid, rq.algorithm != algorithms::Algorithm::Decimate }, { bounds, cluster },
       { targetOption, !cluster }, { reduction, !cluster }, { maxError, !cluster },
+      { absoluteError, !cluster },
       { lods, !cluster }, { lockBoundary, !cluster }, { weld, !cluster },
       { lockArray, rq.algorithm == algorithms::Algorithm::Decimate },
       { selectionArray, rq.algorithm == algorithms::Algorithm::Decimate } };
@@ -740,6 +761,17 @@ int main(int argc, char** argv)
       throw CLI::ValidationError("--target", "must be at least 1, not " + std::to_string(target));
     }
     rq.targetTriangles = static_cast<std::uint64_t>(std::max<std::int64_t>(target, 0));
+    if (absoluteError->count() > 0 && maxError->count() == 0)
+    {
+      throw CLI::ValidationError("--absolute-error", "needs --max-error (it says how to read it)");
+    }
+    if (reduction->count() > 0 && maxError->count() > 0 && std::isfinite(rq.maximumError))
+    {
+      // (the filters' TargetReduction is likewise unused with a bound and no target)
+      throw CLI::ValidationError("--reduction",
+        "has no effect with --max-error: without --target the bound is the only stop (give "
+        "--target for a triangle count too)");
+    }
     if (grid->count() > 0 && rq.grid < 1)
     {
       throw CLI::ValidationError("--grid", "must be at least 1, not " + std::to_string(rq.grid));

@@ -43,12 +43,22 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     mesh.views.RO.Set(k, end);
     const bool survivor = (mesh.views.S.Get(v) & kCollapsed) != 0;
     R.Set(v, std::uint32_t(k) | (survivor ? kTop : 0u));
-    if (survivor && pass.lazySums)
+    if (survivor)
     {
-      // Its collapse's partner (its candidate's) is still in place: nothing moved yet.
+      // Its collapse's candidate (and partner) is still in place: nothing moved yet. The
+      // collapse's error: its cost per unit of the summed quadric's trace.
+      const Cand c = mesh.views.C.Get(v);
       Quadric Q = mesh.views.Q.Get(v);
-      AddTo(Q, mesh.views.Q.Get(mesh.views.C.Get(v).partner));
-      mesh.views.Q.Set(v, Q);
+      if (pass.lazySums)
+      {
+        AddTo(Q, mesh.views.Q.Get(c.partner));
+        mesh.views.Q.Set(v, Q);
+      }
+      const double trace = Trace(Q);
+      if (trace > 0)
+      {
+        ctx.achievedErr2 = std::max(ctx.achievedErr2, double(c.cost) / trace);
+      }
     }
     ++k;
   }

@@ -212,7 +212,7 @@ inline double Eval(const Quadric& Q, const Vec3& p)
 }
 inline double Trace(const Quadric& Q)
 {
-  return Q.q[0] + Q.q[4] + Q.q[7];
+  return QuadricTrace(Q.q);
 }
 
 // One pass's candidate of a vertex: collapse it with `partner` to p; t = position of p along the
@@ -582,6 +582,11 @@ struct RunContext
   double cosThreshold;
   int threads;
   bool emitsLevels = false; // onLevel given: each level is emitted during the passes
+  // The error bound as a quadric cost per unit of trace (a squared distance; set once the input
+  // is read: SetErrorBound), and the largest such cost of the collapses made (Compact).
+  double maxErr2 = std::numeric_limits<double>::infinity();
+  double diagonal = 0;
+  double achievedErr2 = 0;
   // Element i of n of the current phase: the progress every 1024 elements (and an abort check).
   void Tick(std::uint64_t i, std::uint64_t n)
   {
@@ -615,6 +620,7 @@ struct MeshState
   bool begun = false;
   Vec3 origin{ 0, 0, 0 };
   bool haveOrigin = false;
+  Vec3 lo{ 0, 0, 0 }, hi{ 0, 0, 0 }; // the input's bounds (about origin; once haveOrigin)
   std::uint64_t vCap = 0, fCap = 0;
   std::uint64_t readerDropped = 0, dropped = 0;
 

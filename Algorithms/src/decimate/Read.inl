@@ -185,11 +185,17 @@ void AddVertices(MeshState& mesh, const io::VertexChunk& c)
     mesh.haveOrigin = true;
   }
   mesh.vbuf.resize(c.count);
+  Vec3 lo = mesh.lo, hi = mesh.hi;
   for (std::size_t i = 0; i < c.count; ++i)
   {
-    mesh.vbuf[i] = { double(c.xyz[3 * i]) - mesh.origin.x,
+    const Vec3 p = { double(c.xyz[3 * i]) - mesh.origin.x,
       double(c.xyz[3 * i + 1]) - mesh.origin.y, double(c.xyz[3 * i + 2]) - mesh.origin.z };
+    mesh.vbuf[i] = p;
+    lo = { std::min(lo.x, p.x), std::min(lo.y, p.y), std::min(lo.z, p.z) };
+    hi = { std::max(hi.x, p.x), std::max(hi.y, p.y), std::max(hi.z, p.z) };
   }
+  mesh.lo = lo;
+  mesh.hi = hi;
   View<Vec3>(mesh.dml, mesh.pos).SetRange(c.first, c.count, mesh.vbuf.data());
   if (mesh.recSize)
   {

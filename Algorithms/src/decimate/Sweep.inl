@@ -517,12 +517,11 @@ void FlushEdges(RunContext& ctx, MeshState& mesh, PassState& pass, Scratch& s)
 }
 
 // Offers edge u-v with placement pl (summed quadric's trace `trace`) to u, and to v if offerV,
-// unless it has no finite cost or exceeds maximumError.
+// unless it has no finite cost or exceeds the error bound.
 void OfferEdge(RunContext& ctx, MeshState& mesh, PassState& pass, 
   std::uint32_t u, std::uint32_t v, const Placement& pl, double trace, bool offerV, Scratch& s)
 {
-  if (!std::isfinite(pl.cost) ||
-    (std::isfinite(ctx.opt.maximumError) && pl.cost > ctx.opt.maximumError * trace))
+  if (!std::isfinite(pl.cost) || pl.cost > ctx.maxErr2 * trace)
   {
     return;
   }
@@ -552,8 +551,6 @@ void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, S
     return;
   }
   const Quadric Qu = w.Q.Get(u);
-  const double maxErr = ctx.opt.maximumError;
-  const bool checkErr = std::isfinite(maxErr);
   s.edges.clear();
   for (std::uint32_t k = 0; k < ru.nbs.size(); ++k)
   {
@@ -578,7 +575,7 @@ void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, S
     Quadric Q = w.Q.Get(nb.v);
     AddTo(Q, Qu);
     const Placement pl = Place(Q, ru.px, nb.p, su, sv);
-    if (!std::isfinite(pl.cost) || (checkErr && pl.cost > maxErr * Trace(Q)))
+    if (!std::isfinite(pl.cost) || pl.cost > ctx.maxErr2 * Trace(Q))
     {
       continue;
     }

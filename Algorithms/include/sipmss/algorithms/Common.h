@@ -218,6 +218,12 @@ struct RunStats
   std::uint64_t outputVertices = 0;
   std::uint64_t outputTriangles = 0;
   std::uint64_t droppedInputFaces = 0;
+  // The error of the run's merges (docs/architecture.md, "Error bound"): the largest
+  // sqrt(Q(p) / trace(Q)) of a merged vertex (a collapse's survivor, a cluster's representative),
+  // the area-weighted RMS distance of its position to the planes of the input faces it stands
+  // for, divided by errorDiagonal, the input's bounding-box diagonal (-1: not measured, no run).
+  double achievedError = -1;
+  double errorDiagonal = 0;
   std::vector<PhaseStat> phases;
   storage::Stats storage; // the DML's statistics at the end of the run (peak, hits, misses, ...)
   // The budget the run had (bytes, 0: unbounded) and how it was chosen (empty: given), as

@@ -22,9 +22,15 @@ struct DecimateOptions
 {
   std::uint64_t targetTriangles = 0; // > 0: stop at or below this many triangles
   double targetReduction = kDefaultTargetReduction; // used when targetTriangles == 0: fraction to remove
-  double maximumError = std::numeric_limits<double>::infinity(); // stop when the cheapest
-                                     // collapse costs more (quadric error, squared distance:
-                                     // the area-weighted cost divided by the quadric's weight)
+  // An error bound: no collapse whose error (RunStats::achievedError's measure, a distance)
+  // exceeds maximumError times the input's bounding-box diagonal (times 1 when absoluteError).
+  // Infinite: no bound. With targetTriangles 0, a finite bound is the only stop (targetReduction
+  // is not used): the run goes as far as the bound allows.
+  double maximumError = std::numeric_limits<double>::infinity();
+  bool absoluteError = false;
+  // > 0: the diagonal that relative errors refer to (two-stage: the original input's); 0: that
+  // of this run's input.
+  double errorDiagonal = 0;
   int levelsOfDetail = 1;            // > 1: emit that many levels, evenly spaced in log(count)
   bool lockBoundary = false;         // boundary vertices never move
   // Locks and selections by a point-data scalar of the input (a name of its layout's scalars;

@@ -2,6 +2,9 @@
 // the two-stage hand-off between them).
 #pragma once
 
+#include <algorithm>
+#include <cmath>
+
 namespace sipmss::algorithms
 {
 // E(p) = p^T A p + 2 b.p + c for the symmetric 4x4 matrix [A b; b^T c], stored as its upper
@@ -25,5 +28,25 @@ inline Quadric PlaneQuadric(double nx, double ny, double nz, double d, double w)
 {
   return { { w * nx * nx, w * nx * ny, w * nx * nz, w * nx * d, w * ny * ny, w * ny * nz,
     w * ny * d, w * nz * nz, w * nz * d, w * d * d } };
+}
+// E(x, y, z).
+inline double QuadricValue(const double q[10], double x, double y, double z)
+{
+  return x * (q[0] * x + 2.0 * (q[1] * y + q[2] * z + q[3])) +
+    y * (q[4] * y + 2.0 * (q[5] * z + q[6])) + z * (q[7] * z + 2.0 * q[8]) + q[9];
+}
+
+// The sum of the plane weights (each plane quadric adds its weight w, its normal being a unit
+// vector): E(p) / trace is the weighted mean squared distance to the planes.
+inline double QuadricTrace(const double q[10])
+{
+  return q[0] + q[4] + q[7];
+}
+
+// An error as RunStats reports it: the root of a weighted mean squared distance, relative to
+// `diagonal` (0 when the diagonal is 0: a mesh of one point).
+inline double RelativeError(double meanSquared, double diagonal)
+{
+  return diagonal > 0 ? std::sqrt(std::max(0.0, meanSquared)) / diagonal : 0.0;
 }
 } // namespace sipmss::algorithms

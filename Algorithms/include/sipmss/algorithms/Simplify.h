@@ -36,12 +36,14 @@ struct SimplifyRequest
   Algorithm algorithm = Algorithm::Cluster;
 
   // Targets (decimate, two-stage): targetTriangles > 0 stops at or below that many triangles,
-  // else targetReduction of the triangles are removed.
+  // else targetReduction of the triangles are removed; but with a finite maximumError and no
+  // targetTriangles, the bound is the only stop (targetReduction is not used).
   std::uint64_t targetTriangles = 0;
   double targetReduction = kDefaultTargetReduction;
-  // Stop when the cheapest collapse costs more than this quadric error (a squared distance in the
-  // input's units). Infinite: no bound.
+  // An error bound (DecimateOptions::maximumError): a fraction of the input's bounding-box
+  // diagonal, or a distance in its units when absoluteError. Infinite: no bound.
   double maximumError = std::numeric_limits<double>::infinity();
+  bool absoluteError = false;
   int levelsOfDetail = 1;
 
   // Grid (cluster, two-stage): 0 is the algorithm's default (kDefaultClusterGrid,
