@@ -59,6 +59,7 @@ void vtkSIPMSSDecimate::FillRequest(sipmss::algorithms::SimplifyRequest& request
   request.maximumError =
     this->MaximumError >= VTK_DOUBLE_MAX ? std::numeric_limits<double>::infinity() : this->MaximumError;
   request.absoluteError = this->AbsoluteError;
+  request.pruneSize = this->PruneSize;
   request.levelsOfDetail = this->NumberOfLevelsOfDetail;
   request.lockBoundary = this->LockBoundary;
   request.boundaryWeight = this->BoundaryWeight;
@@ -86,6 +87,7 @@ void vtkSIPMSSDecimate::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "TargetReduction: " << this->TargetReduction << "\n";
   os << indent << "MaximumError: " << this->MaximumError << "\n";
   os << indent << "AbsoluteError: " << this->AbsoluteError << "\n";
+  os << indent << "PruneSize: " << this->PruneSize << "\n";
   os << indent << "NumberOfLevelsOfDetail: " << this->NumberOfLevelsOfDetail << "\n";
   os << indent << "LockBoundary: " << this->LockBoundary << "\n";
   os << indent << "BoundaryWeight: " << this->BoundaryWeight << "\n";

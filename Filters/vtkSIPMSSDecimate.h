@@ -80,6 +80,16 @@ public:
 
   ///@{
   /**
+   * First remove every disconnected piece whose bounding-box diagonal is below this fraction of
+   * the input's (e.g. 0.01; default 0: keep every piece). A piece with a vertex that LockArray or
+   * SelectionArray keeps stays. GetPrunedComponents() and GetPrunedTriangles() count them.
+   */
+  vtkSetClampMacro(PruneSize, double, 0.0, 1.0);
+  vtkGetMacro(PruneSize, double);
+  ///@}
+
+  ///@{
+  /**
    * Two-stage simplification (the paper's Algorithm Two-Stage): when > 0, the input is first
    * clustered on a grid with this maximum dimension (as vtkSIPMSSCluster, e.g. 300), and the
    * clustered mesh, kept in the storage layer, is then decimated. Much faster on huge inputs at
@@ -127,6 +137,7 @@ protected:
   double TargetReduction = 0.9;
   double MaximumError = VTK_DOUBLE_MAX;
   bool AbsoluteError = false;
+  double PruneSize = 0.0;
   int NumberOfLevelsOfDetail = 1;
   bool LockBoundary = false;
   double BoundaryWeight = 100.0;

@@ -60,6 +60,8 @@ const char* vtkSIPMSSFilterBase::PropertyName(sipmss::algorithms::Parameter para
       return "LockArray";
     case Parameter::SelectionArray:
       return "SelectionArray";
+    case Parameter::PruneSize:
+      return "PruneSize";
     case Parameter::MemoryBudget:
       return "MemoryBudgetMB";
     default:
@@ -82,6 +84,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->AchievedReduction = 0;
   this->AchievedError = -1;
   this->ErrorDiagonal = 0;
+  this->PrunedComponents = this->PrunedTriangles = 0;
 
   // The request, and the same rules as the CLI's: NaN, infinities and meaningless values are
   // errors before any work.
@@ -243,6 +246,8 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     this->LayoutFarFraction = stats.layoutFarFraction;
     this->AchievedError = stats.achievedError;
     this->ErrorDiagonal = stats.errorDiagonal;
+    this->PrunedComponents = stats.prunedComponents;
+    this->PrunedTriangles = stats.prunedTriangles;
     this->Reordered = stats.reordered;
     this->UsedInCore = stats.storage.usedInCore;
     this->UsedOutOfCore = stats.storage.usedOutOfCore;
@@ -301,4 +306,6 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "AchievedReduction: " << this->AchievedReduction << "\n";
   os << indent << "AchievedError: " << this->AchievedError << "\n";
   os << indent << "ErrorDiagonal: " << this->ErrorDiagonal << "\n";
+  os << indent << "PrunedComponents: " << this->PrunedComponents << "\n";
+  os << indent << "PrunedTriangles: " << this->PrunedTriangles << "\n";
 }

@@ -132,6 +132,9 @@ public:
   // (-1 and 0 before a run; docs/architecture.md, "Error bound").
   vtkGetMacro(AchievedError, double);
   vtkGetMacro(ErrorDiagonal, double);
+  // Disconnected pieces the run removed (vtkSIPMSSDecimate's PruneSize) and their triangles.
+  vtkGetMacro(PrunedComponents, vtkTypeUInt64);
+  vtkGetMacro(PrunedTriangles, vtkTypeUInt64);
   ///@}
 
 protected:
@@ -182,6 +185,8 @@ protected:
   double AchievedReduction = 0.0;
   double AchievedError = -1.0;
   double ErrorDiagonal = 0.0;
+  vtkTypeUInt64 PrunedComponents = 0;
+  vtkTypeUInt64 PrunedTriangles = 0;
 
 private:
   vtkSIPMSSFilterBase(const vtkSIPMSSFilterBase&) = delete;

@@ -7,6 +7,7 @@
 // The passes (one translation unit with this file: decimate/Passes.h says why).
 #include "decimate/Read.inl"
 #include "decimate/Rings.inl"
+#include "decimate/Prune.inl"
 #include "decimate/Sweep.inl"
 #include "decimate/Step.inl"
 #include "decimate/Compact.inl"
@@ -98,7 +99,7 @@ double RestWork(
   }
   if (stage <= 2)
   {
-    work += kWork::kQuadrics * double(F);
+    work += kWork::kQuadrics * double(F) + (ctx.opt.pruneSize > 0 ? kWork::kPrune * double(F + V) : 0.0);
   }
   // The passes from F faces (nv_ and nf_ are those of the input until the first pass).
   return work + PassesWork(ctx, mesh, F, 0, Levels(ctx, F));
@@ -133,6 +134,10 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
     Weld(ctx, mesh);
   }
   BuildRings(ctx, mesh);
+  if (ctx.opt.pruneSize > 0)
+  {
+    Prune(ctx, mesh);
+  }
   BuildQuadrics(ctx, mesh);
   if (ctx.opt.sourceConsumed)
   {

@@ -62,6 +62,8 @@ const char* CliOption(Parameter p)
       return "--lock-array";
     case Parameter::SelectionArray:
       return "--selection-array";
+    case Parameter::PruneSize:
+      return "--prune-size";
     case Parameter::MemoryBudget:
       return "--memory-mb";
     default:
@@ -149,6 +151,7 @@ std::vector<ParameterProblem> Problems(const SimplifyRequest& r)
       "must be a finite number (negative: no welding), not " + Shown(r.weldDistance));
   }
   check(Parameter::Threads, IntegerInRange(r.threads, 0, kMaximumThreads));
+  check(Parameter::PruneSize, FiniteInRange(r.pruneSize, 0, 1));
   // (two-stage moves every vertex in its first stage: nothing could stay as it was)
   const std::string decimateOnly = std::string("applies to decimation only, not to ") +
     ToString(r.algorithm) + " (whose clustering moves every vertex)";
@@ -209,6 +212,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   o.weldDistance = r.weldDistance;
   o.lockArray = r.lockArray;
   o.selectionArray = r.selectionArray;
+  o.pruneSize = r.pruneSize;
   o.storage = profile;
   o.threads = r.threads;
   if (r.algorithm == Algorithm::Decimate)

@@ -196,6 +196,8 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   Prefix(stats.phases, from, "stage 2 ");
   stats.outputVertices = s2.outputVertices;
   stats.outputTriangles = s2.outputTriangles;
+  stats.prunedComponents = s2.prunedComponents; // (pieces of the clustered mesh)
+  stats.prunedTriangles = s2.prunedTriangles;
   // With the cell quadrics carried, a collapse's error is measured against the input's planes
   // and a vertex that did not collapse keeps its cell's: the larger of the two stages'. Without,
   // stage 2 measures against the clustered mesh, and the errors add up (a bound, not a measure).

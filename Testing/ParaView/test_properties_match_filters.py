@@ -29,7 +29,8 @@ PROXIES = [("filters", "SIPMSSCluster"), ("filters", "SIPMSSDecimate"),
 STORAGE = ["MemoryBudgetMB", "TemporaryDirectories", "OperationMode", "NumberOfThreads"]
 STATISTICS = ["UsedOutOfCore", "MemoryBudgetBytes", "PeakStorageBytes", "PeakTemporaryFileBytes",
               "InputTriangles", "OutputTriangles", "AchievedReduction", "ElapsedSeconds",
-              "LayoutFarFraction", "Reordered", "AchievedError", "ErrorDiagonal"]
+              "LayoutFarFraction", "Reordered", "AchievedError", "ErrorDiagonal",
+              "PrunedComponents", "PrunedTriangles"]
 
 pxm = servermanager.ProxyManager()
 errors = []

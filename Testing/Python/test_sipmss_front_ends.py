@@ -101,6 +101,9 @@ CASES = [
     (vtkSIPMSSDecimate, {"WeldDistance": 1e-6}, ["--weld", "1e-6"], True),
     (vtkSIPMSSDecimate, {"LockArray": "keep"}, ["--lock-array", "keep"], True),
     (vtkSIPMSSDecimate, {"SelectionArray": "region"}, ["--selection-array", "region"], True),
+    # (the two halves of the sheet are pieces of their own: the selected one is pruned)
+    (vtkSIPMSSDecimate, {"SelectionArray": "region", "PruneSize": 0.9},
+     ["--selection-array", "region", "--prune-size", "0.9"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 30}, ["--algorithm", "two-stage", "--grid", "30"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 300}, ["--algorithm", "two-stage"], True),
     (vtkSIPMSSDecimate, {"NumberOfThreads": 1, "OperationMode": 1},
@@ -162,6 +165,9 @@ class FrontEnds(unittest.TestCase):
                 self.assertTrue((ft == ct).all(), "triangles differ")
                 self.assertEqual(f.GetOutputTriangles(), stats["output_triangles"])
                 self.assertEqual(f.GetAchievedError(), stats["achieved_error"])
+                self.assertEqual(f.GetPrunedComponents(), stats["pruned_components"])
+                self.assertEqual(f.GetPrunedTriangles(), stats["pruned_triangles"])
+                self.assertEqual(f.GetPrunedComponents(), 1 if "PruneSize" in props else 0)
                 self.assertEqual(f.GetErrorDiagonal(), stats["diagonal"])
                 self.assertGreater(f.GetAchievedError(), 0)
                 if "MaximumError" in props:
@@ -190,6 +196,7 @@ class FrontEnds(unittest.TestCase):
         cases = [(vtkSIPMSSDecimate, "TargetReduction", nan, ["--reduction", "nan"], "--reduction"),
                  (vtkSIPMSSDecimate, "WeldDistance", float("inf"), ["--weld", "inf"], "--weld"),
                  (vtkSIPMSSDecimate, "MaximumError", nan, ["--max-error", "nan"], "--max-error"),
+                 (vtkSIPMSSDecimate, "PruneSize", nan, ["--prune-size", "nan"], "--prune-size"),
                  (vtkSIPMSSCluster, "BoundaryWeight", 2e9, ["--boundary-weight", "2e9"],
                   "--boundary-weight"),
                  (vtkSIPMSSDecimate, "MemoryBudgetMB", 0.01, ["--memory-mb", "0.01"], "--memory-mb")]

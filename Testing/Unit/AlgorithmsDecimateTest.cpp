@@ -1131,6 +1131,76 @@ TEST(AlgorithmsDecimate, ErrorBoundIsRelativeToTheDiagonalAndReported)
   EXPECT_LT(free.stats.achievedError, loose.stats.achievedError);
 }
 
+// Appends a copy of `piece` scaled by s and moved to (x, y, z), with `scalar` as the value of
+// every scalar array at its vertices.
+void AddPiece(Mesh& m, const Mesh& piece, double s, double x, double y, double z, float scalar = 0)
+{
+  const std::uint32_t base = std::uint32_t(m.Vertices());
+  for (std::size_t i = 0; i < piece.Vertices(); ++i)
+  {
+    m.xyz.insert(m.xyz.end(), { float(piece.xyz[3 * i] * s + x),
+      float(piece.xyz[3 * i + 1] * s + y), float(piece.xyz[3 * i + 2] * s + z) });
+    m.scalars.insert(m.scalars.end(), m.scalarNames.size(), scalar);
+  }
+  for (std::uint32_t v : piece.tris)
+  {
+    m.tris.push_back(base + v);
+  }
+}
+
+// Pruning removes exactly the pieces whose bounding box is smaller than the threshold (relative
+// to the input's diagonal), and keeps a small piece a lock holds; the same in and out of core.
+TEST(AlgorithmsDecimate, PruningRemovesOnlyPiecesUnderTheThreshold)
+{
+  Mesh g = BumpySphere(3); // 1280 triangles, box side about 2.1
+  g.scalarNames = { "lock" };
+  g.scalars.assign(g.Vertices(), 0.0f);
+  const std::size_t sphere = g.Triangles();
+  // Tetrahedra (box diagonal sqrt(3) s) inside the sphere's box: two under 5% of the diagonal,
+  // one over it, and one under it with a locked vertex.
+  const Mesh tet = Tetrahedron();
+  AddPiece(g, tet, 0.05, 0.2, 0.0, 0.0);
+  AddPiece(g, tet, 0.08, -0.3, 0.1, 0.0);
+  AddPiece(g, tet, 0.12, 0.0, -0.4, 0.2);
+  AddPiece(g, tet, 0.05, 0.0, 0.3, -0.3, 1.0f);
+  alg::DecimateOptions o;
+  o.targetReduction = 0; // (pruning only)
+  o.lockArray = "lock";
+  const Outcome none = Simplify(MemorySource(g), o);
+  EXPECT_EQ(none.out.Triangles(), sphere + 16);
+  EXPECT_EQ(none.stats.prunedComponents, 0u);
+  o.pruneSize = 0.05;
+  const Outcome pruned = Simplify(MemorySource(g), o);
+  const double D = pruned.stats.errorDiagonal;
+  ASSERT_LT(0.08 * std::sqrt(3.0), 0.05 * D); // (the pieces' sizes against the threshold)
+  ASSERT_GT(0.12 * std::sqrt(3.0), 0.05 * D);
+  ASSERT_LT(0.12 * std::sqrt(3.0), 0.1 * D);
+  EXPECT_EQ(pruned.stats.prunedComponents, 2u);
+  EXPECT_EQ(pruned.stats.prunedTriangles, 8u);
+  EXPECT_EQ(pruned.out.Triangles(), sphere + 8);
+  EXPECT_FALSE(HasVertex(pruned.out, 0.2, 0.0, 0.0));     // pruned
+  EXPECT_FALSE(HasVertex(pruned.out, -0.3, 0.1, 0.0));
+  EXPECT_TRUE(HasVertex(pruned.out, 0.0, -0.4, 0.2));     // large enough
+  EXPECT_TRUE(HasVertex(pruned.out, 0.0, 0.3, -0.3));     // locked
+  EXPECT_EQ(pruned.out.Vertices(), none.out.Vertices() - 8);
+  // A threshold above the largest piece's size (and below the sphere's) prunes it too.
+  o.pruneSize = 0.1;
+  EXPECT_EQ(Simplify(MemorySource(g), o).stats.prunedComponents, 3u);
+  // With a target, the pruned pieces do not count: the sphere keeps more of its triangles.
+  o.pruneSize = 0.05;
+  o.targetTriangles = 400;
+  o.targetReduction = alg::kDefaultTargetReduction;
+  const Outcome small = Simplify(MemorySource(g), o);
+  EXPECT_LE(small.out.Triangles(), 400u);
+  EXPECT_GE(small.out.Triangles(), 398u);
+  o.storage.policy = st::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 64 * 1024;
+  const Outcome paged = Simplify(MemorySource(g), o);
+  EXPECT_TRUE(paged.stats.storage.usedOutOfCore);
+  ExpectSameOutput(small, paged, "pruned, out of core");
+  EXPECT_EQ(paged.stats.prunedComponents, 2u);
+}
+
 TEST(AlgorithmsDecimate, PointDataFollowsThePositions)
 {
   // Flat grid: every placement is on its edge, so scalar = x exactly and colors follow x.

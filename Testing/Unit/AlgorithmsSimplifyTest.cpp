@@ -122,6 +122,8 @@ TEST(Simplify, TheRulesNameEachParameterAndItsValue)
       "must be 0 (automatic), -1 (unbounded) or between 0.0625 (64 KiB) and 1e9 MiB, not 0.01" },
     { [](SimplifyRequest& r) { r.threads = 257; }, Parameter::Threads,
       "must be between 0 and 256, not 257" },
+    { [](SimplifyRequest& r) { r.pruneSize = 1.5; }, Parameter::PruneSize,
+      "must be between 0 and 1, not 1.5" },
   };
   for (const Case& c : cases)
   {

@@ -434,6 +434,9 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     "--algorithm cluster --lods 2",
     "--algorithm decimate --grid 100",           // decimate has no grid
     "--algorithm cluster --max-error 1",         // the options of decimation only
+    "--prune-size 0.1",
+    "--algorithm decimate --prune-size 2",
+    "--algorithm decimate --prune-size nan",
     "--algorithm cluster --lock-boundary",
     "--algorithm cluster --weld 0.1",
     "--lock-array s",                            // locks and selections: decimation only
@@ -481,6 +484,8 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     "--algorithm decimate --boundary-weight 0", "--algorithm decimate --max-error inf",
     "--algorithm decimate --max-error 0.5 --lock-boundary --weld 0",
     "--algorithm two-stage --grid 10 --lock-boundary --weld 0.01 --max-error 1",
+    "--algorithm two-stage --grid 10 --prune-size 0.1 --target 4",
+    "--algorithm decimate --prune-size 0 --target 4",
     "--bounds -2 2 -2 2 -2 2", "--mode in-core", "--mode out-of-core --memory-mb 1",
     "--algorithm decimate --mode out-of-core --memory-mb 1 --threads 2" };
   for (const char* args : good)

@@ -488,6 +488,8 @@ int RunSimplify(const SimplifyArgs& a)
     j["input_vertices"] = stats.inputVertices;
     j["input_triangles"] = stats.inputTriangles;
     j["dropped_input_faces"] = stats.droppedInputFaces;
+    j["pruned_components"] = stats.prunedComponents;
+    j["pruned_triangles"] = stats.prunedTriangles;
     j["output_vertices"] = stats.outputVertices;
     j["output_triangles"] = stats.outputTriangles;
     j["seconds"] = seconds;
@@ -577,6 +579,11 @@ int RunSimplify(const SimplifyArgs& a)
       stats.storage.usedOutOfCore ? (stats.storage.usedInCore ? "out of core then in core" : "out of core")
                                   : "in core",
       disk);
+    if (request.pruneSize > 0)
+    {
+      std::printf("sipmss: pruned %llu disconnected pieces (%llu triangles)\n",
+        (unsigned long long)stats.prunedComponents, (unsigned long long)stats.prunedTriangles);
+    }
     std::printf("sipmss: wrote %s\n", a.output.c_str());
     if (request.levelsOfDetail > 1 && !lodSinks.empty())
     {
@@ -711,6 +718,11 @@ int main(int argc, char** argv)
   auto* selectionArray = boundaries->add_option("--selection-array", rq.selectionArray,
     "decimate: a vertex property (point array) of INPUT; only vertices where it is not 0 move "
     "or go, faces without one are kept as they were");
+  CLI::Option_group* cleanup = simplify->add_option_group("Cleanup");
+  auto* pruneSize = cleanup->add_option("--prune-size", rq.pruneSize,
+    "decimate, two-stage: first remove disconnected pieces whose bounding-box diagonal is below "
+    "this fraction of the input's (e.g. 0.01; default 0: keep every piece); a piece with a "
+    "vertex that --lock-array or --selection-array keeps stays");
   CLI::Option_group* storageGroup = simplify->add_option_group("Memory and storage");
   storageGroup->add_option("--memory-mb", sa.memory,
     "memory budget in MiB (at least 0.0625), auto (= 0, the default: half of what this process "
@@ -744,7 +756,7 @@ int main(int argc, char** argv)
     const std::pair<CLI::Option*, bool> applies[] = {
       { grid, rq.algorithm != algorithms::Algorithm::Decimate }, { bounds, cluster },
       { targetOption, !cluster }, { reduction, !cluster }, { maxError, !cluster },
-      { absoluteError, !cluster },
+      { absoluteError, !cluster }, { pruneSize, !cluster },
       { lods, !cluster }, { lockBoundary, !cluster }, { weld, !cluster },
       { lockArray, rq.algorithm == algorithms::Algorithm::Decimate },
       { selectionArray, rq.algorithm == algorithms::Algorithm::Decimate } };

@@ -688,6 +688,7 @@ constexpr double kRead = 4.0e-8;     // per input vertex + face
 constexpr double kWeld = 1.0e-7;     // per vertex + face
 constexpr double kRings = 1.1e-7;    // per face
 constexpr double kQuadrics = 2.4e-7; // per face
+constexpr double kPrune = 1.0e-7;    // per vertex + face (pruneSize > 0)
 constexpr double kSweep = 3.0e-7;    // per vertex of the pass
 constexpr double kOrder = 2.5e-8;    // per vertex of the pass (histogram and order)
 constexpr double kStep = 2.5e-7;     // per candidate the pass takes
@@ -836,6 +837,8 @@ void FillRings(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t
   std::uint64_t tickTotal);
 void BuildRings(RunContext& ctx, MeshState& mesh);
 void BuildQuadrics(RunContext& ctx, MeshState& mesh);
+// decimate/Prune.inl
+void Prune(RunContext& ctx, MeshState& mesh);
 
 // step 1 of a pass, the candidate sweep (Sweep.inl)
 void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);

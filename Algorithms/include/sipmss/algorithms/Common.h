@@ -218,6 +218,9 @@ struct RunStats
   std::uint64_t outputVertices = 0;
   std::uint64_t outputTriangles = 0;
   std::uint64_t droppedInputFaces = 0;
+  // Disconnected pieces removed by DecimateOptions::pruneSize, and their triangles.
+  std::uint64_t prunedComponents = 0;
+  std::uint64_t prunedTriangles = 0;
   // The error of the run's merges (docs/architecture.md, "Error bound"): the largest
   // sqrt(Q(p) / trace(Q)) of a merged vertex (a collapse's survivor, a cluster's representative),
   // the area-weighted RMS distance of its position to the planes of the input faces it stands

@@ -41,6 +41,10 @@ struct DecimateOptions
   // the same corners. Not with weldDistance >= 0 (welding would merge locked vertices away).
   std::string lockArray;
   std::string selectionArray;
+  // > 0: first remove every disconnected piece (vertices joined by faces) whose bounding-box
+  // diagonal is below this fraction of the input's (errorDiagonal when given), unless it holds a
+  // vertex the lock or selection array keeps. RunStats counts them.
+  double pruneSize = 0;
   double boundaryWeight = kDefaultDecimateBoundaryWeight; // weight of the boundary constraint quadrics
   double weldDistance = kNoWeld;    // >= 0: weld input vertices closer than this first
   storage::Profile storage;          // memory budget, directories, mode policy

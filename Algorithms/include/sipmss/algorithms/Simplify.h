@@ -61,6 +61,9 @@ struct SimplifyRequest
   // or go (lockArray), or outside of whose non-zero vertices nothing changes (selectionArray).
   std::string lockArray;
   std::string selectionArray;
+  // Decimate, two-stage: removes disconnected pieces smaller than this fraction of the input's
+  // bounding-box diagonal first (DecimateOptions::pruneSize; 0: none).
+  double pruneSize = 0;
 
   // Storage and threads.
   double memoryBudgetMB = kAutomaticMemoryBudget; // see MemoryBudgetProblem
@@ -86,6 +89,7 @@ enum class Parameter : std::uint8_t
   WeldDistance,
   LockArray,
   SelectionArray,
+  PruneSize,
   MemoryBudget,
   Threads
 };
