@@ -29,6 +29,10 @@
 #include <cstdlib>
 #include <cstring>
 
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
+
 namespace sipmss::storage
 {
 
@@ -766,6 +770,7 @@ void DML::Impl::MergeChildRange(BlockId id)
 // blocks most above their share; dirty ones are written back).
 void DML::Impl::ReleaseFrames(std::uint64_t bytes)
 {
+  std::uint64_t freed = 0;
   while (!this->acc.Fits(bytes))
   {
     unsigned char* data = this->TakeBuffer();
@@ -774,7 +779,17 @@ void DML::Impl::ReleaseFrames(std::uint64_t bytes)
       break;
     }
     std::free(data);
+    freed += this->cache.pageSize;
   }
+#if defined(__GLIBC__)
+  // Page buffers are below glibc's mmap threshold: freed, they stay in the heap's arena, and the
+  // large buffer they make room for (a sort's runs) would come on top of them in the process's
+  // resident memory. Give the freed pages back to the system when there are many.
+  if (freed >= (std::uint64_t(1) << 20))
+  {
+    ::malloc_trim(0);
+  }
+#endif
 }
 
 unsigned char* DML::Impl::TakeBuffer()

@@ -3,17 +3,19 @@
 //   sipmss-meshgen scan OUTPUT [--triangles N] [--order scanner|shuffled|rings]
 //       a closed, bumpy, scan-like surface (a displaced sphere) of about N triangles
 //   sipmss-meshgen subdivide INPUT OUTPUT [--levels L] [--displace D] [--order scanner|shuffled]
+//                            [--memory-mb MB] [--tmpdir DIR]
 //       midpoint subdivision (x4 triangles per level) with a small displacement along the normal
 //       so that the new triangles carry detail, as docs of ../shared/data recommend
 //
 // "scanner" order: vertices sorted along the longest axis, faces by their first vertex (the way
 // volumetric reconstructions such as vrip write their output); "shuffled": random order.
-// This is a tool for making inputs: it holds the mesh in memory (unlike sipmss itself), except
+// `subdivide` works within a memory budget (--memory-mb, Subdivide.cpp): its blocks go to
+// temporary files beyond it. `scan` holds the mesh in memory (unlike sipmss itself), except
 // `scan --order rings`: the same kind of surface with its poles on the longest axis, written ring
 // by ring as it is generated (vertices along that axis, faces by their first ring), in a few MB
 // whatever its size: the 100M- to 1B-triangle inputs of the scale benchmarks.
 #include "sipmss/io/MeshIO.h"
-#include "sipmss/io/VectorSink.h"
+#include "Subdivide.h"
 
 #include <CLI/CLI.hpp>
 
@@ -166,59 +168,6 @@ void WriteScanRings(std::uint64_t triangles, const std::string& path)
     (unsigned long long)nv, (unsigned long long)nt);
 }
 
-void Subdivide(Mesh& mesh, double displace)
-{
-  std::unordered_map<std::uint64_t, std::uint32_t> mid;
-  mid.reserve(mesh.t.size());
-  // per-vertex normals for the displacement
-  std::vector<float> nrm(mesh.p.size(), 0.f);
-  for (std::size_t f = 0; f < mesh.t.size(); f += 3)
-  {
-    const float* a = &mesh.p[3 * mesh.t[f]];
-    const float* b = &mesh.p[3 * mesh.t[f + 1]];
-    const float* c = &mesh.p[3 * mesh.t[f + 2]];
-    const float u[3] = { b[0] - a[0], b[1] - a[1], b[2] - a[2] };
-    const float v[3] = { c[0] - a[0], c[1] - a[1], c[2] - a[2] };
-    const float n[3] = { u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0] };
-    for (int k = 0; k < 3; ++k)
-      for (int d = 0; d < 3; ++d)
-        nrm[3 * mesh.t[f + k] + d] += n[d];
-  }
-  std::mt19937_64 rng(42);
-  std::uniform_real_distribution<float> noise(-1.f, 1.f);
-  std::vector<std::uint32_t> out;
-  out.reserve(4 * mesh.t.size());
-  auto midpoint = [&](std::uint32_t a, std::uint32_t b) {
-    const std::uint64_t key = a < b ? (std::uint64_t(a) << 32 | b) : (std::uint64_t(b) << 32 | a);
-    auto it = mid.find(key);
-    if (it != mid.end())
-      return it->second;
-    const std::uint32_t id = std::uint32_t(mesh.p.size() / 3);
-    float n[3];
-    float len = 0, elen = 0;
-    for (int d = 0; d < 3; ++d)
-    {
-      n[d] = nrm[3 * a + d] + nrm[3 * b + d];
-      len += n[d] * n[d];
-      const float e = mesh.p[3 * a + d] - mesh.p[3 * b + d];
-      elen += e * e;
-    }
-    len = std::sqrt(len);
-    const float s = len > 0 ? float(displace) * std::sqrt(elen) * noise(rng) / len : 0.f;
-    for (int d = 0; d < 3; ++d)
-      mesh.p.push_back(0.5f * (mesh.p[3 * a + d] + mesh.p[3 * b + d]) + s * n[d]);
-    mid.emplace(key, id);
-    return id;
-  };
-  for (std::size_t f = 0; f < mesh.t.size(); f += 3)
-  {
-    const std::uint32_t a = mesh.t[f], b = mesh.t[f + 1], c = mesh.t[f + 2];
-    const std::uint32_t ab = midpoint(a, b), bc = midpoint(b, c), ca = midpoint(c, a);
-    out.insert(out.end(), { a, ab, ca, ab, b, bc, ca, bc, c, ab, bc, ca });
-  }
-  mesh.t.swap(out);
-}
-
 void Order(Mesh& mesh, const std::string& order)
 {
   const std::size_t nv = mesh.p.size() / 3;
@@ -314,6 +263,16 @@ int main(int argc, char** argv)
   sub->add_option("--levels", levels)->check(CLI::Range(0, 6));
   sub->add_option("--displace", displace, "displacement as a fraction of the edge length");
   sub->add_option("--order", order)->check(CLI::IsMember({ "scanner", "shuffled" }));
+  double memoryMB = 512;
+  std::vector<std::string> tmpdirs;
+  sub->add_option("--memory-mb", memoryMB,
+       "memory budget of the mesh and its sorts in MiB (default 512; 0: unbounded); beyond it "
+       "they go to temporary files (--order shuffled holds the result in memory once)")
+    ->check(CLI::Range(0.0625, 1e9) | CLI::IsMember({ "0" }));
+  sub->add_option("--tmpdir", tmpdirs, "directory for the temporary files (repeatable)")
+    ->expected(1)
+    ->allow_extra_args(false)
+    ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
   try
   {
     app.parse(argc, argv);
@@ -329,18 +288,28 @@ int main(int argc, char** argv)
       WriteScanRings(triangles, out);
       return 0;
     }
-    Mesh mesh;
-    if (*scan)
+    if (*sub)
     {
-      mesh = Scan(triangles);
+      std::function<void(std::vector<float>&, std::vector<std::uint32_t>&)> shuffle;
+      if (order == "shuffled")
+      {
+        shuffle = [&order](std::vector<float>& p, std::vector<std::uint32_t>& t) {
+          Mesh m{ std::move(p), std::move(t) };
+          Order(m, order);
+          p = std::move(m.p);
+          t = std::move(m.t);
+        };
+      }
+      const meshgen::SubdivideStats s = meshgen::SubdivideFile(in, out, levels, displace,
+        order == "scanner", std::uint64_t(memoryMB * 1048576.0), tmpdirs, shuffle);
+      std::printf("sipmss-meshgen: wrote %s: %llu vertices, %llu triangles (%s, %.1f MB of blocks"
+                  " in memory at most, %.1f MB of temporary files)\n",
+        out.c_str(), (unsigned long long)s.vertices, (unsigned long long)s.triangles,
+        s.outOfCore ? "out of core" : "in core", double(s.peakBytes) / 1e6,
+        double(s.peakFileBytes) / 1e6);
+      return 0;
     }
-    else
-    {
-      io::VectorSink c(mesh.p, mesh.t);
-      io::ReadMesh(in, c);
-      for (int l = 0; l < levels; ++l)
-        Subdivide(mesh, displace);
-    }
+    Mesh mesh = Scan(triangles);
     Order(mesh, order);
     Write(mesh, out);
   }

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# sipmss-meshgen subdivide within a memory budget: the same bytes at 64 KiB (out of core, block
+# files and external sorts) as unbounded (in core); a closed input stays closed (V = 2 + F / 2)
+# with 16x its triangles after two levels; the shuffled order is the same surface; no temporary
+# file is left behind.
+#   meshgen-subdivide.sh SIPMSS SIPMSS_MESHGEN
+set -euo pipefail
+sipmss="$1" meshgen="$2"
+tmp="$(mktemp -d "${TMPDIR:-/tmp}/sipmss-subdivide-XXXXXX")"
+trap 'rm -rf "$tmp"' EXIT
+mkdir "$tmp/blocks"
+"$meshgen" scan "$tmp/in.ply" --triangles 20000 >/dev/null
+core="$("$meshgen" subdivide "$tmp/in.ply" "$tmp/core.ply" --levels 2 --memory-mb 0)"
+paged="$("$meshgen" subdivide "$tmp/in.ply" "$tmp/paged.ply" --levels 2 --memory-mb 0.0625 \
+  --tmpdir "$tmp/blocks")"
+"$meshgen" subdivide "$tmp/in.ply" "$tmp/shuffled.ply" --levels 2 --order shuffled --memory-mb 0.0625 \
+  --tmpdir "$tmp/blocks" >/dev/null
+status=0
+fail() { echo "FAIL: $*"; status=1; }
+case "$core" in *"(in core"*) ;; *) fail "unbounded did not run in core: $core" ;; esac
+case "$paged" in *"(out of core"*) ;; *) fail "64 KiB did not run out of core: $paged" ;; esac
+cmp "$tmp/core.ply" "$tmp/paged.ply" || fail "in core and out of core differ"
+[ -z "$(ls -A "$tmp/blocks")" ] || fail "temporary files left: $(ls -A "$tmp/blocks")"
+/usr/bin/python3 - "$sipmss" "$tmp" <<'PY' || status=1
+import json, subprocess, sys
+sipmss, tmp = sys.argv[1], sys.argv[2]
+def info(name):
+    return json.loads(subprocess.run([sipmss, "info", "%s/%s.ply" % (tmp, name)],
+                                     capture_output=True, text=True, check=True).stdout)
+src, out, shuffled = info("in"), info("core"), info("shuffled")
+ok = True
+def check(cond, what):
+    global ok
+    if not cond:
+        print("FAIL:", what)
+        ok = False
+check(out["triangles"] == 16 * src["triangles"], "triangles %d, input %d" % (out["triangles"], src["triangles"]))
+check(src["vertices"] == 2 + src["triangles"] // 2, "the input is not closed: %r" % src)
+check(out["vertices"] == 2 + out["triangles"] // 2, "the output is not closed: %r" % out)
+check(shuffled["vertices"] == out["vertices"] and shuffled["triangles"] == out["triangles"],
+      "shuffled counts %r" % shuffled)
+d = json.loads(subprocess.run([sipmss, "compare", "%s/core.ply" % tmp, "%s/shuffled.ply" % tmp],
+                              capture_output=True, text=True, check=True).stdout)
+check(d["hausdorff"] < 1e-6, "the shuffled output is another surface: %r" % d)
+src_bounds, out_bounds = src["bounds"], out["bounds"]
+check(all(abs(a - b) < 0.05 for a, b in zip(src_bounds, out_bounds)), "bounds %r -> %r" % (src_bounds, out_bounds))
+print("ok" if ok else "")
+sys.exit(0 if ok else 1)
+PY
+exit "$status"

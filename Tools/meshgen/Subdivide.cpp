@@ -1,0 +1,488 @@
+// sipmss-meshgen subdivide within a memory budget: the mesh, its edges and the renumbering live
+// in DML blocks (in core when they fit the budget, else block files and a page cache), and the
+// steps are sequential passes and external sorts (storage::Sort), so a 100M-triangle output takes
+// the budget plus a few MB whatever its size.
+//
+// The output is byte for byte the in-memory subdivision's (the tool's former only path): the new
+// vertices are numbered in the order the faces first reach their edges, each draws its
+// displacement from one random sequence in that order, and the scanner order sorts the vertices
+// along the longest axis (ties by index) and the faces by their lowest vertex (ties by index).
+#include "Subdivide.h"
+
+#include "sipmss/io/MeshIO.h"
+#include "sipmss/storage/Access.h"
+#include "sipmss/storage/DML.h"
+#include "sipmss/storage/Sort.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <random>
+#include <stdexcept>
+#include <vector>
+
+namespace sipmss::meshgen
+{
+namespace
+{
+using storage::Array;
+using storage::DML;
+using storage::View;
+
+struct P3
+{
+  float x[3];
+};
+struct Tri
+{
+  std::uint32_t v[3];
+};
+// An edge of a face: its key (lower vertex << 32 | higher) and the corner that reaches it
+// (3 face + slot; slots 0, 1, 2 are the edges ab, bc, ca).
+struct EdgeRec
+{
+  std::uint64_t key;
+  std::uint64_t corner;
+};
+// An edge's first corner, and the edge's number in key order.
+struct FirstRec
+{
+  std::uint64_t key;
+  std::uint64_t corner;
+  std::uint64_t edge;
+};
+// A vertex by its coordinate along the sorting axis, with its index and position.
+struct AxisRec
+{
+  float c;
+  std::uint32_t index;
+  P3 p;
+};
+// A face by its lowest vertex, then its index.
+struct FaceRec
+{
+  std::uint32_t low;
+  std::uint32_t index;
+  Tri t;
+};
+
+constexpr std::size_t kChunk = 1 << 16;
+
+// The input into blocks P (positions) and T (triangles).
+class Loader final : public io::MeshSink
+{
+public:
+  Loader(DML& dml, Array<P3>& p, Array<Tri>& t)
+    : dml_(dml)
+    , p_(p)
+    , t_(t)
+  {
+  }
+  void Begin(const io::MeshHeader&) override {}
+  void Vertices(const io::VertexChunk& c) override
+  {
+    if (c.first + c.count > this->p_.Size())
+    {
+      this->p_.Resize(std::max<std::uint64_t>(c.first + c.count, 2 * this->p_.Size()));
+    }
+    this->nv_ = std::max<std::uint64_t>(this->nv_, c.first + c.count);
+    View<P3>(this->dml_, this->p_).SetRange(c.first, c.count, reinterpret_cast<const P3*>(c.xyz));
+  }
+  void Triangles(const std::uint32_t* idx, std::size_t count) override
+  {
+    if (this->nf_ + count > this->t_.Size())
+    {
+      this->t_.Resize(std::max<std::uint64_t>(this->nf_ + count, 2 * this->t_.Size()));
+    }
+    View<Tri>(this->dml_, this->t_).SetRange(this->nf_, count, reinterpret_cast<const Tri*>(idx));
+    this->nf_ += count;
+  }
+  void End(const io::ReadStats&) override
+  {
+    this->p_.Resize(this->nv_);
+    this->t_.Resize(this->nf_);
+  }
+
+private:
+  DML& dml_;
+  Array<P3>& p_;
+  Array<Tri>& t_;
+  std::uint64_t nv_ = 0, nf_ = 0;
+};
+
+// One level of midpoint subdivision with the displacement of the in-memory path.
+void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
+{
+  const std::uint64_t nv = P.Size(), nf = T.Size();
+  View<P3> p(dml, P);
+  View<Tri> t(dml, T);
+  // Vertex normals: the faces' cross products, summed in face order.
+  Array<P3> N(dml, std::max<std::uint64_t>(nv, 1));
+  View<P3> n(dml, N);
+  for (std::uint64_t f = 0; f < nf; ++f)
+  {
+    const Tri tri = t.Get(f);
+    const P3 a = p.Get(tri.v[0]), b = p.Get(tri.v[1]), c = p.Get(tri.v[2]);
+    const float u[3] = { b.x[0] - a.x[0], b.x[1] - a.x[1], b.x[2] - a.x[2] };
+    const float v[3] = { c.x[0] - a.x[0], c.x[1] - a.x[1], c.x[2] - a.x[2] };
+    const float fn[3] = { u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+      u[0] * v[1] - u[1] * v[0] };
+    for (int k = 0; k < 3; ++k)
+    {
+      P3 s = n.Get(tri.v[k]);
+      for (int d = 0; d < 3; ++d)
+      {
+        s.x[d] += fn[d];
+      }
+      n.Set(tri.v[k], s);
+    }
+  }
+  // The edges of every face, sorted by key (then corner: the first corner leads its group).
+  Array<EdgeRec> E(dml, std::max<std::uint64_t>(3 * nf, 1));
+  {
+    View<EdgeRec> e(dml, E);
+    std::vector<EdgeRec> buf;
+    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
+      buf.clear();
+      for (std::uint64_t f = f0; f < f0 + m; ++f)
+      {
+        const Tri tri = t.Get(f);
+        for (int k = 0; k < 3; ++k)
+        {
+          const std::uint32_t a = tri.v[k], b = tri.v[(k + 1) % 3];
+          const std::uint64_t key =
+            a < b ? (std::uint64_t(a) << 32 | b) : (std::uint64_t(b) << 32 | a);
+          buf.push_back({ key, 3 * f + std::uint64_t(k) });
+        }
+      }
+      e.SetRange(3 * f0, buf.size(), buf.data());
+    }
+  }
+  if (nf == 0)
+  {
+    E.Resize(0);
+  }
+  storage::Sort(dml, E, [](const EdgeRec& a, const EdgeRec& b) {
+    return a.key < b.key || (a.key == b.key && a.corner < b.corner);
+  });
+  // Each corner's edge number, and each edge's first corner.
+  Array<std::uint32_t> G(dml, std::max<std::uint64_t>(3 * nf, 1));
+  Array<FirstRec> FR(dml, 1);
+  std::uint64_t edges = 0;
+  {
+    View<EdgeRec> e(dml, E);
+    View<std::uint32_t> g(dml, G);
+    std::vector<EdgeRec> in(kChunk);
+    std::vector<FirstRec> first;
+    std::uint64_t lastKey = ~std::uint64_t(0);
+    for (std::uint64_t i0 = 0; i0 < E.Size(); i0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, E.Size() - i0);
+      e.GetRange(i0, m, in.data());
+      first.clear();
+      for (std::uint64_t i = 0; i < m; ++i)
+      {
+        if (in[i].key != lastKey)
+        {
+          first.push_back({ in[i].key, in[i].corner, edges++ });
+          lastKey = in[i].key;
+        }
+        g.Set(in[i].corner, std::uint32_t(edges - 1));
+      }
+      const std::uint64_t at = edges - first.size();
+      FR.Resize(std::max<std::uint64_t>(edges, 1));
+      View<FirstRec>(dml, FR).SetRange(at, first.size(), first.data());
+    }
+  }
+  E.Close();
+  if (nv + edges >= 0xFFFFFFFFull)
+  {
+    throw std::runtime_error("the subdivided mesh would have more than 2^32 - 1 vertices");
+  }
+  FR.Resize(edges);
+  storage::Sort(dml, FR, [](const FirstRec& a, const FirstRec& b) { return a.corner < b.corner; });
+  // The new vertices in the order the faces first reach their edges: positions, and each edge's
+  // vertex number.
+  P.Resize(nv + edges);
+  p.Refresh();
+  n.Refresh();
+  Array<std::uint32_t> ID(dml, std::max<std::uint64_t>(edges, 1));
+  {
+    View<FirstRec> fr(dml, FR);
+    View<std::uint32_t> id(dml, ID);
+    std::mt19937_64 rng(42);
+    std::uniform_real_distribution<float> noise(-1.f, 1.f);
+    std::vector<FirstRec> in(kChunk);
+    std::vector<P3> out;
+    for (std::uint64_t i0 = 0; i0 < edges; i0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, edges - i0);
+      fr.GetRange(i0, m, in.data());
+      out.clear();
+      for (std::uint64_t i = 0; i < m; ++i)
+      {
+        const std::uint32_t a = std::uint32_t(in[i].key >> 32), b = std::uint32_t(in[i].key);
+        const P3 pa = p.Get(a), pb = p.Get(b), na = n.Get(a), nb = n.Get(b);
+        float nn[3];
+        float len = 0, elen = 0;
+        for (int d = 0; d < 3; ++d)
+        {
+          nn[d] = na.x[d] + nb.x[d];
+          len += nn[d] * nn[d];
+          const float ed = pa.x[d] - pb.x[d];
+          elen += ed * ed;
+        }
+        len = std::sqrt(len);
+        const float s = len > 0 ? float(displace) * std::sqrt(elen) * noise(rng) / len : 0.f;
+        P3 q;
+        for (int d = 0; d < 3; ++d)
+        {
+          q.x[d] = 0.5f * (pa.x[d] + pb.x[d]) + s * nn[d];
+        }
+        out.push_back(q);
+        id.Set(in[i].edge, std::uint32_t(nv + i0 + i));
+      }
+      p.SetRange(nv + i0, out.size(), out.data());
+    }
+  }
+  FR.Close();
+  N.Close();
+  // Four faces for each.
+  Array<Tri> T2(dml, std::max<std::uint64_t>(4 * nf, 1));
+  {
+    View<Tri> t2(dml, T2);
+    View<std::uint32_t> g(dml, G), id(dml, ID);
+    std::vector<Tri> out;
+    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
+      out.clear();
+      for (std::uint64_t f = f0; f < f0 + m; ++f)
+      {
+        const Tri tri = t.Get(f);
+        const std::uint32_t a = tri.v[0], b = tri.v[1], c = tri.v[2];
+        const std::uint32_t ab = id.Get(g.Get(3 * f)), bc = id.Get(g.Get(3 * f + 1)),
+                            ca = id.Get(g.Get(3 * f + 2));
+        out.push_back({ { a, ab, ca } });
+        out.push_back({ { ab, b, bc } });
+        out.push_back({ { ca, bc, c } });
+        out.push_back({ { ab, bc, ca } });
+      }
+      t2.SetRange(4 * f0, out.size(), out.data());
+    }
+  }
+  if (nf == 0)
+  {
+    T2.Resize(0);
+  }
+  T = std::move(T2);
+}
+
+// Scanner order: vertices along the longest axis (ties by index), faces by their lowest vertex
+// (ties by index), both by external sorts.
+void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
+{
+  const std::uint64_t nv = P.Size(), nf = T.Size();
+  float lo[3] = { 1e30f, 1e30f, 1e30f }, hi[3] = { -1e30f, -1e30f, -1e30f };
+  std::vector<P3> buf(kChunk);
+  {
+    View<P3> p(dml, P);
+    for (std::uint64_t i0 = 0; i0 < nv; i0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nv - i0);
+      p.GetRange(i0, m, buf.data());
+      for (std::uint64_t i = 0; i < m; ++i)
+      {
+        for (int d = 0; d < 3; ++d)
+        {
+          lo[d] = std::min(lo[d], buf[i].x[d]);
+          hi[d] = std::max(hi[d], buf[i].x[d]);
+        }
+      }
+    }
+  }
+  int axis = 0;
+  for (int d = 1; d < 3; ++d)
+  {
+    if (hi[d] - lo[d] > hi[axis] - lo[axis])
+    {
+      axis = d;
+    }
+  }
+  Array<AxisRec> A(dml, std::max<std::uint64_t>(nv, 1));
+  {
+    View<P3> p(dml, P);
+    View<AxisRec> a(dml, A);
+    std::vector<AxisRec> out;
+    for (std::uint64_t i0 = 0; i0 < nv; i0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nv - i0);
+      p.GetRange(i0, m, buf.data());
+      out.clear();
+      for (std::uint64_t i = 0; i < m; ++i)
+      {
+        out.push_back({ buf[i].x[axis], std::uint32_t(i0 + i), buf[i] });
+      }
+      a.SetRange(i0, m, out.data());
+    }
+  }
+  if (nv == 0)
+  {
+    A.Resize(0);
+  }
+  storage::Sort(dml, A, [](const AxisRec& x, const AxisRec& y) {
+    return x.c < y.c || (!(y.c < x.c) && x.index < y.index);
+  });
+  // The positions in that order, and each old index's rank.
+  Array<std::uint32_t> R(dml, std::max<std::uint64_t>(nv, 1));
+  {
+    View<AxisRec> a(dml, A);
+    View<P3> p(dml, P);
+    View<std::uint32_t> r(dml, R);
+    std::vector<AxisRec> in(kChunk);
+    for (std::uint64_t i0 = 0; i0 < nv; i0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nv - i0);
+      a.GetRange(i0, m, in.data());
+      for (std::uint64_t i = 0; i < m; ++i)
+      {
+        buf[i] = in[i].p;
+        r.Set(in[i].index, std::uint32_t(i0 + i));
+      }
+      p.SetRange(i0, m, buf.data());
+    }
+  }
+  A.Close();
+  // The faces renumbered, then by their lowest vertex.
+  Array<FaceRec> FA(dml, std::max<std::uint64_t>(nf, 1));
+  {
+    View<Tri> t(dml, T);
+    View<std::uint32_t> r(dml, R);
+    View<FaceRec> fa(dml, FA);
+    std::vector<Tri> in(kChunk);
+    std::vector<FaceRec> out;
+    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
+      t.GetRange(f0, m, in.data());
+      out.clear();
+      for (std::uint64_t f = 0; f < m; ++f)
+      {
+        Tri x;
+        for (int k = 0; k < 3; ++k)
+        {
+          x.v[k] = r.Get(in[f].v[k]);
+        }
+        out.push_back({ std::min({ x.v[0], x.v[1], x.v[2] }), std::uint32_t(f0 + f), x });
+      }
+      fa.SetRange(f0, m, out.data());
+    }
+  }
+  R.Close();
+  if (nf == 0)
+  {
+    FA.Resize(0);
+  }
+  storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) {
+    return x.low < y.low || (x.low == y.low && x.index < y.index);
+  });
+  {
+    View<FaceRec> fa(dml, FA);
+    View<Tri> t(dml, T);
+    std::vector<FaceRec> in(kChunk);
+    std::vector<Tri> out;
+    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
+    {
+      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
+      fa.GetRange(f0, m, in.data());
+      out.clear();
+      for (std::uint64_t f = 0; f < m; ++f)
+      {
+        out.push_back(in[f].t);
+      }
+      t.SetRange(f0, m, out.data());
+    }
+  }
+}
+} // namespace
+
+SubdivideStats SubdivideFile(const std::string& input, const std::string& output, int levels,
+  double displace, bool scannerOrder, std::uint64_t memoryBudget,
+  const std::vector<std::string>& directories,
+  const std::function<void(std::vector<float>&, std::vector<std::uint32_t>&)>& inMemoryOrder)
+{
+  // The blocks of the largest level: 4x the input's triangles and about 2x its vertices, and
+  // the edges, corners and sorted copies of the last level (about 200 bytes per input face of
+  // that level), against the budget.
+  const io::MeshHeader header = io::ReadHeader(input);
+  double bytes = double(header.vertexCount) * 12 + double(header.faceCount) * 12;
+  for (int l = 0; l < levels; ++l)
+  {
+    bytes = std::max(bytes, double(header.faceCount) * std::pow(4.0, l) * 200.0);
+  }
+  storage::Profile profile;
+  profile.memoryBudget = memoryBudget;
+  profile.directories = directories;
+  profile.structures.push_back({ "subdivide", 1, std::uint64_t(bytes), 0.0 });
+  DML dml;
+  dml.Config(profile);
+  Array<P3> P(dml, std::max<std::uint64_t>(header.vertexCount, 1));
+  Array<Tri> T(dml, std::max<std::uint64_t>(header.faceCount, 1));
+  {
+    Loader loader(dml, P, T);
+    io::ReadMesh(input, loader);
+  }
+  for (int l = 0; l < levels; ++l)
+  {
+    SubdivideOnce(dml, P, T, displace);
+  }
+  if (scannerOrder)
+  {
+    ScannerOrder(dml, P, T);
+  }
+  if (inMemoryOrder)
+  {
+    std::vector<float> points(3 * P.Size());
+    std::vector<std::uint32_t> triangles(3 * T.Size());
+    View<P3>(dml, P).GetRange(0, P.Size(), reinterpret_cast<P3*>(points.data()));
+    View<Tri>(dml, T).GetRange(0, T.Size(), reinterpret_cast<Tri*>(triangles.data()));
+    inMemoryOrder(points, triangles);
+    View<P3>(dml, P).SetRange(0, P.Size(), reinterpret_cast<const P3*>(points.data()));
+    View<Tri>(dml, T).SetRange(0, T.Size(), reinterpret_cast<const Tri*>(triangles.data()));
+  }
+  // The output, streamed from the blocks.
+  const std::uint64_t nv = P.Size(), nf = T.Size();
+  auto w = io::MeshWriter::Create(output, false);
+  w->Begin(nv, nf, io::VertexLayout{});
+  {
+    View<P3> p(dml, P);
+    std::vector<P3> buf(kChunk);
+    for (std::uint64_t first = 0; first < nv; first += kChunk)
+    {
+      io::VertexChunk c;
+      c.first = first;
+      c.count = std::size_t(std::min<std::uint64_t>(kChunk, nv - first));
+      p.GetRange(first, c.count, buf.data());
+      c.xyz = buf.front().x;
+      w->Vertices(c);
+    }
+  }
+  {
+    View<Tri> t(dml, T);
+    std::vector<Tri> buf(kChunk);
+    for (std::uint64_t first = 0; first < nf; first += kChunk)
+    {
+      const std::size_t m = std::size_t(std::min<std::uint64_t>(kChunk, nf - first));
+      t.GetRange(first, m, buf.data());
+      w->Triangles(buf.front().v, m);
+    }
+  }
+  w->End();
+  const storage::Stats s = dml.GetStats();
+  return { nv, nf, s.usedOutOfCore, s.peakBytes, s.peakFileBytes };
+}
+
+} // namespace sipmss::meshgen
