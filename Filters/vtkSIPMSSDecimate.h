@@ -113,8 +113,10 @@ public:
    * default: none). LockArray: vertices where it is not 0 stay in the output at their exact
    * positions, with their point data. Not with WeldDistance >= 0 (welding merges vertices).
    * SelectionArray: only vertices where it is not 0 move or go, and every triangle without one
-   * is kept as it was. A multi-component array is named NAME_K per component. Decimation only
-   * (not with PreClusterGridDimension > 0, whose clustering moves every vertex).
+   * is kept as it was; or, when it names a one-component cell array (and no point array), every
+   * cell where it is 0 is kept as it was (its corners never move or go). A multi-component point
+   * array is named NAME_K per component. Decimation only (not with PreClusterGridDimension > 0,
+   * whose clustering moves every vertex).
    */
   vtkSetStringMacro(LockArray);
   vtkGetStringMacro(LockArray);

@@ -1,5 +1,7 @@
 #include "vtkSIPMSSPolyDataBridge.h"
 
+#include "vtkCellData.h"
+
 #include "vtkAlgorithm.h"
 #include "vtkCellArray.h"
 #include "vtkCellArrayIterator.h"
@@ -201,6 +203,21 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
     header.faceCount =
       static_cast<std::uint64_t>(input->GetNumberOfPolys() + input->GetNumberOfStrips());
     header.layout = plan.layout;
+    // The one-component cell arrays, and the one ReadOptions::faceFlag names.
+    vtkCellData* cd = input->GetCellData();
+    vtkDataArray* flagArray = nullptr;
+    for (int a = 0; a < cd->GetNumberOfArrays(); ++a)
+    {
+      vtkDataArray* array = cd->GetArray(a);
+      if (array && array->GetName() && array->GetNumberOfComponents() == 1)
+      {
+        header.faceScalars.emplace_back(array->GetName());
+        if (header.faceScalars.back() == options.faceFlag)
+        {
+          flagArray = array;
+        }
+      }
+    }
     sink.Begin(header);
 
     const std::size_t chunk = options.chunkElements ? options.chunkElements : 16384;
@@ -287,10 +304,17 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
 
     std::vector<std::uint32_t> tri;
     tri.reserve(3 * chunk);
+    std::vector<std::uint8_t> flags; // (with flagArray: the cell's flag of each triangle)
+    std::uint8_t flag = 0;
     auto flush = [&]() {
       if (!tri.empty())
       {
         sink.Triangles(tri.data(), tri.size() / 3);
+        if (flagArray)
+        {
+          sink.TriangleFlags(flags.data(), flags.size());
+          flags.clear();
+        }
         stats.triangles += tri.size() / 3;
         tri.clear();
       }
@@ -318,6 +342,10 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
       tri.push_back(std::uint32_t(a));
       tri.push_back(std::uint32_t(b));
       tri.push_back(std::uint32_t(c));
+      if (flagArray)
+      {
+        flags.push_back(flag);
+      }
       if (tri.size() >= 3 * chunk)
       {
         flush();
@@ -325,11 +353,17 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
     };
     vtkIdType npts;
     const vtkIdType* ids;
+    // (cell ids: the vertices' and lines' cells first, then the polygons', then the strips')
+    vtkIdType cellId = input->GetNumberOfVerts() + input->GetNumberOfLines();
     auto polys = vtk::TakeSmartPointer(input->GetPolys()->NewIterator());
-    for (polys->GoToFirstCell(); !polys->IsDoneWithTraversal(); polys->GoToNextCell())
+    for (polys->GoToFirstCell(); !polys->IsDoneWithTraversal(); polys->GoToNextCell(), ++cellId)
     {
       polys->GetCurrentCell(npts, ids);
       ++stats.polygons;
+      if (flagArray)
+      {
+        flag = flagArray->GetComponent(cellId, 0) != 0.0 ? 1 : 0;
+      }
       if (npts < 3)
       {
         ++stats.droppedFaces;
@@ -341,10 +375,14 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
       }
     }
     auto strips = vtk::TakeSmartPointer(input->GetStrips()->NewIterator());
-    for (strips->GoToFirstCell(); !strips->IsDoneWithTraversal(); strips->GoToNextCell())
+    for (strips->GoToFirstCell(); !strips->IsDoneWithTraversal(); strips->GoToNextCell(), ++cellId)
     {
       strips->GetCurrentCell(npts, ids);
       ++stats.polygons;
+      if (flagArray)
+      {
+        flag = flagArray->GetComponent(cellId, 0) != 0.0 ? 1 : 0;
+      }
       for (vtkIdType k = 0; k + 2 < npts; ++k)
       {
         if (k % 2 == 0)

@@ -3,6 +3,8 @@
 // Not installed, not part of the API.
 #pragma once
 
+#include <algorithm>
+
 #include "sipmss/io/MeshIO.h"
 #include "sipmss/io/MeshIOInternal.h"
 
@@ -366,6 +368,9 @@ public:
   std::uint64_t triangles = 0;
   std::uint64_t dropped = 0;
   bool dropDegenerate = true;
+  // ReadOptions::faceFlag: one flag per triangle, set by SetFlags once its face is read.
+  bool withFlags = false;
+  std::vector<std::uint8_t> flags;
 
   // Adds a triangle; false when dropped as degenerate.
   void Add(std::uint32_t a, std::uint32_t b, std::uint32_t c)
@@ -384,6 +389,14 @@ public:
   }
   bool Full() const { return n == capacity; }
   void Flush(MeshSink& sink, const Input& in);
+  // With flags: room for a face of `more` triangles without a flush inside it (flushed first,
+  // or grown for a polygon larger than the buffer), so that its flag can be set after it.
+  void Reserve(MeshSink& sink, const Input& in, std::uint64_t more);
+  void SetFlags(std::size_t from, bool flag)
+  {
+    std::fill(flags.begin() + std::ptrdiff_t(from), flags.begin() + std::ptrdiff_t(n),
+      std::uint8_t(flag ? 1 : 0));
+  }
 };
 
 // Fan triangulation of one polygon, fed index by index.

@@ -550,6 +550,8 @@ void TriangleBuffer::Init(std::size_t chunkElements, std::uint64_t expected)
 {
   capacity = ClampChunk(chunkElements, 12, expected);
   idx.assign(3 * capacity + 4, 0); // + spare slots for 16-byte stores
+  if (withFlags)
+    flags.assign(capacity, 0);
   n = 0;
 }
 
@@ -560,7 +562,25 @@ void TriangleBuffer::Flush(MeshSink& sink, const Input& in)
   if (sink.AbortRequested())
     Aborted(in);
   sink.Triangles(idx.data(), n);
+  if (withFlags)
+    sink.TriangleFlags(flags.data(), n);
   n = 0;
+}
+
+void TriangleBuffer::Reserve(MeshSink& sink, const Input& in, std::uint64_t more)
+{
+  if (!withFlags || n + more <= capacity)
+    return;
+  Flush(sink, in);
+  if (more > capacity)
+  {
+    if (more > (std::uint64_t(1) << 26))
+      throw MeshIOError(in.Path() + ": face: a polygon of " + std::to_string(more + 2) +
+        " vertices is too large to carry a face selection (at most 2^26)");
+    capacity = std::size_t(more);
+    idx.resize(3 * capacity + 4, 0);
+    flags.resize(capacity, 0);
+  }
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -126,6 +126,7 @@ struct Header
   int vertexElem = -1;
   int faceElem = -1;
   int faceList = -1;           // index of vertex_indices in the face element
+  std::vector<std::string> faceScalars; // the face element's numeric properties but the list
   std::vector<Target> targets; // per vertex property
   VertexLayout layout;
   std::uint64_t bodyOffset = 0;
@@ -361,6 +362,9 @@ void ParseHeader(Input& in, Header& h)
       Fail(in.Path(), "face", "has no 'vertex_indices' list property", "line", fe.line);
     if (!IsInteger(fe.props[std::size_t(h.faceList)].type))
       Fail(in.Path(), "face", "has a non-integer vertex_indices type", "line", fe.line);
+    for (const Prop& p : fe.props)
+      if (!p.list)
+        h.faceScalars.push_back(p.name);
   }
 }
 
@@ -514,9 +518,18 @@ public:
       mh.vertexCount = ve.count;
       mh.faceCount = h_.faceElem >= 0 ? h_.elems[std::size_t(h_.faceElem)].count : 0;
     }
+    mh.faceScalars = h_.faceScalars;
     vb_.Init(h_.layout, opt_.chunkElements, ve.count);
     const bool wantFaces = h_.faceElem >= 0 && !opt_.verticesOnly;
     tb_.dropDegenerate = opt_.dropDegenerateFaces;
+    if (wantFaces && !opt_.faceFlag.empty())
+    {
+      const Elem& fe = h_.elems[std::size_t(h_.faceElem)];
+      for (std::size_t i = 0; i < fe.props.size(); ++i)
+        if (!fe.props[i].list && fe.props[i].name == opt_.faceFlag)
+          flagProp_ = int(i);
+      tb_.withFlags = flagProp_ >= 0;
+    }
     if (wantFaces)
       tb_.Init(opt_.chunkElements, h_.elems[std::size_t(h_.faceElem)].count);
     sink_.Begin(mh);
@@ -793,9 +806,18 @@ private:
   void BinaryFace(const Elem& el)
   {
     Fan fan;
+    bool flag = false;
+    std::size_t start = tb_.n;
     for (std::size_t i = 0; i < el.props.size(); ++i)
     {
       const Prop& p = el.props[i];
+      if (int(i) == flagProp_)
+      {
+        in_.Need(TypeSize(p.type));
+        flag = LoadReal(in_.p, p.type, swap_) != 0.0;
+        in_.p += TypeSize(p.type);
+        continue;
+      }
       if (int(i) != h_.faceList)
       {
         if (p.list)
@@ -815,6 +837,8 @@ private:
         in_.FailAtByte("#" + std::to_string(polygons_) + " has " + std::to_string(cnt) +
           " vertices, more than the file holds");
       in_.p += cs;
+      tb_.Reserve(sink_, in_, cnt > 2 ? std::uint64_t(cnt - 2) : 0);
+      start = tb_.n;
       fan.Start();
       for (std::int64_t k = 0; k < cnt; ++k)
       {
@@ -826,6 +850,8 @@ private:
       }
       EndFace(fan);
     }
+    if (tb_.withFlags)
+      tb_.SetFlags(start, flag);
   }
 
   void BinaryFaces(const Elem& el)
@@ -947,11 +973,29 @@ private:
       if (!in_.SkipSpace())
         in_.FailAtLine("truncated: " + std::to_string(remaining) + " of " +
           std::to_string(el.count) + " records missing");
+      bool flag = false;
+      std::size_t start = tb_.n;
       for (std::size_t i = 0; i < el.props.size(); ++i)
       {
         const Prop& p = el.props[i];
         if (!in_.SkipBlanks())
           TooFew(p);
+        if (int(i) == flagProp_)
+        {
+          if (p.type == PT::F32)
+            flag = in_.ParseFloatToken<float>(p.name.c_str()) != 0.0f;
+          else if (p.type == PT::F64)
+            flag = in_.ParseFloatToken<double>(p.name.c_str()) != 0.0;
+          else
+          {
+            const std::int64_t iv = in_.ParseIntToken(p.name.c_str());
+            const IntRange& r = RangeOf(p.type);
+            if (iv < r.lo || iv > r.hi)
+              OutOfRange(el, p, iv, r);
+            flag = iv != 0;
+          }
+          continue;
+        }
         if (int(i) != h_.faceList)
         {
           if (p.list)
@@ -967,6 +1011,8 @@ private:
         if (cnt > RangeOf(p.countType).hi)
           OutOfRange(el, p, cnt, RangeOf(p.countType));
         const std::int64_t idxMax = RangeOf(p.type).hi;
+        tb_.Reserve(sink_, in_, cnt > 2 ? std::uint64_t(cnt - 2) : 0);
+        start = tb_.n;
         fan.Start();
         for (std::int64_t k = 0; k < cnt; ++k)
         {
@@ -980,6 +1026,8 @@ private:
         }
         EndFace(fan);
       }
+      if (tb_.withFlags)
+        tb_.SetFlags(start, flag);
       in_.EndOfRecord();
       --remaining;
     }
@@ -1028,6 +1076,7 @@ private:
   std::uint64_t polygons_ = 0;
   VertexBuffer vb_;
   TriangleBuffer tb_;
+  int flagProp_ = -1; // the face property of ReadOptions::faceFlag
   float* arr_[4] = {};
   std::size_t stride_[4] = {};
 };
@@ -1052,6 +1101,7 @@ MeshHeader ReadPlyHeader(Input& in)
   mh.layout = h.layout;
   mh.vertexCount = h.elems[std::size_t(h.vertexElem)].count;
   mh.faceCount = h.faceElem >= 0 ? h.elems[std::size_t(h.faceElem)].count : 0;
+  mh.faceScalars = h.faceScalars;
   return mh;
 }
 

@@ -51,25 +51,34 @@ def sheet_with_a_seam(n=48, seed=3):
     return pd
 
 
-def write_ply(pd, path, point_arrays):
+def write_ply(pd, path, point_arrays, face_arrays=None):
     """A binary PLY of pd's points and triangles with float vertex properties (vtkPLYWriter writes
-    no other point arrays): point_arrays maps a name to a function of the point (x, y, z)."""
+    no other point arrays): point_arrays maps a name to a function of the point (x, y, z), and
+    face_arrays (uchar face properties after the indices) one to a function of the face's
+    centroid."""
     import struct
+    face_arrays = face_arrays or {}
     pts = vtk_to_numpy(pd.GetPoints().GetData())
     conn = vtk_to_numpy(pd.GetPolys().GetConnectivityArray())
-    names = sorted(point_arrays)
+    names, face_names = sorted(point_arrays), sorted(face_arrays)
     with open(path, "wb") as f:
         f.write(("ply\nformat binary_little_endian 1.0\nelement vertex %d\n"
                  "property float x\nproperty float y\nproperty float z\n" % len(pts)).encode())
         for name in names:
             f.write(("property float %s\n" % name).encode())
-        f.write(("element face %d\nproperty list uchar int vertex_indices\nend_header\n"
-                 % (len(conn) // 3)).encode())
+        f.write(("element face %d\nproperty list uchar int vertex_indices\n" % (len(conn) // 3)).encode())
+        for name in face_names:
+            f.write(("property uchar %s\n" % name).encode())
+        f.write(b"end_header\n")
         for p in pts:
             values = [float(p[0]), float(p[1]), float(p[2])] + [float(point_arrays[n](*p)) for n in names]
             f.write(struct.pack("<%df" % len(values), *values))
         for t in range(len(conn) // 3):
-            f.write(struct.pack("<B3i", 3, *(int(i) for i in conn[3 * t:3 * t + 3])))
+            ids = [int(i) for i in conn[3 * t:3 * t + 3]]
+            c = [sum(float(pts[i][k]) for i in ids) / 3 for k in range(3)]
+            f.write(struct.pack("<B3i", 3, *ids))
+            for name in face_names:
+                f.write(struct.pack("<B", int(face_arrays[name](*c))))
 
 
 def arrays(pd):
@@ -101,6 +110,7 @@ CASES = [
     (vtkSIPMSSDecimate, {"WeldDistance": 1e-6}, ["--weld", "1e-6"], True),
     (vtkSIPMSSDecimate, {"LockArray": "keep"}, ["--lock-array", "keep"], True),
     (vtkSIPMSSDecimate, {"SelectionArray": "region"}, ["--selection-array", "region"], True),
+    (vtkSIPMSSDecimate, {"SelectionArray": "cells"}, ["--selection-array", "cells"], True),
     # (the two halves of the sheet are pieces of their own: the selected one is pruned)
     (vtkSIPMSSDecimate, {"SelectionArray": "region", "PruneSize": 0.9},
      ["--selection-array", "region", "--prune-size", "0.9"], True),
@@ -122,7 +132,8 @@ class FrontEnds(unittest.TestCase):
         # (point arrays for the locks and the selection: a diagonal band, the right half)
         write_ply(sheet_with_a_seam(), cls.input,
                   {"keep": lambda x, y, z: 1.0 if abs(x - y) < 0.05 else 0.0,
-                   "region": lambda x, y, z: 1.0 if x > 0.5 else 0.0})
+                   "region": lambda x, y, z: 1.0 if x > 0.5 else 0.0},
+                  {"cells": lambda x, y, z: 1 if y < 0.6 else 0})
         cls.defaults = {}
 
     @classmethod

@@ -149,6 +149,46 @@ class SIPMSSPythonTest(unittest.TestCase):
         for i in range(0, f.GetOutput().GetNumberOfPoints(), 97):
             self.assertEqual(f.GetOutput().GetPoint(i), g.GetOutput().GetPoint(i))
 
+    def test_cell_selection_keeps_the_cells_outside_it(self):
+        """SelectionArray naming a cell array of a pipeline mesh: every triangle outside the
+        selection (the cells where it is 0) is in the output with the same corners."""
+        src = sphere()
+        src.Update()
+        pd = vtkPolyData()
+        pd.DeepCopy(src.GetOutput())
+        sel = vtkUnsignedCharArray()
+        sel.SetName("picked")
+        outside = set()
+        for c in range(pd.GetNumberOfCells()):
+            ids = vtkIdList()
+            pd.GetCellPoints(c, ids)
+            pts = [pd.GetPoint(ids.GetId(k)) for k in range(ids.GetNumberOfIds())]
+            inside = sum(p[2] for p in pts) / len(pts) > -0.1
+            sel.InsertNextValue(1 if inside else 0)
+            if not inside:
+                outside.add(tuple(sorted(pts)))
+        pd.GetCellData().AddArray(sel)
+        f = vtkSIPMSSDecimate()
+        f.SetInputData(pd)
+        f.SetTargetNumberOfTriangles(300)
+        f.SetSelectionArray("picked")
+        f.Update()
+        out = f.GetOutput()
+        self.assertLess(out.GetNumberOfPolys(), pd.GetNumberOfPolys())
+        got = set()
+        for c in range(out.GetNumberOfCells()):
+            ids = vtkIdList()
+            out.GetCellPoints(c, ids)
+            got.add(tuple(sorted(out.GetPoint(ids.GetId(k)) for k in range(3))))
+        self.assertTrue(outside)
+        self.assertEqual(outside - got, set())
+        # a name that is neither a point nor a cell array: an error naming both lists
+        m = Messages(f)
+        f.SetSelectionArray("absent")
+        f.Update()
+        self.assertEqual(len(m.errors), 1, m.errors)
+        self.assertIn("cell arrays: picked", m.errors[0])
+
     def test_stream_file_out_of_core(self):
         data = os.environ.get("SIPMSS_SHARED_DATA_DIR", "")
         bunny = os.path.join(data, "bunny.ply")

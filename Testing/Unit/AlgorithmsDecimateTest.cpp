@@ -37,6 +37,8 @@ struct Mesh
   std::vector<std::uint8_t> rgba;
   std::vector<float> scalars; // scalarNames.size() per vertex
   std::vector<std::string> scalarNames;
+  std::vector<std::uint8_t> faceFlags; // one per triangle: the face scalar faceName (a selection)
+  std::string faceName;
   std::size_t Vertices() const { return this->xyz.size() / 3; }
   std::size_t Triangles() const { return this->tris.size() / 3; }
   std::array<double, 3> P(std::size_t i) const
@@ -57,7 +59,19 @@ alg::MeshSource MemorySource(const Mesh& m, bool announce = true, bool interleav
     h.layout.normals = !m.normals.empty();
     h.layout.colors = !m.rgba.empty();
     h.layout.scalars = m.scalarNames;
+    if (!m.faceName.empty())
+    {
+      h.faceScalars = { "other", m.faceName };
+    }
     sink.Begin(h);
+    const bool flags = !m.faceName.empty() && options.faceFlag == m.faceName;
+    auto send = [&](std::size_t first, std::size_t count) {
+      sink.Triangles(&m.tris[3 * first], count);
+      if (flags)
+      {
+        sink.TriangleFlags(&m.faceFlags[first], count);
+      }
+    };
     const std::size_t chunk = interleave ? 37 : std::max<std::size_t>(options.chunkElements, 1);
     const std::size_t ns = m.scalarNames.size();
     std::size_t sentTris = 0;
@@ -74,7 +88,7 @@ alg::MeshSource MemorySource(const Mesh& m, bool announce = true, bool interleav
       }
       if (end > sentTris)
       {
-        sink.Triangles(&m.tris[3 * sentTris], end - sentTris);
+        send(sentTris, end - sentTris);
         sentTris = end;
       }
     };
@@ -99,7 +113,7 @@ alg::MeshSource MemorySource(const Mesh& m, bool announce = true, bool interleav
     {
       for (std::size_t first = sentTris; first < m.Triangles(); first += chunk)
       {
-        sink.Triangles(&m.tris[3 * first], std::min(chunk, m.Triangles() - first));
+        send(first, std::min(chunk, m.Triangles() - first));
       }
       rs.triangles = m.Triangles();
       rs.polygons = m.Triangles();
@@ -1199,6 +1213,93 @@ TEST(AlgorithmsDecimate, PruningRemovesOnlyPiecesUnderTheThreshold)
   EXPECT_TRUE(paged.stats.storage.usedOutOfCore);
   ExpectSameOutput(small, paged, "pruned, out of core");
   EXPECT_EQ(paged.stats.prunedComponents, 2u);
+}
+
+// A selection by a face (cell) scalar: every face outside it is in the output with the same
+// corners, and the run is the one of the point selection it stands for (a vertex is selected
+// when no face outside the selection has it), byte for byte, in and out of core. A name that is
+// neither a point nor a cell array is an error naming both lists.
+TEST(AlgorithmsDecimate, CellSelectionKeepsEveryFaceOutsideIt)
+{
+  Mesh g = Grid(24, Bumps);
+  PrependFarVertex(g);
+  g.faceName = "region";
+  std::vector<bool> outsideVertex(g.Vertices(), false);
+  for (std::size_t f = 0; f < g.Triangles(); ++f)
+  {
+    double cx = 0;
+    for (int k = 0; k < 3; ++k)
+    {
+      cx += g.xyz[3 * g.tris[3 * f + k]] / 3.0;
+    }
+    const bool in = cx > 0.4;
+    g.faceFlags.push_back(in ? 1 : 0);
+    for (int k = 0; k < 3 && !in; ++k)
+    {
+      outsideVertex[g.tris[3 * f + k]] = true;
+    }
+  }
+  Mesh p = g; // the same mesh with the equivalent point selection
+  p.faceName.clear();
+  p.scalarNames = { "picked" };
+  for (std::size_t v = 0; v < p.Vertices(); ++v)
+  {
+    p.scalars.push_back(outsideVertex[v] ? 0.0f : 1.0f);
+  }
+  alg::DecimateOptions o;
+  o.targetTriangles = 300;
+  o.selectionArray = "region";
+  const Outcome cells = Simplify(MemorySource(g), o);
+  EXPECT_LT(cells.out.Triangles(), g.Triangles() - 200);
+  // Every face outside the selection, by its corners' positions.
+  std::set<std::array<float, 9>> out;
+  for (std::size_t f = 0; f < cells.out.Triangles(); ++f)
+  {
+    std::array<float, 9> t;
+    for (int k = 0; k < 9; ++k)
+    {
+      t[std::size_t(k)] = cells.out.xyz[3 * cells.out.tris[3 * f + std::size_t(k / 3)] + std::size_t(k % 3)];
+    }
+    out.insert(t);
+  }
+  std::size_t kept = 0;
+  for (std::size_t f = 0; f < g.Triangles(); ++f)
+  {
+    if (g.faceFlags[f])
+    {
+      continue;
+    }
+    std::array<float, 9> t;
+    for (int k = 0; k < 9; ++k)
+    {
+      t[std::size_t(k)] = g.xyz[3 * g.tris[3 * f + std::size_t(k / 3)] + std::size_t(k % 3)];
+    }
+    kept += out.count(t);
+    EXPECT_EQ(out.count(t), 1u) << "face " << f;
+  }
+  EXPECT_GT(kept, 100u);
+  o.selectionArray = "picked";
+  const Outcome points = Simplify(MemorySource(p), o);
+  ASSERT_EQ(points.out.Triangles(), cells.out.Triangles());
+  EXPECT_EQ(points.out.tris, cells.out.tris);
+  EXPECT_EQ(points.out.xyz, cells.out.xyz);
+  o.selectionArray = "region";
+  o.storage.policy = st::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 64 * 1024;
+  const Outcome paged = Simplify(MemorySource(g), o);
+  EXPECT_TRUE(paged.stats.storage.usedOutOfCore);
+  ExpectSameOutput(cells, paged, "cell selection out of core");
+  o.selectionArray = "nowhere";
+  try
+  {
+    Simplify(MemorySource(g), o);
+    ADD_FAILURE() << "no error for a missing selection array";
+  }
+  catch (const alg::MissingArrayError& e)
+  {
+    EXPECT_NE(std::string(e.what()).find("'nowhere'"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("cell arrays: other, region"), std::string::npos) << e.what();
+  }
 }
 
 TEST(AlgorithmsDecimate, PointDataFollowsThePositions)

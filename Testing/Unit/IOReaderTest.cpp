@@ -399,6 +399,68 @@ TEST(IOPly, BinaryFacesFastPathMixedPolygonsAcrossBuffers)
     }
 }
 
+// A face property as TriangleFlags (ReadOptions::faceFlag): before or after the index list, in
+// every encoding, on polygons (each of its triangles) and across small buffers; the header lists
+// the face scalars; nothing is delivered without the option or for a name the file lacks.
+TEST(IOPly, FaceScalarBecomesTriangleFlags)
+{
+  const int nv = 50, nf = 3000;
+  for (Enc enc : { Enc::Ascii, Enc::LE, Enc::BE })
+    for (bool before : { true, false })
+    {
+      PlyBuilder b(enc);
+      b.H("element vertex " + std::to_string(nv)).H("property float x").H("property float y").H("property float z");
+      b.H("element face " + std::to_string(nf));
+      if (before)
+        b.H("property float sel");
+      b.H("property list uchar int vertex_indices");
+      if (!before)
+        b.H("property uchar sel");
+      b.H("property short other");
+      for (int i = 0; i < nv; ++i)
+        b.V("float", i).V("float", i % 7).V("float", 0).EndRecord();
+      std::vector<std::uint8_t> expected;
+      for (int f = 0; f < nf; ++f)
+      {
+        const int flag = (f / 3) % 2;
+        const int n = f % 11 == 0 ? 5 : 3; // pentagons: three triangles each
+        if (before)
+          b.V("float", flag ? 0.5 : 0.0);
+        b.V("uchar", n);
+        for (int k = 0; k < n; ++k)
+          b.V("int", (f + k) % nv);
+        if (!before)
+          b.V("uchar", flag);
+        b.V("short", -f % 100).EndRecord();
+        expected.insert(expected.end(), std::size_t(n - 2), std::uint8_t(flag));
+      }
+      const std::string bytes = b.Bytes();
+      for (std::size_t buffer : { std::size_t(0), std::size_t(1024) })
+      {
+        SCOPED_TRACE(std::string(EncName(enc)) + (before ? " before" : " after") + " buffer " +
+          std::to_string(buffer));
+        ReadOptions o;
+        o.faceFlag = "sel";
+        o.chunkElements = 100; // (a polygon may not fit what is left of the buffer)
+        CollectSink s;
+        MemoryReadOptions mo;
+        mo.bufferBytes = buffer;
+        ReadMeshFromMemory(bytes.data(), bytes.size(), s, o, mo);
+        EXPECT_EQ(s.header.faceScalars, (std::vector<std::string>{ "sel", "other" }));
+        ASSERT_EQ(s.flags.size(), s.TriangleCount());
+        EXPECT_TRUE(s.flags == expected);
+        CollectSink none;
+        ReadMeshFromMemory(bytes.data(), bytes.size(), none, ReadOptions{}, mo);
+        EXPECT_TRUE(none.flags.empty());
+        EXPECT_TRUE(none.tris == s.tris);
+        o.faceFlag = "missing";
+        CollectSink missing;
+        ReadMeshFromMemory(bytes.data(), bytes.size(), missing, o, mo);
+        EXPECT_TRUE(missing.flags.empty());
+      }
+    }
+}
+
 TEST(IOPly, FloatColorsAreScaledAndTexcoordAliases)
 {
   TempDir dir;

@@ -141,7 +141,16 @@ public:
       }
     }
     tris.insert(tris.end(), idx, idx + 3 * count);
+    lastTriangles = count;
   }
+  void TriangleFlags(const std::uint8_t* f, std::size_t count) override
+  {
+    EXPECT_EQ(count, lastTriangles) << "flags for another number of triangles";
+    EXPECT_EQ(flags.size() + count, TriangleCount()) << "flags not right after their triangles";
+    flags.insert(flags.end(), f, f + count);
+  }
+  std::vector<std::uint8_t> flags; // TriangleFlags, one per triangle
+  std::size_t lastTriangles = 0;
   void End(const ReadStats& s) override
   {
     EXPECT_TRUE(begun);

@@ -716,8 +716,9 @@ int main(int argc, char** argv)
     "decimate: a vertex property (point array) of INPUT; vertices where it is not 0 stay in the "
     "output at their exact positions (not with --weld)");
   auto* selectionArray = boundaries->add_option("--selection-array", rq.selectionArray,
-    "decimate: a vertex property (point array) of INPUT; only vertices where it is not 0 move "
-    "or go, faces without one are kept as they were");
+    "decimate: a vertex property (point array) of INPUT, only vertices where it is not 0 move "
+    "or go, faces without one are kept as they were; or a face property (cell array), every "
+    "face where it is 0 is kept as it was");
   CLI::Option_group* cleanup = simplify->add_option_group("Cleanup");
   auto* pruneSize = cleanup->add_option("--prune-size", rq.pruneSize,
     "decimate, two-stage: first remove disconnected pieces whose bounding-box diagonal is below "

@@ -616,6 +616,12 @@ struct MeshState
   std::size_t recSize = 0; // bytes of one vertex's attribute record
   // The float index in the attribute record of the lock and selection scalars (-1: none).
   int lockFloat = -1, selectFloat = -1;
+  // A selection by a face scalar (faceSelect): outside[v] != 0 when v is a corner of a face
+  // outside the selection (set as the faces are read; such a vertex is fixed). lastTris: the
+  // corners of the reader's last Triangles() call, which its TriangleFlags() follows.
+  bool faceSelect = false;
+  Array<std::uint8_t> outside;
+  std::vector<std::uint32_t> lastTris;
   std::uint64_t announcedV = 0, announcedF = 0;
   bool begun = false;
   Vec3 origin{ 0, 0, 0 };
@@ -708,6 +714,7 @@ public:
   void Begin(const io::MeshHeader& header) override;
   void Vertices(const io::VertexChunk& chunk) override;
   void Triangles(const std::uint32_t* indices, std::size_t count) override;
+  void TriangleFlags(const std::uint8_t* flags, std::size_t count) override;
   void End(const io::ReadStats& stats) override;
   bool AbortRequested() override
   {

@@ -68,6 +68,11 @@ void Prune(RunContext& ctx, MeshState& mesh)
   View<Vec3> P(mesh.dml, mesh.pos);
   View<std::uint8_t> A(mesh.dml, mesh.attr);
   const bool arrays = mesh.lockFloat >= 0 || mesh.selectFloat >= 0;
+  View<std::uint8_t> outside;
+  if (mesh.faceSelect)
+  {
+    outside = View<std::uint8_t>(mesh.dml, mesh.outside);
+  }
   // 1. The components: each face joins its corners' trees (the lower root stays the root).
   for (std::uint64_t v = 0; v < nv; ++v)
   {
@@ -107,7 +112,8 @@ void Prune(RunContext& ctx, MeshState& mesh)
     const Float3 q = { float(p.x), float(p.y), float(p.z) };
     b.lo = { std::min(b.lo.x, q.x), std::min(b.lo.y, q.y), std::min(b.lo.z, q.z) };
     b.hi = { std::max(b.hi.x, q.x), std::max(b.hi.y, q.y), std::max(b.hi.z, q.z) };
-    if (arrays && FixedByArrays(mesh, A, std::uint32_t(v)))
+    if ((arrays && FixedByArrays(mesh, A, std::uint32_t(v))) ||
+      (mesh.faceSelect && outside.Get(v) != 0))
     {
       b.flags |= kPruneFixed;
     }

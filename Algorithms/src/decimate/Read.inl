@@ -19,7 +19,8 @@ void Loader::Tick()
 void Loader::Begin(const io::MeshHeader& header)
 {
   BeginInput(this->ctx_, this->mesh_, header);
-  if (MeasuresLayout(this->ctx_))
+  // (a face selection is read with the faces: the reordered copy would not carry it)
+  if (MeasuresLayout(this->ctx_) && !this->mesh_.faceSelect)
   {
     this->MeasureLayout(header.vertexCount);
   }
@@ -40,6 +41,33 @@ void Loader::Triangles(const std::uint32_t* indices, std::size_t count)
     }
   }
   AddTriangles(this->mesh_, indices, count);
+  if (this->mesh_.faceSelect)
+  {
+    this->mesh_.lastTris.assign(indices, indices + 3 * count);
+  }
+}
+void Loader::TriangleFlags(const std::uint8_t* flags, std::size_t count)
+{
+  MeshState& mesh = this->mesh_;
+  if (!mesh.faceSelect || count * 3 != mesh.lastTris.size())
+  {
+    return;
+  }
+  View<std::uint8_t> out(mesh.dml, mesh.outside);
+  for (std::size_t t = 0; t < count; ++t)
+  {
+    if (flags[t] == 0)
+    {
+      for (int k = 0; k < 3; ++k)
+      {
+        const std::uint32_t v = mesh.lastTris[3 * t + std::size_t(k)];
+        if (v < mesh.vCap)
+        {
+          out.Set(v, 1);
+        }
+      }
+    }
+  }
 }
 void Loader::End(const io::ReadStats& stats)
 {
@@ -87,7 +115,29 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
       (it - names.begin()));
   };
   mesh.lockFloat = scalarFloat(ctx.opt.lockArray, "the lock array");
-  mesh.selectFloat = scalarFloat(ctx.opt.selectionArray, "the selection array");
+  // The selection: a point array, else a face (cell) array.
+  const std::vector<std::string>& faces = header.faceScalars;
+  const std::vector<std::string>& points = mesh.layout.scalars;
+  mesh.faceSelect = !ctx.opt.selectionArray.empty() &&
+    std::find(points.begin(), points.end(), ctx.opt.selectionArray) == points.end() &&
+    std::find(faces.begin(), faces.end(), ctx.opt.selectionArray) != faces.end();
+  if (!mesh.faceSelect && !ctx.opt.selectionArray.empty() &&
+    std::find(points.begin(), points.end(), ctx.opt.selectionArray) == points.end())
+  {
+    auto list = [](const std::vector<std::string>& names) {
+      std::string have;
+      for (const std::string& n : names)
+      {
+        have += (have.empty() ? "" : ", ") + n;
+      }
+      return have.empty() ? std::string("none") : have;
+    };
+    throw MissingArrayError("the input has no point or cell array '" + ctx.opt.selectionArray +
+      "' to use as the selection array (its point arrays: " + list(points) +
+      "; its cell arrays: " + list(faces) + ")");
+  }
+  mesh.selectFloat =
+    mesh.faceSelect ? -1 : scalarFloat(ctx.opt.selectionArray, "the selection array");
   mesh.announcedV = header.vertexCount;
   mesh.announcedF = header.faceCount;
   if (header.vertexCount + header.faceCount > 0)
@@ -135,6 +185,10 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
     mesh.attr = Array<std::uint8_t>(mesh.dml, mesh.vCap * mesh.recSize);
   }
   mesh.faces = Array<Tri>(mesh.dml, mesh.fCap);
+  if (mesh.faceSelect)
+  {
+    mesh.outside = Array<std::uint8_t>(mesh.dml, mesh.vCap);
+  }
 }
 
 void EnsureVertexCapacity(MeshState& mesh, std::uint64_t n)
@@ -148,6 +202,10 @@ void EnsureVertexCapacity(MeshState& mesh, std::uint64_t n)
   if (mesh.recSize)
   {
     mesh.attr.Resize(cap * mesh.recSize);
+  }
+  if (mesh.faceSelect)
+  {
+    mesh.outside.Resize(cap);
   }
   mesh.vCap = cap;
 }
@@ -271,6 +329,7 @@ void Read(RunContext& ctx, MeshState& mesh, const MeshSource& input)
   ctx.progress.BeginPhase("read", 0.0, 1.0); // (its share once the header gives the sizes)
   Loader loader(ctx, mesh);
   io::ReadOptions ro;
+  ro.faceFlag = ctx.opt.selectionArray; // (used when it names a face scalar)
   io::ReadStats rs;
   try
   {

@@ -823,6 +823,21 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
         w.RO, w.RF, w.F, w.P);
     },
     [&]() { ctx.progress.Poll(); });
+  if (mesh.faceSelect)
+  {
+    // A corner of a face outside a face selection never moves or goes (as a vertex outside a
+    // point selection): every such face keeps its corners.
+    mesh.BindViews();
+    View<std::uint8_t> out(mesh.dml, mesh.outside);
+    for (std::uint64_t u = 0; u < nv; ++u)
+    {
+      if (out.Get(u))
+      {
+        mesh.views.S.Set(u, State(mesh.views.S.Get(u) | kFixed));
+      }
+    }
+    mesh.outside.Close();
+  }
 }
 
 } // namespace

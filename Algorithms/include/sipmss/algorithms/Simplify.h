@@ -58,7 +58,8 @@ struct SimplifyRequest
   bool lockBoundary = false;      // decimate, two-stage: boundary vertices never move
   double weldDistance = kNoWeld;  // decimate, two-stage: >= 0 welds closer input vertices first
   // Decimate only: point-data scalars (by name; empty: none) whose non-zero vertices never move
-  // or go (lockArray), or outside of whose non-zero vertices nothing changes (selectionArray).
+  // or go (lockArray), or outside of whose non-zero vertices nothing changes (selectionArray; or
+  // a cell-data scalar, outside of whose non-zero faces nothing changes).
   std::string lockArray;
   std::string selectionArray;
   // Decimate, two-stage: removes disconnected pieces smaller than this fraction of the input's

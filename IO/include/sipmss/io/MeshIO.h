@@ -70,6 +70,9 @@ struct MeshHeader
   std::uint64_t vertexCount = 0;
   std::uint64_t faceCount = 0;
   VertexLayout layout;
+  // The face scalars the input has (PLY: numeric face properties other than vertex_indices; a
+  // vtkPolyData: its one-component cell arrays), for ReadOptions::faceFlag.
+  std::vector<std::string> faceScalars;
 };
 
 // One chunk of consecutive vertices [first, first + count).
@@ -102,6 +105,14 @@ public:
   // count triangles, 3 * count vertex indices (each < the final vertex count; checked by the
   // reader when the vertex count is known first, as for PLY, else at End()).
   virtual void Triangles(const std::uint32_t* indices, std::size_t count) = 0;
+  // With ReadOptions::faceFlag naming one of MeshHeader::faceScalars: called right after each
+  // Triangles() with one byte per triangle of that call, 1 where the face's value is not 0 (a
+  // polygon's triangles all take its value).
+  virtual void TriangleFlags(const std::uint8_t* flags, std::size_t count)
+  {
+    (void)flags;
+    (void)count;
+  }
   virtual void End(const ReadStats& stats) = 0;
   // Called between chunks and on every refill of the reader's input buffer (at least once per
   // MiB of input, whatever the content: a long line, skipped records, dropped faces), and every
@@ -114,6 +125,9 @@ struct ReadOptions
   bool verticesOnly = false;   // stop after the vertices (e.g. a bounds pass)
   std::size_t chunkElements = 1 << 14;
   bool dropDegenerateFaces = true; // faces with repeated indices are dropped and counted
+  // A face scalar (MeshHeader::faceScalars) to deliver as MeshSink::TriangleFlags; empty, or a
+  // name the input does not have: none.
+  std::string faceFlag;
 };
 
 // Behaviour details (see also MeshIOInternal.h for reading from memory):
@@ -194,6 +208,14 @@ public:
     const VertexLayout& layout) = 0;
   virtual void Vertices(const VertexChunk& chunk) = 0;
   virtual void Triangles(const std::uint32_t* indices, std::size_t count) = 0;
+  // With ReadOptions::faceFlag naming one of MeshHeader::faceScalars: called right after each
+  // Triangles() with one byte per triangle of that call, 1 where the face's value is not 0 (a
+  // polygon's triangles all take its value).
+  virtual void TriangleFlags(const std::uint8_t* flags, std::size_t count)
+  {
+    (void)flags;
+    (void)count;
+  }
   virtual void End() = 0; // flushes and closes; throws MeshIOError on any I/O failure
 };
 
