@@ -803,7 +803,8 @@ private:
     ++polygons_;
   }
 
-  void BinaryFace(const Elem& el)
+  // (not inlined: the rare path of BinaryFaces, whose fast loop it would otherwise crowd)
+  __attribute__((noinline)) void BinaryFace(const Elem& el)
   {
     Fan fan;
     bool flag = false;
@@ -1076,9 +1077,9 @@ private:
   std::uint64_t polygons_ = 0;
   VertexBuffer vb_;
   TriangleBuffer tb_;
-  int flagProp_ = -1; // the face property of ReadOptions::faceFlag
   float* arr_[4] = {};
   std::size_t stride_[4] = {};
+  int flagProp_ = -1; // the face property of ReadOptions::faceFlag
 };
 
 } // namespace
