@@ -21,6 +21,7 @@ struct Item
     Begin,
     Vertices,
     Triangles,
+    TriangleFlags,
     End
   } kind = Begin;
   io::MeshHeader header;
@@ -30,6 +31,7 @@ struct Item
   std::vector<float> xyz, normals, texcoords, scalars;
   std::vector<std::uint8_t> rgba;
   std::vector<std::uint32_t> triangles;
+  std::vector<std::uint8_t> flags;
 };
 
 // A bounded queue of items plus a pool of spent items for reuse (no allocation per chunk once
@@ -171,6 +173,14 @@ public:
     item->triangles.assign(indices, indices + 3 * count);
     this->Send(std::move(item));
   }
+  void TriangleFlags(const std::uint8_t* flags, std::size_t count) override
+  {
+    auto item = this->channel_.Fresh();
+    item->kind = Item::TriangleFlags;
+    item->count = count;
+    item->flags.assign(flags, flags + count);
+    this->Send(std::move(item));
+  }
   void End(const io::ReadStats& stats) override
   {
     auto item = this->channel_.Fresh();
@@ -226,6 +236,9 @@ void Dispatch(Item& item, io::MeshSink& sink)
     }
     case Item::Triangles:
       sink.Triangles(item.triangles.data(), item.count);
+      break;
+    case Item::TriangleFlags:
+      sink.TriangleFlags(item.flags.data(), item.count);
       break;
     case Item::End:
       sink.End(item.stats);

@@ -1,4 +1,6 @@
 #include "sipmss/algorithms/TwoStage.h"
+
+#include <cmath>
 #include "sipmss/algorithms/Quadric.h"
 
 #include "StoredMesh.h"
@@ -168,6 +170,14 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   DecimateOptions dopt = options.decimate;
   dopt.dml = &dml;
   dopt.errorDiagonal = s1.errorDiagonal; // (the bound and the errors refer to the input's box)
+  if (std::isfinite(dopt.maximumError))
+  {
+    // The two stages' errors add up (see below): the collapses get what the grid left of the
+    // bound (nothing but exact collapses when the grid alone exceeds it).
+    const double used =
+      std::max(0.0, s1.achievedError) * (dopt.absoluteError ? s1.errorDiagonal : 1.0);
+    dopt.maximumError = std::max(0.0, dopt.maximumError - used);
+  }
   if (options.carryQuadrics)
   {
     dopt.initialQuadric = [&quadrics](std::uint64_t v, double q[10]) {
@@ -198,13 +208,11 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   stats.outputTriangles = s2.outputTriangles;
   stats.prunedComponents = s2.prunedComponents; // (pieces of the clustered mesh)
   stats.prunedTriangles = s2.prunedTriangles;
-  // With the cell quadrics carried, a collapse's error is measured against the input's planes
-  // and a vertex that did not collapse keeps its cell's: the larger of the two stages'. Without,
-  // stage 2 measures against the clustered mesh, and the errors add up (a bound, not a measure).
+  // Stage 2 measures its collapses against the clustered mesh's planes (with the cell quadrics
+  // carried, against those and the cells' input planes together): the two stages' errors add up
+  // (a bound of the distance to the input's planes, not a measure of it).
   stats.errorDiagonal = s1.errorDiagonal;
-  stats.achievedError = options.carryQuadrics
-    ? std::max(s1.achievedError, s2.achievedError)
-    : s1.achievedError + s2.achievedError;
+  stats.achievedError = std::max(0.0, s1.achievedError) + std::max(0.0, s2.achievedError);
   stats.storage = dml.GetStats();
   return stats;
 }

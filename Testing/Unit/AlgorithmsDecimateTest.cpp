@@ -1289,6 +1289,19 @@ TEST(AlgorithmsDecimate, CellSelectionKeepsEveryFaceOutsideIt)
   const Outcome paged = Simplify(MemorySource(g), o);
   EXPECT_TRUE(paged.stats.storage.usedOutOfCore);
   ExpectSameOutput(cells, paged, "cell selection out of core");
+  // A reordered copy does not carry the cell array: an error, not a run without the selection.
+  o.layout = alg::LayoutPolicy::Reorder;
+  try
+  {
+    Simplify(MemorySource(g), o);
+    ADD_FAILURE() << "no error for a cell selection on a reordered copy";
+  }
+  catch (const std::runtime_error& e)
+  {
+    EXPECT_NE(std::string(e.what()).find("did not come with the faces"), std::string::npos)
+      << e.what();
+  }
+  o.layout = alg::LayoutPolicy::Automatic;
   o.selectionArray = "nowhere";
   try
   {

@@ -40,6 +40,8 @@ MeshSource Counting(int chunks, int failAt, std::atomic<int>* produced)
       sink.Vertices(c);
       std::uint32_t t[3] = { std::uint32_t(3 * i), std::uint32_t(3 * i + 1), std::uint32_t(3 * i + 2) };
       sink.Triangles(t, 1);
+      const std::uint8_t flag = std::uint8_t(i % 3 == 0);
+      sink.TriangleFlags(&flag, 1);
       ++*produced;
     }
     st.vertices = h.vertexCount;
@@ -66,6 +68,12 @@ struct Log final : io::MeshSink
     this->s.insert(this->s.end(), c.scalars, c.scalars + c.count);
   }
   void Triangles(const std::uint32_t* i, std::size_t n) override { this->t.insert(this->t.end(), i, i + 3 * n); }
+  void TriangleFlags(const std::uint8_t* f, std::size_t n) override
+  {
+    EXPECT_EQ(this->flags.size() + n, this->t.size() / 3); // (right after their triangles)
+    this->flags.insert(this->flags.end(), f, f + n);
+  }
+  std::vector<std::uint8_t> flags;
   void End(const io::ReadStats&) override { ++this->ends; }
 };
 } // namespace
@@ -80,6 +88,8 @@ TEST(Prefetch, SameCallsInOrder)
   EXPECT_EQ(direct.xyz, prefetched.xyz);
   EXPECT_EQ(direct.s, prefetched.s);
   EXPECT_EQ(direct.t, prefetched.t);
+  EXPECT_EQ(direct.flags, prefetched.flags);
+  EXPECT_EQ(prefetched.flags.size(), 500u);
   EXPECT_EQ(prefetched.begins, 1);
   EXPECT_EQ(prefetched.ends, 1);
 }

@@ -15,8 +15,23 @@ paged="$("$meshgen" subdivide "$tmp/in.ply" "$tmp/paged.ply" --levels 2 --memory
   --tmpdir "$tmp/blocks")"
 "$meshgen" subdivide "$tmp/in.ply" "$tmp/shuffled.ply" --levels 2 --order shuffled --memory-mb 0.0625 \
   --tmpdir "$tmp/blocks" >/dev/null
+# Many vertices and few faces (the budget's estimate must count the vertices too).
+/usr/bin/python3 - "$tmp/few.ply" <<'PY'
+import struct, sys
+nv = 300000
+with open(sys.argv[1], "wb") as f:
+    f.write(("ply\nformat binary_little_endian 1.0\nelement vertex %d\nproperty float x\n"
+             "property float y\nproperty float z\nelement face 10\n"
+             "property list uchar int vertex_indices\nend_header\n" % nv).encode())
+    f.write(b"".join(struct.pack("<3f", i * 1e-3, (i % 7) * 1e-2, (i % 13) * 1e-2) for i in range(nv)))
+    for t in range(10):
+        f.write(struct.pack("<B3i", 3, 3 * t, 3 * t + 1, 3 * t + 2))
+PY
+"$meshgen" subdivide "$tmp/few.ply" "$tmp/few-core.ply" --memory-mb 0 >/dev/null
+"$meshgen" subdivide "$tmp/few.ply" "$tmp/few-2mb.ply" --memory-mb 2 --tmpdir "$tmp/blocks" >/dev/null
 status=0
 fail() { echo "FAIL: $*"; status=1; }
+cmp "$tmp/few-core.ply" "$tmp/few-2mb.ply" || fail "many vertices: in core and at 2 MB differ"
 case "$core" in *"(in core"*) ;; *) fail "unbounded did not run in core: $core" ;; esac
 case "$paged" in *"(out of core"*) ;; *) fail "64 KiB did not run out of core: $paged" ;; esac
 cmp "$tmp/core.ply" "$tmp/paged.ply" || fail "in core and out of core differ"

@@ -69,17 +69,25 @@ struct FaceRec
 
 constexpr std::size_t kChunk = 1 << 16;
 
-// The input into blocks P (positions) and T (triangles).
+// The input into blocks P (positions) and T (triangles); Begin configures the DML (`configure`,
+// from the header's counts) and opens them.
 class Loader final : public io::MeshSink
 {
 public:
-  Loader(DML& dml, Array<P3>& p, Array<Tri>& t)
+  Loader(DML& dml, Array<P3>& p, Array<Tri>& t,
+    std::function<void(const io::MeshHeader&)> configure)
     : dml_(dml)
     , p_(p)
     , t_(t)
+    , configure_(std::move(configure))
   {
   }
-  void Begin(const io::MeshHeader&) override {}
+  void Begin(const io::MeshHeader& header) override
+  {
+    this->configure_(header);
+    this->p_ = Array<P3>(this->dml_, std::max<std::uint64_t>(header.vertexCount, 1));
+    this->t_ = Array<Tri>(this->dml_, std::max<std::uint64_t>(header.faceCount, 1));
+  }
   void Vertices(const io::VertexChunk& c) override
   {
     if (c.first + c.count > this->p_.Size())
@@ -108,6 +116,7 @@ private:
   DML& dml_;
   Array<P3>& p_;
   Array<Tri>& t_;
+  std::function<void(const io::MeshHeader&)> configure_;
   std::uint64_t nv_ = 0, nf_ = 0;
 };
 
@@ -414,25 +423,37 @@ SubdivideStats SubdivideFile(const std::string& input, const std::string& output
   const std::vector<std::string>& directories,
   const std::function<void(std::vector<float>&, std::vector<std::uint32_t>&)>& inMemoryOrder)
 {
-  // The blocks of the largest level: 4x the input's triangles and about 2x its vertices, and
-  // the edges, corners and sorted copies of the last level (about 200 bytes per input face of
-  // that level), against the budget.
-  const io::MeshHeader header = io::ReadHeader(input);
-  double bytes = double(header.vertexCount) * 12 + double(header.faceCount) * 12;
-  for (int l = 0; l < levels; ++l)
-  {
-    bytes = std::max(bytes, double(header.faceCount) * std::pow(4.0, l) * 200.0);
-  }
-  storage::Profile profile;
-  profile.memoryBudget = memoryBudget;
-  profile.directories = directories;
-  profile.structures.push_back({ "subdivide", 1, std::uint64_t(bytes), 0.0 });
+  // The mode is chosen once, from an upper bound of the blocks of the last level (no switch in
+  // the middle of a step: its views keep their pointers): with V vertices and F faces, a level
+  // holds at most 24 V + 40 E + 120 F bytes, E <= 3 F edges, and makes V + E vertices and 4 F
+  // faces; the scanner order 40 V + 32 F. Inputs of unknown size (no counts in the header) go
+  // out of core whenever there is a budget.
   DML dml;
-  dml.Config(profile);
-  Array<P3> P(dml, std::max<std::uint64_t>(header.vertexCount, 1));
-  Array<Tri> T(dml, std::max<std::uint64_t>(header.faceCount, 1));
+  Array<P3> P;
+  Array<Tri> T;
+  auto configure = [&](const io::MeshHeader& header) {
+    storage::Profile profile;
+    profile.memoryBudget = memoryBudget;
+    profile.directories = directories;
+    double v = double(header.vertexCount), f = double(header.faceCount), bytes = 12 * v + 12 * f;
+    for (int l = 0; l < levels; ++l)
+    {
+      bytes = std::max(bytes, 24 * v + 40 * 3 * f + 120 * f);
+      v += 3 * f;
+      f *= 4;
+    }
+    bytes = std::max(bytes, 40 * v + 32 * f);
+    const bool unknown = header.vertexCount == 0 && header.faceCount == 0;
+    const bool outOfCore = memoryBudget > 0 && (unknown || bytes > double(memoryBudget));
+    profile.policy = outOfCore ? storage::ModePolicy::OutOfCore : storage::ModePolicy::InCore;
+    if (!outOfCore)
+    {
+      profile.memoryBudget = 0; // (in core: within the budget by the bound above)
+    }
+    dml.Config(profile);
+  };
   {
-    Loader loader(dml, P, T);
+    Loader loader(dml, P, T, configure);
     io::ReadMesh(input, loader);
   }
   for (int l = 0; l < levels; ++l)

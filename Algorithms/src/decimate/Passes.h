@@ -622,6 +622,7 @@ struct MeshState
   bool faceSelect = false;
   Array<std::uint8_t> outside;
   std::vector<std::uint32_t> lastTris;
+  std::uint64_t trianglesRead = 0, trianglesFlagged = 0; // (every triangle must get its flag)
   std::uint64_t announcedV = 0, announcedF = 0;
   bool begun = false;
   Vec3 origin{ 0, 0, 0 };

@@ -44,15 +44,22 @@ void Loader::Triangles(const std::uint32_t* indices, std::size_t count)
   if (this->mesh_.faceSelect)
   {
     this->mesh_.lastTris.assign(indices, indices + 3 * count);
+    this->mesh_.trianglesRead += count;
   }
 }
 void Loader::TriangleFlags(const std::uint8_t* flags, std::size_t count)
 {
   MeshState& mesh = this->mesh_;
-  if (!mesh.faceSelect || count * 3 != mesh.lastTris.size())
+  if (!mesh.faceSelect)
   {
     return;
   }
+  if (count * 3 != mesh.lastTris.size())
+  {
+    throw std::logic_error("decimate: the source sent flags for " + std::to_string(count) +
+      " triangles after " + std::to_string(mesh.lastTris.size() / 3));
+  }
+  mesh.trianglesFlagged += count;
   View<std::uint8_t> out(mesh.dml, mesh.outside);
   for (std::size_t t = 0; t < count; ++t)
   {
@@ -354,6 +361,13 @@ void Read(RunContext& ctx, MeshState& mesh, const MeshSource& input)
   if (loader.Layout().Faces() > 0)
   {
     ctx.stats.layoutFarFraction = loader.Layout().FarFraction();
+  }
+  if (mesh.faceSelect && mesh.trianglesFlagged != mesh.trianglesRead)
+  {
+    // (a source that does not pass ReadOptions::faceFlag on, e.g. a reordered copy)
+    throw std::runtime_error("decimate: the cell array '" + ctx.opt.selectionArray +
+      "' did not come with the faces (" + std::to_string(mesh.trianglesFlagged) + " of " +
+      std::to_string(mesh.trianglesRead) + " triangles): this source cannot select cells");
   }
   ctx.progress.Poll(); // (the exact sizes and the mode's re-evaluation follow: storage calls)
   if (!mesh.begun)

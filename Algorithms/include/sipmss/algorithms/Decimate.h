@@ -40,9 +40,10 @@ struct DecimateOptions
   // or go; the others are locked, so every face with no selected vertex is in the output with
   // the same corners. A selectionArray that names no point scalar but a face scalar of the
   // input (MeshHeader::faceScalars, read as TriangleFlags) selects faces: the corners of every
-  // face where it is 0 are locked, so those faces are in the output as they were (such an input
-  // is not reordered: see LayoutPolicy). Not with weldDistance >= 0 (welding would merge locked
-  // vertices away).
+  // face where it is 0 are locked, so those faces are in the output as they were. Such an input
+  // is not reordered under LayoutPolicy::Automatic (the reordered copy does not carry the
+  // flags: LayoutPolicy::Reorder, or a source that sends no TriangleFlags, is an error). Not with
+  // weldDistance >= 0 (welding would merge locked vertices away).
   std::string lockArray;
   std::string selectionArray;
   // > 0: first remove every disconnected piece (vertices joined by faces) whose bounding-box
