@@ -1127,6 +1127,13 @@ TEST(AlgorithmsDecimate, ErrorBoundIsRelativeToTheDiagonalAndReported)
     const Outcome abs = Simplify(MemorySource(g), o);
     EXPECT_EQ(abs.out.Triangles(), r.out.Triangles()) << e;
     EXPECT_EQ(abs.stats.achievedError, r.stats.achievedError) << e;
+    // Out of core (the error measured in Compact, with the lazy sums): the same.
+    o.storage.policy = st::ModePolicy::OutOfCore;
+    o.storage.memoryBudget = 64 * 1024;
+    const Outcome paged = Simplify(MemorySource(g), o);
+    EXPECT_TRUE(paged.stats.storage.usedOutOfCore);
+    EXPECT_EQ(paged.stats.achievedError, r.stats.achievedError) << e;
+    ExpectSameOutput(paged, r, "bounded, out of core");
   }
   // A loose bound without a target goes further than the default reduction (0.9) would; with a
   // target the target stops first.

@@ -43,17 +43,15 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     mesh.views.RO.Set(k, end);
     const bool survivor = (mesh.views.S.Get(v) & kCollapsed) != 0;
     R.Set(v, std::uint32_t(k) | (survivor ? kTop : 0u));
-    if (survivor)
+    if (survivor && pass.lazySums)
     {
       // Its collapse's candidate (and partner) is still in place: nothing moved yet. The
-      // collapse's error: its cost per unit of the summed quadric's trace.
+      // collapse's error, as Collapse measures it without lazy sums: its cost per unit of the
+      // summed quadric's trace.
       const Cand c = mesh.views.C.Get(v);
       Quadric Q = mesh.views.Q.Get(v);
-      if (pass.lazySums)
-      {
-        AddTo(Q, mesh.views.Q.Get(c.partner));
-        mesh.views.Q.Set(v, Q);
-      }
+      AddTo(Q, mesh.views.Q.Get(c.partner));
+      mesh.views.Q.Set(v, Q);
       const double trace = Trace(Q);
       if (trace > 0)
       {
@@ -63,6 +61,11 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     ++k;
   }
   pass.lazySums = false;
+  for (Scratch& s : pass.scratch)
+  {
+    ctx.achievedErr2 = std::max(ctx.achievedErr2, s.achievedErr2);
+    s.achievedErr2 = 0;
+  }
   const std::uint64_t nv2 = k;
   mesh.views.RO.Set(nv2, end);
   // 3. Vertex data, and the candidates carried to the next pass.

@@ -487,6 +487,7 @@ struct alignas(kCacheLine) Scratch
   std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
   EdgeBatch batch;                        // the sweep's edges waiting for their placement
   Views* w = nullptr; // the views this thread uses; nullptr: the mesh's
+  double achievedErr2 = 0; // the largest error of this thread's collapses (Compact gathers it)
 };
 
 // A worker's views for the scratch it uses, for the scope of its range.

@@ -373,6 +373,13 @@ std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const 
     Quadric Q = w.Q.Get(u);
     AddTo(Q, w.Q.Get(v));
     w.Q.Set(u, Q);
+    // The collapse's error (RunStats::achievedError): its cost per unit of the summed quadric's
+    // trace. (With lazy sums Compact measures it, where it adds the quadrics.)
+    const double trace = Trace(Q);
+    if (trace > 0)
+    {
+      s.achievedErr2 = std::max(s.achievedErr2, double(c.cost) / trace);
+    }
   }
   InterpolateAttributes(mesh, u, v, double(c.t), s);
   w.S.Set(v, State(kRemoved | kMarked));
