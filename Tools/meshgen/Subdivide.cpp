@@ -69,6 +69,39 @@ struct FaceRec
 
 constexpr std::size_t kChunk = 1 << 16;
 
+// Calls f(first, elements, m) for the consecutive chunks [first, first + m) of a's first n
+// elements (read in order, through a buffer).
+template <class T, class F>
+void ForChunks(DML& dml, const Array<T>& a, std::uint64_t n, F&& f)
+{
+  const View<T> view(dml, a);
+  std::vector<T> in(std::size_t(std::min<std::uint64_t>(kChunk, n)));
+  for (std::uint64_t first = 0; first < n; first += kChunk)
+  {
+    const std::size_t m = std::size_t(std::min<std::uint64_t>(kChunk, n - first));
+    view.GetRange(first, m, in.data());
+    f(first, in.data(), m);
+  }
+}
+
+// Fills `to` from `from`'s first n elements: f(i, element, out) appends `per` records to out
+// for element i, and they go to to[per i ...].
+template <class In, class Out, class F>
+void MapChunks(DML& dml, const Array<In>& from, std::uint64_t n, Array<Out>& to, std::size_t per,
+  F&& f)
+{
+  View<Out> w(dml, to);
+  std::vector<Out> out;
+  ForChunks(dml, from, n, [&](std::uint64_t first, const In* in, std::size_t m) {
+    out.clear();
+    for (std::size_t i = 0; i < m; ++i)
+    {
+      f(first + i, in[i], out);
+    }
+    w.SetRange(per * first, out.size(), out.data());
+  });
+}
+
 // The input into blocks P (positions) and T (triangles); Begin configures the DML (`configure`,
 // from the header's counts) and opens them.
 class Loader final : public io::MeshSink
@@ -149,27 +182,14 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
   }
   // The edges of every face, sorted by key (then corner: the first corner leads its group).
   Array<EdgeRec> E(dml, std::max<std::uint64_t>(3 * nf, 1));
-  {
-    View<EdgeRec> e(dml, E);
-    std::vector<EdgeRec> buf;
-    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
+  MapChunks(dml, T, nf, E, 3, [](std::uint64_t f, const Tri& tri, std::vector<EdgeRec>& out) {
+    for (int k = 0; k < 3; ++k)
     {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
-      buf.clear();
-      for (std::uint64_t f = f0; f < f0 + m; ++f)
-      {
-        const Tri tri = t.Get(f);
-        for (int k = 0; k < 3; ++k)
-        {
-          const std::uint32_t a = tri.v[k], b = tri.v[(k + 1) % 3];
-          const std::uint64_t key =
-            a < b ? (std::uint64_t(a) << 32 | b) : (std::uint64_t(b) << 32 | a);
-          buf.push_back({ key, 3 * f + std::uint64_t(k) });
-        }
-      }
-      e.SetRange(3 * f0, buf.size(), buf.data());
+      const std::uint32_t a = tri.v[k], b = tri.v[(k + 1) % 3];
+      const std::uint64_t key = a < b ? (std::uint64_t(a) << 32 | b) : (std::uint64_t(b) << 32 | a);
+      out.push_back({ key, 3 * f + std::uint64_t(k) });
     }
-  }
+  });
   if (nf == 0)
   {
     E.Resize(0);
@@ -182,17 +202,12 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
   Array<FirstRec> FR(dml, 1);
   std::uint64_t edges = 0;
   {
-    View<EdgeRec> e(dml, E);
     View<std::uint32_t> g(dml, G);
-    std::vector<EdgeRec> in(kChunk);
     std::vector<FirstRec> first;
     std::uint64_t lastKey = ~std::uint64_t(0);
-    for (std::uint64_t i0 = 0; i0 < E.Size(); i0 += kChunk)
-    {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, E.Size() - i0);
-      e.GetRange(i0, m, in.data());
+    ForChunks(dml, E, E.Size(), [&](std::uint64_t, const EdgeRec* in, std::size_t m) {
       first.clear();
-      for (std::uint64_t i = 0; i < m; ++i)
+      for (std::size_t i = 0; i < m; ++i)
       {
         if (in[i].key != lastKey)
         {
@@ -201,10 +216,9 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
         }
         g.Set(in[i].corner, std::uint32_t(edges - 1));
       }
-      const std::uint64_t at = edges - first.size();
       FR.Resize(std::max<std::uint64_t>(edges, 1));
-      View<FirstRec>(dml, FR).SetRange(at, first.size(), first.data());
-    }
+      View<FirstRec>(dml, FR).SetRange(edges - first.size(), first.size(), first.data());
+    });
   }
   E.Close();
   if (nv + edges >= 0xFFFFFFFFull)
@@ -220,18 +234,13 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
   n.Refresh();
   Array<std::uint32_t> ID(dml, std::max<std::uint64_t>(edges, 1));
   {
-    View<FirstRec> fr(dml, FR);
     View<std::uint32_t> id(dml, ID);
     std::mt19937_64 rng(42);
     std::uniform_real_distribution<float> noise(-1.f, 1.f);
-    std::vector<FirstRec> in(kChunk);
     std::vector<P3> out;
-    for (std::uint64_t i0 = 0; i0 < edges; i0 += kChunk)
-    {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, edges - i0);
-      fr.GetRange(i0, m, in.data());
+    ForChunks(dml, FR, edges, [&](std::uint64_t i0, const FirstRec* in, std::size_t m) {
       out.clear();
-      for (std::uint64_t i = 0; i < m; ++i)
+      for (std::size_t i = 0; i < m; ++i)
       {
         const std::uint32_t a = std::uint32_t(in[i].key >> 32), b = std::uint32_t(in[i].key);
         const P3 pa = p.Get(a), pb = p.Get(b), na = n.Get(a), nb = n.Get(b);
@@ -255,33 +264,23 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
         id.Set(in[i].edge, std::uint32_t(nv + i0 + i));
       }
       p.SetRange(nv + i0, out.size(), out.data());
-    }
+    });
   }
   FR.Close();
   N.Close();
   // Four faces for each.
   Array<Tri> T2(dml, std::max<std::uint64_t>(4 * nf, 1));
   {
-    View<Tri> t2(dml, T2);
-    View<std::uint32_t> g(dml, G), id(dml, ID);
-    std::vector<Tri> out;
-    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
-    {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
-      out.clear();
-      for (std::uint64_t f = f0; f < f0 + m; ++f)
-      {
-        const Tri tri = t.Get(f);
-        const std::uint32_t a = tri.v[0], b = tri.v[1], c = tri.v[2];
-        const std::uint32_t ab = id.Get(g.Get(3 * f)), bc = id.Get(g.Get(3 * f + 1)),
-                            ca = id.Get(g.Get(3 * f + 2));
-        out.push_back({ { a, ab, ca } });
-        out.push_back({ { ab, b, bc } });
-        out.push_back({ { ca, bc, c } });
-        out.push_back({ { ab, bc, ca } });
-      }
-      t2.SetRange(4 * f0, out.size(), out.data());
-    }
+    const View<std::uint32_t> g(dml, G), id(dml, ID);
+    MapChunks(dml, T, nf, T2, 4, [&](std::uint64_t f, const Tri& tri, std::vector<Tri>& out) {
+      const std::uint32_t a = tri.v[0], b = tri.v[1], c = tri.v[2];
+      const std::uint32_t ab = id.Get(g.Get(3 * f)), bc = id.Get(g.Get(3 * f + 1)),
+                          ca = id.Get(g.Get(3 * f + 2));
+      out.push_back({ { a, ab, ca } });
+      out.push_back({ { ab, b, bc } });
+      out.push_back({ { ca, bc, c } });
+      out.push_back({ { ab, bc, ca } });
+    });
   }
   if (nf == 0)
   {
@@ -296,23 +295,16 @@ void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
 {
   const std::uint64_t nv = P.Size(), nf = T.Size();
   float lo[3] = { 1e30f, 1e30f, 1e30f }, hi[3] = { -1e30f, -1e30f, -1e30f };
-  std::vector<P3> buf(kChunk);
-  {
-    View<P3> p(dml, P);
-    for (std::uint64_t i0 = 0; i0 < nv; i0 += kChunk)
+  ForChunks(dml, P, nv, [&](std::uint64_t, const P3* in, std::size_t m) {
+    for (std::size_t i = 0; i < m; ++i)
     {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nv - i0);
-      p.GetRange(i0, m, buf.data());
-      for (std::uint64_t i = 0; i < m; ++i)
+      for (int d = 0; d < 3; ++d)
       {
-        for (int d = 0; d < 3; ++d)
-        {
-          lo[d] = std::min(lo[d], buf[i].x[d]);
-          hi[d] = std::max(hi[d], buf[i].x[d]);
-        }
+        lo[d] = std::min(lo[d], in[i].x[d]);
+        hi[d] = std::max(hi[d], in[i].x[d]);
       }
     }
-  }
+  });
   int axis = 0;
   for (int d = 1; d < 3; ++d)
   {
@@ -322,22 +314,9 @@ void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
     }
   }
   Array<AxisRec> A(dml, std::max<std::uint64_t>(nv, 1));
-  {
-    View<P3> p(dml, P);
-    View<AxisRec> a(dml, A);
-    std::vector<AxisRec> out;
-    for (std::uint64_t i0 = 0; i0 < nv; i0 += kChunk)
-    {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nv - i0);
-      p.GetRange(i0, m, buf.data());
-      out.clear();
-      for (std::uint64_t i = 0; i < m; ++i)
-      {
-        out.push_back({ buf[i].x[axis], std::uint32_t(i0 + i), buf[i] });
-      }
-      a.SetRange(i0, m, out.data());
-    }
-  }
+  MapChunks(dml, P, nv, A, 1, [axis](std::uint64_t i, const P3& q, std::vector<AxisRec>& out) {
+    out.push_back({ q.x[axis], std::uint32_t(i), q });
+  });
   if (nv == 0)
   {
     A.Resize(0);
@@ -348,47 +327,21 @@ void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
   // The positions in that order, and each old index's rank.
   Array<std::uint32_t> R(dml, std::max<std::uint64_t>(nv, 1));
   {
-    View<AxisRec> a(dml, A);
-    View<P3> p(dml, P);
     View<std::uint32_t> r(dml, R);
-    std::vector<AxisRec> in(kChunk);
-    for (std::uint64_t i0 = 0; i0 < nv; i0 += kChunk)
-    {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nv - i0);
-      a.GetRange(i0, m, in.data());
-      for (std::uint64_t i = 0; i < m; ++i)
-      {
-        buf[i] = in[i].p;
-        r.Set(in[i].index, std::uint32_t(i0 + i));
-      }
-      p.SetRange(i0, m, buf.data());
-    }
+    MapChunks(dml, A, nv, P, 1, [&r](std::uint64_t i, const AxisRec& x, std::vector<P3>& out) {
+      out.push_back(x.p);
+      r.Set(x.index, std::uint32_t(i));
+    });
   }
   A.Close();
   // The faces renumbered, then by their lowest vertex.
   Array<FaceRec> FA(dml, std::max<std::uint64_t>(nf, 1));
   {
-    View<Tri> t(dml, T);
-    View<std::uint32_t> r(dml, R);
-    View<FaceRec> fa(dml, FA);
-    std::vector<Tri> in(kChunk);
-    std::vector<FaceRec> out;
-    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
-    {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
-      t.GetRange(f0, m, in.data());
-      out.clear();
-      for (std::uint64_t f = 0; f < m; ++f)
-      {
-        Tri x;
-        for (int k = 0; k < 3; ++k)
-        {
-          x.v[k] = r.Get(in[f].v[k]);
-        }
-        out.push_back({ std::min({ x.v[0], x.v[1], x.v[2] }), std::uint32_t(f0 + f), x });
-      }
-      fa.SetRange(f0, m, out.data());
-    }
+    const View<std::uint32_t> r(dml, R);
+    MapChunks(dml, T, nf, FA, 1, [&r](std::uint64_t f, const Tri& t, std::vector<FaceRec>& out) {
+      const Tri x = { { r.Get(t.v[0]), r.Get(t.v[1]), r.Get(t.v[2]) } };
+      out.push_back({ std::min({ x.v[0], x.v[1], x.v[2] }), std::uint32_t(f), x });
+    });
   }
   R.Close();
   if (nf == 0)
@@ -398,23 +351,8 @@ void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
   storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) {
     return x.low < y.low || (x.low == y.low && x.index < y.index);
   });
-  {
-    View<FaceRec> fa(dml, FA);
-    View<Tri> t(dml, T);
-    std::vector<FaceRec> in(kChunk);
-    std::vector<Tri> out;
-    for (std::uint64_t f0 = 0; f0 < nf; f0 += kChunk)
-    {
-      const std::uint64_t m = std::min<std::uint64_t>(kChunk, nf - f0);
-      fa.GetRange(f0, m, in.data());
-      out.clear();
-      for (std::uint64_t f = 0; f < m; ++f)
-      {
-        out.push_back(in[f].t);
-      }
-      t.SetRange(f0, m, out.data());
-    }
-  }
+  MapChunks(dml, FA, nf, T, 1,
+    [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
 }
 } // namespace
 
@@ -478,29 +416,15 @@ SubdivideStats SubdivideFile(const std::string& input, const std::string& output
   const std::uint64_t nv = P.Size(), nf = T.Size();
   auto w = io::MeshWriter::Create(output, false);
   w->Begin(nv, nf, io::VertexLayout{});
-  {
-    View<P3> p(dml, P);
-    std::vector<P3> buf(kChunk);
-    for (std::uint64_t first = 0; first < nv; first += kChunk)
-    {
-      io::VertexChunk c;
-      c.first = first;
-      c.count = std::size_t(std::min<std::uint64_t>(kChunk, nv - first));
-      p.GetRange(first, c.count, buf.data());
-      c.xyz = buf.front().x;
-      w->Vertices(c);
-    }
-  }
-  {
-    View<Tri> t(dml, T);
-    std::vector<Tri> buf(kChunk);
-    for (std::uint64_t first = 0; first < nf; first += kChunk)
-    {
-      const std::size_t m = std::size_t(std::min<std::uint64_t>(kChunk, nf - first));
-      t.GetRange(first, m, buf.data());
-      w->Triangles(buf.front().v, m);
-    }
-  }
+  ForChunks(dml, P, nv, [&w](std::uint64_t first, const P3* in, std::size_t m) {
+    io::VertexChunk c;
+    c.first = first;
+    c.count = m;
+    c.xyz = in->x;
+    w->Vertices(c);
+  });
+  ForChunks(dml, T, nf,
+    [&w](std::uint64_t, const Tri* in, std::size_t m) { w->Triangles(in->v, m); });
   w->End();
   const storage::Stats s = dml.GetStats();
   return { nv, nf, s.usedOutOfCore, s.peakBytes, s.peakFileBytes };
