@@ -60,6 +60,17 @@ void Loader::TriangleFlags(const std::uint8_t* flags, std::size_t count)
       " triangles after " + std::to_string(mesh.lastTris.size() / 3));
   }
   mesh.trianglesFlagged += count;
+  // (faces may come before their vertices, as in a PLY whose face element is first: the
+  // readers have checked the indices against the vertex count)
+  std::uint32_t top = 0;
+  for (std::size_t t = 0; t < count; ++t)
+  {
+    if (flags[t] == 0)
+    {
+      top = std::max({ top, mesh.lastTris[3 * t], mesh.lastTris[3 * t + 1], mesh.lastTris[3 * t + 2] });
+    }
+  }
+  EnsureVertexCapacity(mesh, std::uint64_t(top) + 1);
   View<std::uint8_t> out(mesh.dml, mesh.outside);
   for (std::size_t t = 0; t < count; ++t)
   {
@@ -67,11 +78,7 @@ void Loader::TriangleFlags(const std::uint8_t* flags, std::size_t count)
     {
       for (int k = 0; k < 3; ++k)
       {
-        const std::uint32_t v = mesh.lastTris[3 * t + std::size_t(k)];
-        if (v < mesh.vCap)
-        {
-          out.Set(v, 1);
-        }
+        out.Set(mesh.lastTris[3 * t + std::size_t(k)], 1);
       }
     }
   }
