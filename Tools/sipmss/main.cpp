@@ -685,7 +685,7 @@ int main(int argc, char** argv)
   auto* targetOption = targets->add_option("--target", target,
     "stop at this many triangles (at least 1)");
   auto* reduction = targets->add_option("--reduction", rq.targetReduction,
-    "fraction of the triangles to remove (default 0.9 without --target)")
+    "fraction of the triangles to remove (default 0.9 without --target and --max-error)")
     ->excludes(targetOption);
   auto* maxError = targets->add_option("--max-error", rq.maximumError,
     "an error bound: no collapse whose error (the RMS distance of the merged vertex to the "
