@@ -704,20 +704,7 @@ private:
           SkipAsciiList(p);
           continue;
         }
-        double val;
-        if (p.type == PT::F32)
-          val = in_.ParseFloatToken<float>(p.name.c_str());
-        else if (p.type == PT::F64)
-          val = in_.ParseFloatToken<double>(p.name.c_str());
-        else
-        {
-          const std::int64_t iv = in_.ParseIntToken(p.name.c_str());
-          const IntRange& r = RangeOf(p.type);
-          if (iv < r.lo || iv > r.hi)
-            OutOfRange(el, p, iv, r);
-          val = double(iv);
-        }
-        Store(v, ops[i].arr, ops[i].comp, p.type, val);
+        Store(v, ops[i].arr, ops[i].comp, p.type, AsciiScalar(el, p));
       }
       if (!AllFinite(vb_.xyz.data() + 3 * v, 3))
         NonFinite(vb_.first + v, in_.line);
@@ -725,6 +712,20 @@ private:
       ++vb_.n;
       --remaining;
     }
+  }
+
+  // The next token as property p's value (an integer checked against p's type's range).
+  double AsciiScalar(const Elem& el, const Prop& p)
+  {
+    if (p.type == PT::F32)
+      return in_.ParseFloatToken<float>(p.name.c_str());
+    if (p.type == PT::F64)
+      return in_.ParseFloatToken<double>(p.name.c_str());
+    const std::int64_t iv = in_.ParseIntToken(p.name.c_str());
+    const IntRange& r = RangeOf(p.type);
+    if (iv < r.lo || iv > r.hi)
+      OutOfRange(el, p, iv, r);
+    return double(iv);
   }
 
   [[noreturn]] __attribute__((noinline, cold)) void OutOfRange(
@@ -983,18 +984,7 @@ private:
           TooFew(p);
         if (int(i) == flagProp_)
         {
-          if (p.type == PT::F32)
-            flag = in_.ParseFloatToken<float>(p.name.c_str()) != 0.0f;
-          else if (p.type == PT::F64)
-            flag = in_.ParseFloatToken<double>(p.name.c_str()) != 0.0;
-          else
-          {
-            const std::int64_t iv = in_.ParseIntToken(p.name.c_str());
-            const IntRange& r = RangeOf(p.type);
-            if (iv < r.lo || iv > r.hi)
-              OutOfRange(el, p, iv, r);
-            flag = iv != 0;
-          }
+          flag = AsciiScalar(el, p) != 0.0;
           continue;
         }
         if (int(i) != h_.faceList)

@@ -206,9 +206,7 @@ inline void AddPlane(Quadric& Q, const Vec3& n, double d, double w)
 }
 inline double Eval(const Quadric& Q, const Vec3& p)
 {
-  const double* q = Q.q;
-  return p.x * (q[0] * p.x + 2.0 * (q[1] * p.y + q[2] * p.z + q[3])) +
-    p.y * (q[4] * p.y + 2.0 * (q[5] * p.z + q[6])) + p.z * (q[7] * p.z + 2.0 * q[8]) + q[9];
+  return QuadricValue(Q.q, p.x, p.y, p.z);
 }
 inline double Trace(const Quadric& Q)
 {
@@ -845,6 +843,7 @@ void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint6
 void FillRings(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t tickBase,
   std::uint64_t tickTotal);
 void BuildRings(RunContext& ctx, MeshState& mesh);
+bool FixedByArrays(const MeshState& mesh, const View<std::uint8_t>& A, std::uint32_t u);
 void BuildQuadrics(RunContext& ctx, MeshState& mesh);
 // decimate/Prune.inl
 void Prune(RunContext& ctx, MeshState& mesh);

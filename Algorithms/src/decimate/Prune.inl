@@ -33,20 +33,6 @@ std::uint32_t PruneRoot(View<std::uint32_t>& parent, std::uint32_t x)
   return x;
 }
 
-// Whether the lock or selection array keeps vertex u where it is (a lock not 0, or outside the
-// selection: 0). A is the attribute records' view.
-bool FixedByArrays(const MeshState& mesh, View<std::uint8_t>& A, std::uint32_t u)
-{
-  auto scalar = [&](int index) {
-    float value = 0.0f;
-    A.GetRange(std::uint64_t(u) * mesh.recSize + std::uint64_t(index) * sizeof(float),
-      sizeof(float), reinterpret_cast<std::uint8_t*>(&value));
-    return value;
-  };
-  return (mesh.lockFloat >= 0 && scalar(mesh.lockFloat) != 0.0f) ||
-    (mesh.selectFloat >= 0 && scalar(mesh.selectFloat) == 0.0f);
-}
-
 // Removes every connected component (vertices joined by live faces) whose bounding box has a
 // diagonal below pruneSize times the input's, unless it holds a locked vertex or one outside
 // the selection. Its faces die here, before the quadrics, so the rest of the run never sees

@@ -107,51 +107,40 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
     mesh.layout.scalars.size();
   mesh.recSize = mesh.nFloats * sizeof(float) + (mesh.layout.colors ? 4 : 0);
   // The lock and selection scalars: their place among the record's floats (after the normals
-  // and the texture coordinates).
-  auto scalarFloat = [&mesh](const std::string& name, const char* what) {
-    if (name.empty())
+  // and the texture coordinates); a selection may also name a face (cell) scalar.
+  auto joined = [](const std::vector<std::string>& names) {
+    std::string have;
+    for (const std::string& n : names)
     {
-      return -1;
+      have += (have.empty() ? "" : ", ") + n;
     }
-    const std::vector<std::string>& names = mesh.layout.scalars;
-    const auto it = std::find(names.begin(), names.end(), name);
-    if (it == names.end())
-    {
-      std::string have;
-      for (const std::string& n : names)
-      {
-        have += (have.empty() ? "" : ", ") + n;
-      }
-      throw MissingArrayError(std::string("the input has no point array '") + name + "' to use as " +
-        what + " (its point arrays: " + (have.empty() ? "none" : have) + ")");
-    }
-    return int((mesh.layout.normals ? 3 : 0) + (mesh.layout.texcoords ? 2 : 0) +
-      (it - names.begin()));
+    return have.empty() ? std::string("none") : have;
   };
-  mesh.lockFloat = scalarFloat(ctx.opt.lockArray, "the lock array");
-  // The selection: a point array, else a face (cell) array.
-  const std::vector<std::string>& faces = header.faceScalars;
   const std::vector<std::string>& points = mesh.layout.scalars;
-  mesh.faceSelect = !ctx.opt.selectionArray.empty() &&
-    std::find(points.begin(), points.end(), ctx.opt.selectionArray) == points.end() &&
-    std::find(faces.begin(), faces.end(), ctx.opt.selectionArray) != faces.end();
-  if (!mesh.faceSelect && !ctx.opt.selectionArray.empty() &&
-    std::find(points.begin(), points.end(), ctx.opt.selectionArray) == points.end())
+  const std::vector<std::string>& faces = header.faceScalars;
+  auto scalarFloat = [&](const std::string& name) {
+    const auto it = std::find(points.begin(), points.end(), name);
+    return it == points.end() ? -1
+                              : int((mesh.layout.normals ? 3 : 0) +
+                                  (mesh.layout.texcoords ? 2 : 0) + (it - points.begin()));
+  };
+  const std::string& lock = ctx.opt.lockArray;
+  const std::string& selection = ctx.opt.selectionArray;
+  mesh.lockFloat = lock.empty() ? -1 : scalarFloat(lock);
+  if (!lock.empty() && mesh.lockFloat < 0)
   {
-    auto list = [](const std::vector<std::string>& names) {
-      std::string have;
-      for (const std::string& n : names)
-      {
-        have += (have.empty() ? "" : ", ") + n;
-      }
-      return have.empty() ? std::string("none") : have;
-    };
-    throw MissingArrayError("the input has no point or cell array '" + ctx.opt.selectionArray +
-      "' to use as the selection array (its point arrays: " + list(points) +
-      "; its cell arrays: " + list(faces) + ")");
+    throw MissingArrayError("the input has no point array '" + lock +
+      "' to use as the lock array (its point arrays: " + joined(points) + ")");
   }
-  mesh.selectFloat =
-    mesh.faceSelect ? -1 : scalarFloat(ctx.opt.selectionArray, "the selection array");
+  mesh.selectFloat = selection.empty() ? -1 : scalarFloat(selection);
+  mesh.faceSelect = !selection.empty() && mesh.selectFloat < 0 &&
+    std::find(faces.begin(), faces.end(), selection) != faces.end();
+  if (!selection.empty() && mesh.selectFloat < 0 && !mesh.faceSelect)
+  {
+    throw MissingArrayError("the input has no point or cell array '" + selection +
+      "' to use as the selection array (its point arrays: " + joined(points) +
+      "; its cell arrays: " + joined(faces) + ")");
+  }
   mesh.announcedV = header.vertexCount;
   mesh.announcedF = header.faceCount;
   if (header.vertexCount + header.faceCount > 0)

@@ -560,6 +560,20 @@ void MeshState::BindViews(Views& w, const Workers& workers, int t) const
 // ---------------------------------------------------------------------------------------------
 // quadrics
 
+// Whether the lock or selection array keeps vertex u where it is (a lock not 0, or outside the
+// selection: 0). A is the attribute records' view.
+bool FixedByArrays(const MeshState& mesh, const View<std::uint8_t>& A, std::uint32_t u)
+{
+  auto scalar = [&](int index) {
+    float value = 0.0f;
+    A.GetRange(std::uint64_t(u) * mesh.recSize + std::uint64_t(index) * sizeof(float),
+      sizeof(float), reinterpret_cast<std::uint8_t*>(&value));
+    return value;
+  };
+  return (mesh.lockFloat >= 0 && scalar(mesh.lockFloat) != 0.0f) ||
+    (mesh.selectFloat >= 0 && scalar(mesh.selectFloat) == 0.0f);
+}
+
 void BuildQuadrics(RunContext& ctx, MeshState& mesh)
 {
   PhaseTimer timer(ctx.stats, mesh.dml, "quadrics");
@@ -726,20 +740,9 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
         flags |= kFixed;
       }
     }
-    if (mesh.lockFloat >= 0 || mesh.selectFloat >= 0)
+    if ((mesh.lockFloat >= 0 || mesh.selectFloat >= 0) && FixedByArrays(mesh, w.A, u))
     {
-      // A lock (not 0) or outside the selection (0): never moves, never removed.
-      auto scalar = [&](int index) {
-        float value = 0.0f;
-        w.A.GetRange(std::uint64_t(u) * mesh.recSize + std::uint64_t(index) * sizeof(float),
-          sizeof(float), reinterpret_cast<std::uint8_t*>(&value));
-        return value;
-      };
-      if ((mesh.lockFloat >= 0 && scalar(mesh.lockFloat) != 0.0f) ||
-        (mesh.selectFloat >= 0 && scalar(mesh.selectFloat) == 0.0f))
-      {
-        flags |= kFixed;
-      }
+      flags |= kFixed; // a lock (not 0) or outside the selection (0): never moves, never removed
     }
     if (ctx.opt.initialQuadric)
     {
