@@ -36,6 +36,14 @@ case "$core" in *"(in core"*) ;; *) fail "unbounded did not run in core: $core" 
 case "$paged" in *"(out of core"*) ;; *) fail "64 KiB did not run out of core: $paged" ;; esac
 cmp "$tmp/core.ply" "$tmp/paged.ply" || fail "in core and out of core differ"
 [ -z "$(ls -A "$tmp/blocks")" ] || fail "temporary files left: $(ls -A "$tmp/blocks")"
+# The input is never its own output (also through a symbolic link): an error, the file intact.
+cp "$tmp/in.ply" "$tmp/keep.ply"
+ln -s "$tmp/in.ply" "$tmp/link.ply"
+if "$meshgen" subdivide "$tmp/in.ply" "$tmp/link.ply" 2>"$tmp/err.txt"; then
+  fail "subdividing into the input succeeded"
+fi
+grep -q "is the input file" "$tmp/err.txt" || fail "no clear error: $(cat "$tmp/err.txt")"
+cmp "$tmp/in.ply" "$tmp/keep.ply" || fail "the input was changed"
 /usr/bin/python3 - "$sipmss" "$tmp" <<'PY' || status=1
 import json, subprocess, sys
 sipmss, tmp = sys.argv[1], sys.argv[2]

@@ -21,6 +21,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <cstdio>
 #include <limits>
 #include <stdexcept>
@@ -290,6 +291,13 @@ int main(int argc, char** argv)
     }
     if (*sub)
     {
+      // The input is the user's data: never its own output (also through a link or ./ path).
+      std::error_code same;
+      if (std::filesystem::equivalent(in, out, same))
+      {
+        throw std::runtime_error(out + ": is the input file " + in +
+          " (the same file); choose another output path");
+      }
       std::function<void(std::vector<float>&, std::vector<std::uint32_t>&)> shuffle;
       if (order == "shuffled")
       {
