@@ -277,6 +277,7 @@ constexpr std::uint64_t kChunkSize = 8192;
 struct ChunkStats
 {
   double sum = 0, sumSq = 0, max = 0;
+  std::vector<double> attrSumSq, attrMax; // per attribute group
 };
 
 using storage::ResolveThreads;
@@ -302,6 +303,7 @@ void ParallelChunks(std::uint64_t count, int threads, const Body& body)
 struct Sums
 {
   double sum = 0, sumSq = 0, max = 0;
+  std::vector<double> attrSumSq, attrMax;
   std::uint64_t samples = 0;
   OneSided ToOneSided() const
   {
@@ -317,10 +319,16 @@ struct Sums
   }
 };
 
+// Attributes (groups not empty): toMesh is the mesh `to` indexes.
 Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistanceIndex& to,
-  std::uint64_t samples, std::uint64_t seed, std::uint64_t stream, int threads)
+  std::uint64_t samples, std::uint64_t seed, std::uint64_t stream, int threads,
+  const TriangleMesh* toMesh = nullptr,
+  const std::vector<std::array<std::size_t, 2>>& groups = {})
 {
   Sums result;
+  const std::size_t ng = toMesh ? groups.size() : 0;
+  result.attrSumSq.assign(ng, 0.0);
+  result.attrMax.assign(ng, 0.0);
   if (samples == 0)
   {
     return result;
@@ -338,6 +346,8 @@ Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistance
     const std::uint64_t k0 = chunk * kChunkSize;
     const std::uint64_t k1 = std::min(samples, k0 + kChunkSize);
     ChunkStats s;
+    s.attrSumSq.assign(ng, 0.0);
+    s.attrMax.assign(ng, 0.0);
     std::size_t t = 0;
     std::uint32_t hint = MeshDistanceIndex::kNoHint;
     for (std::uint64_t k = k0; k < k1; ++k)
@@ -373,8 +383,40 @@ Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistance
       s.sum += d;
       s.sumSq += hit.distanceSquared;
       s.max = std::max(s.max, d);
+      if (ng)
+      {
+        // The attributes at the sample and at its nearest point on the other mesh.
+        const std::uint32_t* tt = toMesh->triangles.data() + 3 * std::size_t(hit.triangle);
+        const float* tp = toMesh->points.data();
+        double ta[3][3];
+        for (int k = 0; k < 3; ++k)
+        {
+          for (int d3 = 0; d3 < 3; ++d3)
+          {
+            ta[k][d3] = tp[3 * std::size_t(tt[k]) + d3];
+          }
+        }
+        const std::array<double, 3> bw = ClosestPointBarycentric(p, ta[0], ta[1], ta[2]);
+        const std::size_t fs = from.attributeStride, ts = toMesh->attributeStride;
+        const float* fa = from.attributes.data();
+        const float* ttA = toMesh->attributes.data();
+        for (std::size_t g = 0; g < ng; ++g)
+        {
+          double e2 = 0;
+          for (std::size_t c = groups[g][0]; c < groups[g][0] + groups[g][1]; ++c)
+          {
+            const double x = w0 * fa[fs * tris[3 * tri] + c] + w1 * fa[fs * tris[3 * tri + 1] + c] +
+              w2 * fa[fs * tris[3 * tri + 2] + c];
+            const double y = bw[0] * ttA[ts * tt[0] + c] + bw[1] * ttA[ts * tt[1] + c] +
+              bw[2] * ttA[ts * tt[2] + c];
+            e2 += (x - y) * (x - y);
+          }
+          s.attrSumSq[g] += e2;
+          s.attrMax[g] = std::max(s.attrMax[g], std::sqrt(e2));
+        }
+      }
     }
-    stats[chunk] = s;
+    stats[chunk] = std::move(s);
   });
 
   for (const ChunkStats& s : stats) // in chunk order: independent of the thread count
@@ -382,6 +424,11 @@ Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistance
     result.sum += s.sum;
     result.sumSq += s.sumSq;
     result.max = std::max(result.max, s.max);
+    for (std::size_t g = 0; g < ng; ++g)
+    {
+      result.attrSumSq[g] += s.attrSumSq[g];
+      result.attrMax[g] = std::max(result.attrMax[g], s.attrMax[g]);
+    }
   }
   result.samples = samples;
   return result;
@@ -422,6 +469,72 @@ double PointTriangleDistanceSquared(
   const double p[3], const double a[3], const double b[3], const double c[3])
 {
   return TriangleDistance2(At(p), At(a), At(b), At(c));
+}
+
+std::array<double, 3> ClosestPointBarycentric(
+  const double p[3], const double a[3], const double b[3], const double c[3])
+{
+  const Vec3 P = At(p), A = At(a), B = At(b), C = At(c);
+  const Vec3 ab = B - A, ac = C - A, ap = P - A;
+  auto segment = [&](const Vec3& x, const Vec3& y) { // parameter of the nearest point on x-y
+    const Vec3 e = y - x;
+    const double l = Dot(e, e);
+    return l > 0 ? std::min(1.0, std::max(0.0, Dot(P - x, e) / l)) : 0.0;
+  };
+  if (NearlyDegenerate(A, B, C))
+  {
+    const double t0 = segment(A, B), t1 = segment(B, C), t2 = segment(C, A);
+    const double d0 = Distance2To(P, A + t0 * (B - A)), d1 = Distance2To(P, B + t1 * (C - B)),
+                 d2 = Distance2To(P, C + t2 * (A - C));
+    if (d0 <= d1 && d0 <= d2)
+    {
+      return { 1 - t0, t0, 0 };
+    }
+    if (d1 <= d2)
+    {
+      return { 0, 1 - t1, t1 };
+    }
+    return { t2, 0, 1 - t2 };
+  }
+  // Ericson, Real-Time Collision Detection, 5.1.5.
+  const double d1 = Dot(ab, ap), d2 = Dot(ac, ap);
+  if (d1 <= 0 && d2 <= 0)
+  {
+    return { 1, 0, 0 };
+  }
+  const Vec3 bp = P - B;
+  const double d3 = Dot(ab, bp), d4 = Dot(ac, bp);
+  if (d3 >= 0 && d4 <= d3)
+  {
+    return { 0, 1, 0 };
+  }
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0)
+  {
+    const double v = d1 / (d1 - d3);
+    return { 1 - v, v, 0 };
+  }
+  const Vec3 cp = P - C;
+  const double d5 = Dot(ab, cp), d6 = Dot(ac, cp);
+  if (d6 >= 0 && d5 <= d6)
+  {
+    return { 0, 0, 1 };
+  }
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0)
+  {
+    const double w = d2 / (d2 - d6);
+    return { 1 - w, 0, w };
+  }
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0)
+  {
+    const double w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+    return { 0, 1 - w, w };
+  }
+  const double denom = 1.0 / (va + vb + vc);
+  const double v = vb * denom, w = vc * denom;
+  return { 1 - v - w, v, w };
 }
 
 // -----------------------------------------------------------------------------------------------
@@ -1060,14 +1173,30 @@ CompareResult CompareMeshes(
     samples = std::min<std::uint64_t>(std::max<std::uint64_t>(100000, 2 * larger), 2000000);
   }
 
+  const std::vector<std::array<std::size_t, 2>>& groups = options.attributeGroups;
+  for (const auto& g : groups)
+  {
+    for (const TriangleMesh* m : { &reference, &candidate })
+    {
+      if (g[0] + g[1] > m->attributeStride ||
+        m->attributes.size() != m->attributeStride * m->NumberOfPoints())
+      {
+        throw std::invalid_argument(std::string("CompareMeshes: the ") +
+          (m == &reference ? "reference" : "candidate") +
+          " mesh lacks the attribute values the comparison asks for");
+      }
+    }
+  }
   Sums forward, backward;
   {
     const MeshDistanceIndex candIndex(candidate, options.threads);
-    forward = Sample(reference, refTable, candIndex, samples, options.seed, 0, options.threads);
+    forward = Sample(reference, refTable, candIndex, samples, options.seed, 0, options.threads,
+      &candidate, groups);
   }
   {
     const MeshDistanceIndex refIndex(reference, options.threads);
-    backward = Sample(candidate, candTable, refIndex, samples, options.seed, 1, options.threads);
+    backward = Sample(candidate, candTable, refIndex, samples, options.seed, 1, options.threads,
+      &reference, groups);
   }
 
   CompareResult r;
@@ -1083,6 +1212,11 @@ CompareResult CompareMeshes(
   r.hausdorff = r.hausdorffAbsolute / r.diagonal;
   r.forwardRms = forward.ToOneSided().rms / r.diagonal;
   r.backwardRms = backward.ToOneSided().rms / r.diagonal;
+  for (std::size_t g = 0; g < groups.size(); ++g)
+  {
+    r.attributeRms.push_back(std::sqrt((forward.attrSumSq[g] + backward.attrSumSq[g]) / n));
+    r.attributeMax.push_back(std::max(forward.attrMax[g], backward.attrMax[g]));
+  }
   return r;
 }
 

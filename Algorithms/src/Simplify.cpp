@@ -64,6 +64,8 @@ const char* CliOption(Parameter p)
       return "--selection-array";
     case Parameter::PruneSize:
       return "--prune-size";
+    case Parameter::Attributes:
+      return "--attributes";
     case Parameter::MemoryBudget:
       return "--memory-mb";
     default:
@@ -152,6 +154,10 @@ std::vector<ParameterProblem> Problems(const SimplifyRequest& r)
   }
   check(Parameter::Threads, IntegerInRange(r.threads, 0, kMaximumThreads));
   check(Parameter::PruneSize, FiniteInRange(r.pruneSize, 0, 1));
+  {
+    std::vector<AttributeWeight> list;
+    check(Parameter::Attributes, ParseAttributeWeights(r.attributes, list));
+  }
   // (two-stage moves every vertex in its first stage: nothing could stay as it was)
   const std::string decimateOnly = std::string("applies to decimation only, not to ") +
     ToString(r.algorithm) + " (whose clustering moves every vertex)";
@@ -213,6 +219,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   o.lockArray = r.lockArray;
   o.selectionArray = r.selectionArray;
   o.pruneSize = r.pruneSize;
+  ParseAttributeWeights(r.attributes, o.attributes); // (valid: Problems)
   o.storage = profile;
   o.threads = r.threads;
   if (r.algorithm == Algorithm::Decimate)

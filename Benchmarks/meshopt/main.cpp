@@ -3,14 +3,19 @@
 // benchmarks. Reads a mesh into memory, runs one simplifier to a target triangle count, writes
 // the result, and prints JSON with the read and simplify times and meshoptimizer's result_error.
 //   sipmss-bench-meshopt INPUT OUTPUT TARGET_TRIANGLES [simplify|sloppy|update|attributes]
+//   sipmss-bench-meshopt INPUT OUTPUT TARGET_TRIANGLES attributes-of|update-of NAME:W[,NAME:W]
 // update (meshopt_simplifyWithUpdate: positions placed optimally) and attributes
 // (meshopt_simplifyWithAttributes with area-weighted vertex normals, weight 0.5 each) need 1.2.
+// attributes-of and update-of weigh the input's own normals and colors (NAME normals or colors,
+// colors from 0 to 1, as sipmss simplify --attributes takes them) in simplifyWithAttributes or
+// simplifyWithUpdate (which also updates them), and write them with the output.
 #include "../peers/PeerMesh.h"
 
 #include <meshoptimizer.h>
 
 #include <cmath>
 #include <cstdlib>
+#include <cstring>
 #include <stdexcept>
 
 namespace
@@ -45,6 +50,94 @@ std::vector<float> VertexNormals(const sipmss::bench::PeerMesh& m)
   }
   return n;
 }
+// The attribute list "normals:0.5,colors:1" of attributes-of / update-of: the per-vertex
+// floats meshoptimizer weighs (3 per name) and their weights.
+void AttributeFloats(const sipmss::bench::PeerMesh& m, const std::string& list,
+  std::vector<float>& values, std::vector<float>& weights)
+{
+  struct Entry
+  {
+    bool normals;
+    float weight;
+  };
+  std::vector<Entry> entries;
+  std::size_t at = 0;
+  while (at < list.size())
+  {
+    const std::size_t comma = std::min(list.find(',', at), list.size());
+    const std::string item = list.substr(at, comma - at);
+    at = comma + 1;
+    const std::size_t colon = item.find(':');
+    const std::string name = item.substr(0, colon);
+    const float w = colon == std::string::npos ? 1.0f : std::strtof(item.c_str() + colon + 1, nullptr);
+    if (name == "normals" && !m.n.empty())
+    {
+      entries.push_back({ true, w });
+    }
+    else if (name == "colors" && !m.rgba.empty())
+    {
+      entries.push_back({ false, w });
+    }
+    else
+    {
+      throw std::runtime_error("the input has no attribute '" + name + "' (normals, colors)");
+    }
+  }
+  const std::size_t nv = m.p.size() / 3, k = 3 * entries.size();
+  values.resize(nv * k);
+  weights.clear();
+  for (const Entry& e : entries)
+  {
+    weights.insert(weights.end(), 3, e.weight);
+  }
+  for (std::size_t i = 0; i < nv; ++i)
+  {
+    for (std::size_t j = 0; j < entries.size(); ++j)
+    {
+      for (int d = 0; d < 3; ++d)
+      {
+        values[i * k + 3 * j + d] =
+          entries[j].normals ? m.n[3 * i + d] : float(m.rgba[4 * i + d]) / 255.0f;
+      }
+    }
+  }
+}
+
+// Writes meshoptimizer's updated attribute floats back into the mesh's normals and colors.
+void StoreAttributes(sipmss::bench::PeerMesh& m, const std::string& list,
+  const std::vector<float>& values)
+{
+  const std::size_t nv = m.p.size() / 3;
+  const std::size_t k = values.size() / std::max<std::size_t>(nv, 1);
+  std::size_t j = 0, at = 0;
+  while (at < list.size())
+  {
+    const std::size_t comma = std::min(list.find(',', at), list.size());
+    const bool normals = list.compare(at, 7, "normals") == 0;
+    at = comma + 1;
+    for (std::size_t i = 0; i < nv; ++i)
+    {
+      const float* v = &values[i * k + 3 * j];
+      if (normals)
+      {
+        const float l = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+        for (int d = 0; d < 3; ++d)
+        {
+          m.n[3 * i + d] = l > 0 ? v[d] / l : v[d];
+        }
+      }
+      else
+      {
+        for (int d = 0; d < 3; ++d)
+        {
+          m.rgba[4 * i + d] =
+            std::uint8_t(std::lround(std::min(255.0f, std::max(0.0f, v[d] * 255.0f))));
+        }
+      }
+    }
+    ++j;
+  }
+}
 } // namespace
 
 int main(int argc, char** argv)
@@ -59,10 +152,17 @@ int main(int argc, char** argv)
   try
   {
     const auto t0 = Clock::now();
-    PeerMesh m = ReadPeerMesh(argv[1]);
+    const std::string mode = argc > 4 ? argv[4] : "simplify";
+    const bool own = mode == "attributes-of" || mode == "update-of";
+    const std::string list = argc > 5 ? argv[5] : "";
+    PeerMesh m = ReadPeerMesh(argv[1], own);
+    std::vector<float> values, weights;
+    if (own)
+    {
+      AttributeFloats(m, list, values, weights);
+    }
     const auto t1 = Clock::now();
     const std::size_t target = std::strtoull(argv[3], nullptr, 10) * 3;
-    const std::string mode = argc > 4 ? argv[4] : "simplify";
     const std::size_t nv = m.p.size() / 3;
     std::vector<unsigned int> out(m.t.size());
     float err = 0;
@@ -92,6 +192,20 @@ int main(int argc, char** argv)
         3 * sizeof(float), normals.data(), 3 * sizeof(float), weights, 3, nullptr, target, 1e9f,
         0, &err);
     }
+    else if (mode == "attributes-of")
+    {
+      n = meshopt_simplifyWithAttributes(out.data(), m.t.data(), m.t.size(), m.p.data(), nv,
+        3 * sizeof(float), values.data(), weights.size() * sizeof(float), weights.data(),
+        weights.size(), nullptr, target, 1e9f, 0, &err);
+    }
+    else if (mode == "update-of")
+    {
+      out.assign(m.t.begin(), m.t.end());
+      n = meshopt_simplifyWithUpdate(out.data(), out.size(), m.p.data(), nv, 3 * sizeof(float),
+        values.data(), weights.size() * sizeof(float), weights.data(), weights.size(), nullptr,
+        target, 1e9f, 0, &err);
+      StoreAttributes(m, list, values);
+    }
 #endif
     else
     {
@@ -100,7 +214,7 @@ int main(int argc, char** argv)
     }
     out.resize(n);
     const auto t2 = Clock::now();
-    WriteUsed(argv[2], m.p, std::vector<std::uint32_t>(out.begin(), out.end()));
+    WriteUsed(argv[2], m.p, std::vector<std::uint32_t>(out.begin(), out.end()), own ? &m : nullptr);
     PrintResult(Seconds(t0, t1), Seconds(t1, t2), out.size() / 3, err);
   }
   catch (const std::exception& e)

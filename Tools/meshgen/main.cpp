@@ -6,6 +6,10 @@
 //                            [--memory-mb MB] [--tmpdir DIR]
 //       midpoint subdivision (x4 triangles per level) with a small displacement along the normal
 //       so that the new triangles carry detail, as docs of ../shared/data recommend
+//   sipmss-meshgen colorize INPUT OUTPUT [--cells N]
+//       the same mesh with per-vertex normals (area-weighted face normals) and colors with sharp
+//       borders (a 3D checkerboard of N cells along the longest axis, six colors, each with a
+//       smooth shade): the colored scan of the attribute benchmarks and tests (in memory)
 //
 // "scanner" order: vertices sorted along the longest axis, faces by their first vertex (the way
 // volumetric reconstructions such as vrip write their output); "shuffled": random order.
@@ -15,6 +19,7 @@
 // by ring as it is generated (vertices along that axis, faces by their first ring), in a few MB
 // whatever its size: the 100M- to 1B-triangle inputs of the scale benchmarks.
 #include "sipmss/io/MeshIO.h"
+#include "sipmss/io/VectorSink.h"
 #include "Subdivide.h"
 
 #include <CLI/CLI.hpp>
@@ -169,6 +174,82 @@ void WriteScanRings(std::uint64_t triangles, const std::string& path)
     (unsigned long long)nv, (unsigned long long)nt);
 }
 
+// colorize: normals and checkerboard colors (see the header comment).
+void Colorize(const std::string& in, const std::string& out, int cells)
+{
+  Mesh mesh;
+  io::VectorSink sink(mesh.p, mesh.t);
+  io::ReadMesh(in, sink);
+  const std::size_t nv = mesh.p.size() / 3;
+  std::vector<float> normals(3 * nv, 0.0f);
+  std::vector<double> acc(3 * nv, 0.0);
+  for (std::size_t f = 0; f + 2 < mesh.t.size(); f += 3)
+  {
+    const float* a = &mesh.p[3 * std::size_t(mesh.t[f])];
+    const float* b = &mesh.p[3 * std::size_t(mesh.t[f + 1])];
+    const float* c = &mesh.p[3 * std::size_t(mesh.t[f + 2])];
+    const double e1[3] = { double(b[0]) - a[0], double(b[1]) - a[1], double(b[2]) - a[2] };
+    const double e2[3] = { double(c[0]) - a[0], double(c[1]) - a[1], double(c[2]) - a[2] };
+    const double n[3] = { e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+      e1[0] * e2[1] - e1[1] * e2[0] }; // (twice the area times the unit normal)
+    for (int k = 0; k < 3; ++k)
+    {
+      for (int d = 0; d < 3; ++d)
+      {
+        acc[3 * std::size_t(mesh.t[f + k]) + d] += n[d];
+      }
+    }
+  }
+  float lo[3] = { 1e30f, 1e30f, 1e30f }, hi[3] = { -1e30f, -1e30f, -1e30f };
+  for (std::size_t i = 0; i < nv; ++i)
+  {
+    const double l = std::sqrt(acc[3 * i] * acc[3 * i] + acc[3 * i + 1] * acc[3 * i + 1] +
+      acc[3 * i + 2] * acc[3 * i + 2]);
+    for (int d = 0; d < 3; ++d)
+    {
+      normals[3 * i + d] = l > 0 ? float(acc[3 * i + d] / l) : (d == 2 ? 1.0f : 0.0f);
+      lo[d] = std::min(lo[d], mesh.p[3 * i + d]);
+      hi[d] = std::max(hi[d], mesh.p[3 * i + d]);
+    }
+  }
+  const double side = std::max({ double(hi[0]) - lo[0], double(hi[1]) - lo[1], double(hi[2]) - lo[2] });
+  const double cell = side > 0 ? side / cells : 1.0;
+  static const std::uint8_t palette[6][3] = { { 230, 40, 40 }, { 40, 200, 60 }, { 40, 70, 230 },
+    { 240, 220, 50 }, { 30, 30, 30 }, { 240, 240, 240 } };
+  std::vector<std::uint8_t> rgba(4 * nv);
+  for (std::size_t i = 0; i < nv; ++i)
+  {
+    double u[3];
+    long long c = 0;
+    for (int d = 0; d < 3; ++d)
+    {
+      u[d] = (double(mesh.p[3 * i + d]) - lo[d]) / cell;
+      c += (d + 1) * static_cast<long long>(std::floor(u[d]));
+    }
+    const std::uint8_t* base = palette[((c % 6) + 6) % 6];
+    // a smooth shade inside the cell (a linear ramp along x), so that the colors also vary
+    const double shade = 0.75 + 0.25 * (u[0] - std::floor(u[0]));
+    for (int k = 0; k < 3; ++k)
+    {
+      rgba[4 * i + k] = std::uint8_t(std::lround(std::min(255.0, base[k] * shade)));
+    }
+    rgba[4 * i + 3] = 255;
+  }
+  io::VertexLayout layout;
+  layout.normals = true;
+  layout.colors = true;
+  auto w = io::MeshWriter::Create(out, false);
+  w->Begin(nv, mesh.t.size() / 3, layout);
+  io::VertexChunk chunk;
+  chunk.count = nv;
+  chunk.xyz = mesh.p.data();
+  chunk.normals = normals.data();
+  chunk.rgba = rgba.data();
+  w->Vertices(chunk);
+  w->Triangles(mesh.t.data(), mesh.t.size() / 3);
+  w->End();
+}
+
 void Order(Mesh& mesh, const std::string& order)
 {
   const std::size_t nv = mesh.p.size() / 3;
@@ -274,6 +355,14 @@ int main(int argc, char** argv)
     ->expected(1)
     ->allow_extra_args(false)
     ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll);
+  auto* colorize = app.add_subcommand("colorize",
+    "the input with per-vertex normals and checkerboard colors (sharp borders)");
+  std::string colorIn, colorOut;
+  int cells = 8;
+  colorize->add_option("INPUT", colorIn)->required();
+  colorize->add_option("OUTPUT", colorOut)->required();
+  colorize->add_option("--cells", cells, "checkerboard cells along the longest axis (default 8)")
+    ->check(CLI::Range(1, 100000));
   try
   {
     app.parse(argc, argv);
@@ -284,6 +373,17 @@ int main(int argc, char** argv)
   }
   try
   {
+    if (*colorize)
+    {
+      std::error_code same;
+      if (std::filesystem::equivalent(colorIn, colorOut, same))
+      {
+        throw std::runtime_error(colorOut + ": is the input file " + colorIn +
+          " (the same file); choose another output path");
+      }
+      Colorize(colorIn, colorOut, cells);
+      return 0;
+    }
     if (*scan && order == "rings")
     {
       WriteScanRings(triangles, out);

@@ -594,10 +594,112 @@ int RunSimplify(const SimplifyArgs& a)
   return 0;
 }
 
-int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t samples)
+// Collects a mesh for compare, with the values of the attribute channels `names` asks for
+// (algorithms::AttributeChannels' names, unweighted: colors from 0 to 1) per vertex, and the
+// groups (first channel, count) of each name.
+class CompareSink final : public io::MeshSink
 {
+public:
+  CompareSink(algorithms::TriangleMesh& mesh, const std::vector<algorithms::AttributeWeight>& names,
+    const std::string& path)
+    : mesh_(mesh)
+    , positions_(mesh.points, mesh.triangles)
+    , names_(names)
+    , path_(path)
+  {
+  }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->layout_ = h.layout;
+    try
+    {
+      this->channels_ = algorithms::AttributeChannels(h.layout, this->names_);
+    }
+    catch (const algorithms::MissingArrayError& e)
+    {
+      throw algorithms::MissingArrayError(this->path_ + ": " + e.what());
+    }
+    this->groups.clear();
+    std::size_t first = 0;
+    for (const auto& n : this->names_)
+    {
+      // (the channels of each name, in order: AttributeChannels)
+      const std::size_t count = algorithms::AttributeChannels(h.layout, { n }).size();
+      this->groups.push_back({ first, count });
+      first += count;
+    }
+    this->mesh_.attributeStride = this->channels_.size();
+    this->positions_.Begin(h);
+  }
+  void Vertices(const io::VertexChunk& c) override
+  {
+    this->positions_.Vertices(c);
+    const std::size_t k = this->channels_.size();
+    if (k == 0)
+    {
+      return;
+    }
+    const std::size_t nf = (this->layout_.normals ? 3 : 0) + (this->layout_.texcoords ? 2 : 0) +
+      this->layout_.scalars.size();
+    std::vector<std::uint8_t> rec(nf * sizeof(float) + 4);
+    std::vector<float>& out = this->mesh_.attributes;
+    out.resize(std::max(out.size(), k * (c.first + c.count)));
+    for (std::size_t i = 0; i < c.count; ++i)
+    {
+      float* f = reinterpret_cast<float*>(rec.data());
+      std::size_t at = 0;
+      if (c.normals)
+      {
+        for (int d = 0; d < 3; ++d)
+          f[at++] = c.normals[3 * i + d];
+      }
+      if (c.texcoords)
+      {
+        for (int d = 0; d < 2; ++d)
+          f[at++] = c.texcoords[2 * i + d];
+      }
+      const std::size_t ns = this->layout_.scalars.size();
+      for (std::size_t d = 0; d < ns && c.scalars; ++d)
+      {
+        f[at++] = c.scalars[ns * i + d];
+      }
+      if (c.rgba)
+      {
+        std::copy_n(c.rgba + 4 * i, 4, rec.data() + nf * sizeof(float));
+      }
+      for (std::size_t j = 0; j < k; ++j)
+      {
+        out[k * (c.first + i) + j] = float(algorithms::ChannelValue(this->channels_[j], rec.data()));
+      }
+    }
+  }
+  void Triangles(const std::uint32_t* indices, std::size_t count) override
+  {
+    this->positions_.Triangles(indices, count);
+  }
+  void End(const io::ReadStats& s) override { this->positions_.End(s); }
+  std::vector<std::array<std::size_t, 2>> groups;
+
+private:
+  algorithms::TriangleMesh& mesh_;
+  io::VectorSink positions_;
+  const std::vector<algorithms::AttributeWeight>& names_;
+  std::string path_;
+  io::VertexLayout layout_;
+  std::vector<algorithms::AttributeChannel> channels_;
+};
+
+int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t samples,
+  const std::string& attributes)
+{
+  std::vector<algorithms::AttributeWeight> names;
+  const std::string problem = algorithms::ParseAttributeWeights(attributes, names);
+  if (!problem.empty())
+  {
+    throw CLI::ValidationError("--attributes", problem);
+  }
   algorithms::TriangleMesh a, b;
-  io::VectorSink sa(a.points, a.triangles), sb(b.points, b.triangles);
+  CompareSink sa(a, names, ref), sb(b, names, cand);
   io::ReadMesh(ref, sa);
   io::ReadMesh(cand, sb);
   for (const auto& [path, mesh] : { std::pair<const std::string&, const algorithms::TriangleMesh&>(
@@ -610,12 +712,23 @@ int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t sa
   }
   algorithms::CompareOptions o;
   o.samples = samples;
+  o.attributeGroups = sa.groups;
   const algorithms::CompareResult r = algorithms::CompareMeshes(a, b, o);
   nlohmann::json j = { { "mean", r.mean }, { "rms", r.rms }, { "hausdorff", r.hausdorff },
     { "diagonal", r.diagonal }, { "samples", r.samples }, { "mean_absolute", r.meanAbsolute },
     { "rms_absolute", r.rmsAbsolute }, { "hausdorff_absolute", r.hausdorffAbsolute },
     { "reference_triangles", a.NumberOfTriangles() },
     { "candidate_triangles", b.NumberOfTriangles() } };
+  if (!names.empty())
+  {
+    nlohmann::json at = nlohmann::json::object();
+    for (std::size_t g = 0; g < names.size(); ++g)
+    {
+      at[names[g].name] = { { "rms", r.attributeRms[g] }, { "max", r.attributeMax[g] },
+        { "components", sa.groups[g][1] } };
+    }
+    j["attributes"] = at;
+  }
   std::printf("%s\n", j.dump(2).c_str());
   return 0;
 }
@@ -724,6 +837,13 @@ int main(int argc, char** argv)
     "decimate, two-stage: first remove disconnected pieces whose bounding-box diagonal is below "
     "this fraction of the input's (e.g. 0.01; default 0: keep every piece); a piece with a "
     "vertex that --lock-array or --selection-array keeps stays");
+  CLI::Option_group* attributes = simplify->add_option_group("Attributes");
+  attributes->add_option("--attributes", rq.attributes,
+    "point attributes that join the error, NAME[:WEIGHT],... (weight default 1): normals, colors "
+    "(or rgb, rgba), texcoords (or uv), or a scalar vertex property; e.g. normals:0.5,colors:1. "
+    "A weight of 1 makes an attribute difference of 1 (colors from 0 to 1) cost as much as a "
+    "distance of the input's largest bounding-box side; merged vertices take the attributes' "
+    "optimal values (default: geometry only)");
   CLI::Option_group* storageGroup = simplify->add_option_group("Memory and storage");
   storageGroup->add_option("--memory-mb", sa.memory,
     "memory budget in MiB (at least 0.0625), auto (= 0, the default: half of what this process "
@@ -815,6 +935,11 @@ int main(int argc, char** argv)
   compare->add_option("CANDIDATE", cand)->required();
   compare->add_option("--samples", samples, "samples per side (default: automatic)")
     ->check(CLI::Range(std::uint64_t(0), std::uint64_t(1) << 40));
+  std::string compareAttributes;
+  compare->add_option("--attributes", compareAttributes,
+    "also compare these point attributes (names as simplify --attributes takes them; weights are "
+    "ignored): interpolated at each sample and at its nearest point on the other mesh, the RMS "
+    "and largest difference (colors from 0 to 1)");
 
   std::string infoPath;
   CLI::App* info = app.add_subcommand("info", "format, counts and bounds of a mesh file");
@@ -841,7 +966,7 @@ int main(int argc, char** argv)
     }
     if (*compare)
     {
-      return RunCompare(ref, cand, samples);
+      return RunCompare(ref, cand, samples, compareAttributes);
     }
     return RunInfo(infoPath);
   }

@@ -30,6 +30,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   constexpr std::uint32_t kTop = 0x80000000u;
   std::uint64_t k = 0;
   std::uint32_t end = 0;
+  std::vector<double> xa, xb; // (lazy sums of the attribute extensions)
   for (std::uint64_t v = 0; v < nv; ++v)
   {
     ctx.Tick(nf + v, total);
@@ -53,6 +54,19 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
       AddTo(Q, mesh.views.Q.Get(c.partner));
       mesh.views.Q.Set(v, Q);
       const double trace = Trace(Q);
+      if (mesh.xSize)
+      {
+        const std::size_t n = mesh.xSize;
+        xa.resize(n);
+        xb.resize(n);
+        mesh.views.X.GetRange(v * n, n, xa.data());
+        mesh.views.X.GetRange(std::uint64_t(c.partner) * n, n, xb.data());
+        for (std::size_t i = 0; i < n; ++i)
+        {
+          xa[i] += xb[i];
+        }
+        mesh.views.X.SetRange(v * n, n, xa.data());
+      }
       if (trace > 0)
       {
         ctx.achievedErr2 = std::max(ctx.achievedErr2, double(c.cost) / trace);
@@ -161,6 +175,8 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   };
   // The quadrics, in place and downwards.
   auto moveQuadrics = [&](Views& wv, const View<std::uint32_t>& RR, bool tick, bool poll) {
+    const std::size_t xs = mesh.xSize;
+    std::vector<double> xbuf(xs);
     WithAccess(
       [&](auto Q, auto RA) {
         for (std::uint64_t v = 0; v < nv; ++v)
@@ -178,6 +194,11 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
           if (rv != kNone && w != v)
           {
             Q.Set(w, Q.Get(v));
+            if (xs)
+            {
+              wv.X.GetRange(v * xs, xs, xbuf.data());
+              wv.X.SetRange(w * xs, xs, xbuf.data());
+            }
           }
         }
       },
@@ -233,6 +254,10 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     phase.helperWrites.push_back({ mesh.attr.Id(), 0, nv * rec });
   }
   phase.mainWrites = { mesh.quad.Id(), mesh.faces.Id() };
+  if (mesh.xSize)
+  {
+    phase.mainWrites.push_back(mesh.extra.Id());
+  }
   Workers workers(mesh.dml, phase);
   // (Progress: on one thread the quadrics only poll, the rest ticks, then the faces.)
   const bool split = workers.Count() > 1;
@@ -262,6 +287,10 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   const std::uint64_t nvb = std::max<std::uint64_t>(nv2, 1);
   mesh.pos.Resize(nvb);
   mesh.quad.Resize(nvb);
+  if (mesh.xSize)
+  {
+    mesh.extra.Resize(nvb * mesh.xSize);
+  }
   if (rec)
   {
     mesh.attr.Resize(nvb * rec);

@@ -78,6 +78,7 @@
 // instructions on dragon_vrip_res2 to 10K on one thread, callgrind).
 #pragma once
 
+#include "sipmss/algorithms/Attributes.h"
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Placement.h"
 #include "sipmss/algorithms/Quadric.h"
@@ -254,6 +255,7 @@ struct EdgeBatch
   alignas(32) double q[10][kLanes];
   alignas(32) double pu[3][kLanes];
   alignas(32) double pv[3][kLanes];
+  double trace[kLanes]; // the summed quadric's (geometric) trace
   std::uint32_t u[kLanes], v[kLanes];
   bool offerV[kLanes];
 };
@@ -265,6 +267,7 @@ struct Views
   View<Vec3> P;
   View<Quadric> Q;
   View<std::uint8_t> A;
+  View<double> X; // the attribute quadrics' extension (MeshState::extra), when attributes
   View<State> S;
   View<Tri> F;
   View<std::uint32_t> RO, RF;
@@ -481,6 +484,7 @@ struct alignas(kCacheLine) Scratch
   std::vector<std::uint32_t> ids, next = std::vector<std::uint32_t>(64),
                                   prev = std::vector<std::uint32_t>(64);
   std::vector<std::uint8_t> abuf, abuf2; // point data of a collapse
+  std::vector<double> xbuf, xbuf2;        // attribute quadrics' extensions of an edge
   std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
   std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
   EdgeBatch batch;                        // the sweep's edges waiting for their placement
@@ -615,6 +619,11 @@ struct MeshState
   std::size_t recSize = 0; // bytes of one vertex's attribute record
   // The float index in the attribute record of the lock and selection scalars (-1: none).
   int lockFloat = -1, selectFloat = -1;
+  // Attribute-aware error (DecimateOptions::attributes): the record's channels in the error, and
+  // per vertex xSize doubles in `extra` (Attributes.h: alpha, Qa, B and e per channel); the
+  // quadrics stay geometric. xSize 0: none.
+  std::vector<AttributeChannel> channels;
+  std::size_t xSize = 0;
   // A selection by a face scalar (faceSelect): outside[v] != 0 when v is a corner of a face
   // outside the selection (set as the faces are read; such a vertex is fixed). lastTris: the
   // corners of the reader's last Triangles() call, which its TriangleFlags() follows.
@@ -635,6 +644,7 @@ struct MeshState
   Array<Vec3> pos;
   Array<Quadric> quad;
   Array<std::uint8_t> attr; // nv * recSize bytes
+  Array<double> extra;       // nv * xSize doubles
   Array<State> state;
   Array<Tri> faces;
   Array<std::uint32_t> ringOff;  // nv + 1
@@ -849,6 +859,8 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh);
 void Prune(RunContext& ctx, MeshState& mesh);
 
 // step 1 of a pass, the candidate sweep (Sweep.inl)
+double EdgeQuadric(const MeshState& mesh, const Views& w, std::uint32_t u, std::uint32_t v,
+  Quadric& Q, Scratch& s);
 void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
 Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv);
 void Offer(MeshState& mesh, PassState& pass, std::uint32_t x, std::uint32_t partner,

@@ -141,6 +141,9 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
       "' to use as the selection array (its point arrays: " + joined(points) +
       "; its cell arrays: " + joined(faces) + ")");
   }
+  // The attribute channels.
+  mesh.channels = AttributeChannels(mesh.layout, ctx.opt.attributes);
+  mesh.xSize = AttributeExtraSize(mesh.channels.size());
   mesh.announcedV = header.vertexCount;
   mesh.announcedF = header.faceCount;
   if (header.vertexCount + header.faceCount > 0)
@@ -168,6 +171,7 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
   add("decimate.positions", sizeof(Vec3), V);
   add("decimate.attributes", mesh.recSize, V);
   add("decimate.quadrics", sizeof(Quadric), V);
+  add("decimate.attributeQuadrics", mesh.xSize * sizeof(double), V);
   add("decimate.vertexState", sizeof(State), V);
   add("decimate.faces", sizeof(Tri), F);
   add("decimate.ringOffsets", sizeof(std::uint32_t), V + 1);

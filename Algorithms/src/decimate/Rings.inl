@@ -528,13 +528,15 @@ void MeshState::BindViews()
 // (bind(array) makes one view; blocks not open, or attributes absent, get an unbound one)
 template <class Bind>
 void BindEach(Views& w, const Bind& bind, const Array<Vec3>& pos, const Array<Quadric>& quad,
-  const Array<std::uint8_t>& attr, bool attributes, const Array<State>& state,
+  const Array<std::uint8_t>& attr, bool attributes, const Array<double>& extra,
+  const Array<State>& state,
   const Array<Tri>& faces, const Array<std::uint32_t>& ringOff,
   const Array<std::uint32_t>& ringFace, const Array<Cand>& cand, const Array<std::uint32_t>& order)
 {
   w.P = bind(pos);
   w.Q = quad.IsOpen() ? bind(quad) : View<Quadric>();
   w.A = attributes ? bind(attr) : View<std::uint8_t>();
+  w.X = extra.IsOpen() ? bind(extra) : View<double>();
   w.S = state.IsOpen() ? bind(state) : View<State>();
   w.F = bind(faces);
   w.RO = bind(ringOff);
@@ -546,14 +548,14 @@ void BindEach(Views& w, const Bind& bind, const Array<Vec3>& pos, const Array<Qu
 void MeshState::BindViews(Views& w, DML& on) const
 {
   BindEach(w, [&on](const auto& a) { return storage::View(on, a); }, this->pos, this->quad,
-    this->attr, this->recSize != 0, this->state, this->faces, this->ringOff, this->ringFace,
+    this->attr, this->recSize != 0, this->extra, this->state, this->faces, this->ringOff, this->ringFace,
     this->cand, this->order);
 }
 
 void MeshState::BindViews(Views& w, const Workers& workers, int t) const
 {
   BindEach(w, [&workers, t](const auto& a) { return workers.Bind(t, a); }, this->pos,
-    this->quad, this->attr, this->recSize != 0, this->state, this->faces, this->ringOff,
+    this->quad, this->attr, this->recSize != 0, this->extra, this->state, this->faces, this->ringOff,
     this->ringFace, this->cand, this->order);
 }
 
@@ -574,6 +576,41 @@ bool FixedByArrays(const MeshState& mesh, const View<std::uint8_t>& A, std::uint
     (mesh.selectFloat >= 0 && scalar(mesh.selectFloat) == 0.0f);
 }
 
+// Scratch of the attribute terms of one vertex: its extension and the corners' scaled values.
+struct AttributeScratch
+{
+  explicit AttributeScratch(const MeshState& mesh)
+    : x(mesh.xSize)
+    , s(3 * mesh.channels.size())
+    , rec(mesh.recSize)
+  {
+  }
+  std::vector<double> x, s;
+  std::vector<std::uint8_t> rec;
+};
+
+// Adds face t's attribute terms (Attributes.h) to a vertex's extension as.x.
+void FaceAttributes(const MeshState& mesh, const Views& w, const Tri& t, AttributeScratch& as)
+{
+  const std::size_t k = mesh.channels.size();
+  double p[3][3];
+  for (int c = 0; c < 3; ++c)
+  {
+    const Vec3 q = w.P.Get(t.v[c]);
+    p[c][0] = q.x;
+    p[c][1] = q.y;
+    p[c][2] = q.z;
+    w.A.GetRange(std::uint64_t(t.v[c]) * mesh.recSize, mesh.recSize, as.rec.data());
+    for (std::size_t j = 0; j < k; ++j)
+    {
+      as.s[c * k + j] = ChannelValue(mesh.channels[j], as.rec.data());
+    }
+  }
+  const Vec3 n = Cross(w.P.Get(t.v[1]) - w.P.Get(t.v[0]), w.P.Get(t.v[2]) - w.P.Get(t.v[0]));
+  AddFaceAttributes(p[0], p[1], p[2], as.s.data(), as.s.data() + k, as.s.data() + 2 * k, k,
+    0.5 * std::sqrt(Dot(n, n)), as.x.data());
+}
+
 void BuildQuadrics(RunContext& ctx, MeshState& mesh)
 {
   PhaseTimer timer(ctx.stats, mesh.dml, "quadrics");
@@ -581,6 +618,10 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
     RestWork(ctx, mesh, 3, mesh.nv, mesh.liveFaces));
   const std::uint64_t nv = mesh.nv;
   mesh.quad = Array<Quadric>(mesh.dml, std::max<std::uint64_t>(nv, 1));
+  if (mesh.xSize)
+  {
+    mesh.extra = Array<double>(mesh.dml, std::max<std::uint64_t>(nv, 1) * mesh.xSize);
+  }
   mesh.state = Array<State>(mesh.dml, std::max<std::uint64_t>(nv, 1));
   mesh.cand = Array<Cand>(mesh.dml, std::max<std::uint64_t>(nv, 1));
   mesh.order = Array<std::uint32_t>(mesh.dml, std::max<std::uint64_t>(nv, 1));
@@ -594,7 +635,8 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
   const double bw = ctx.opt.boundaryWeight;
   auto vertex = [&, bw](Views& w, std::uint32_t u, std::vector<Tri>& tris,
                   std::vector<std::uint32_t>& next, std::vector<std::uint32_t>& prev,
-                  LinkTally& tally, const std::atomic<bool>& stop, bool caller) {
+                  LinkTally& tally, const std::atomic<bool>& stop, bool caller,
+                  AttributeScratch& as) {
     // A vertex of very high valence takes long: the calling thread polls inside it (an abort
     // throws), another thread stops early when the run is being stopped.
     auto stopped = [&, caller](std::size_t i) {
@@ -764,6 +806,16 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
         AddTo(Q, T);
       }
     }
+    if (mesh.xSize)
+    {
+      // The attribute terms of its faces.
+      std::fill(as.x.begin(), as.x.end(), 0.0);
+      for (const Tri& t : tris)
+      {
+        FaceAttributes(mesh, w, t, as);
+      }
+      w.X.SetRange(std::uint64_t(u) * mesh.xSize, mesh.xSize, as.x.data());
+    }
     w.Q.Set(u, Q);
     w.S.Set(u, flags);
     w.C.Set(u, kNoCandidate);
@@ -782,6 +834,13 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
   phase.threads = ctx.opt.initialQuadric ? 1 : ctx.threads;
   phase.inCoreMin = 8192;
   phase.writes = { mesh.quad.Id(), mesh.state.Id(), mesh.cand.Id() };
+  if (mesh.xSize)
+  {
+    // (the extension has xSize doubles per vertex: the helper's vertices [nv / 2, nv))
+    phase.helperFirst = nv / 2;
+    phase.helperWrites.push_back(
+      { mesh.extra.Id(), nv / 2 * mesh.xSize, (nv - nv / 2) * mesh.xSize });
+  }
   Workers workers(mesh.dml, phase);
   workers.Run(
     [&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
@@ -790,6 +849,7 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
       std::vector<Tri> tris;
       std::vector<std::uint32_t> next, prev;
       LinkTally tally;
+      AttributeScratch as(mesh);
       WithAccess(
         [&](auto RO, auto RF, auto F, auto P) {
           for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
@@ -820,7 +880,7 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
                 }
               }
             }
-            vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0);
+            vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0, as);
           }
         },
         w.RO, w.RF, w.F, w.P);

@@ -319,6 +319,41 @@ void InterpolateAttributes(MeshState& mesh, std::uint32_t u, std::uint32_t v, do
   w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
 }
 
+// With attributes: the weighted channels of u's record take their optimal values at u's (new)
+// position from the summed extension in s.xbuf (Attributes.h); normals are renormalized.
+void OptimalAttributes(MeshState& mesh, std::uint32_t u, Scratch& s)
+{
+  Views& w = mesh.W(s);
+  const std::size_t rec = mesh.recSize;
+  if (!(s.xbuf[0] > 0))
+  {
+    return; // no face around it: no fit
+  }
+  s.abuf.resize(rec);
+  w.A.GetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+  const Vec3 p = w.P.Get(u);
+  bool normals = false;
+  for (std::size_t j = 0; j < mesh.channels.size(); ++j)
+  {
+    const AttributeChannel& c = mesh.channels[j];
+    SetChannelValue(c, OptimalAttribute(s.xbuf.data(), j, p.x, p.y, p.z), s.abuf.data());
+    normals |= c.normal;
+  }
+  if (normals)
+  {
+    float* a = reinterpret_cast<float*>(s.abuf.data());
+    const double l = std::sqrt(double(a[0]) * a[0] + double(a[1]) * a[1] + double(a[2]) * a[2]);
+    if (l > 0)
+    {
+      for (int i = 0; i < 3; ++i)
+      {
+        a[i] = float(a[i] / l);
+      }
+    }
+  }
+  w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
+}
+
 // Collapses u and c.partner (their faces loaded in s.ru and s.rv) into u at c.p; returns the
 // number of faces removed.
 std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const Cand& c, Scratch& s)
@@ -368,13 +403,31 @@ std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const 
   {
     w.P.Set(u, { c.p[0], c.p[1], c.p[2] });
   }
+  if (mesh.xSize)
+  {
+    // The summed extension (its attributes' optimal values below need it even with lazy sums:
+    // u's and v's are current until Compact).
+    const std::size_t n = mesh.xSize;
+    s.xbuf.resize(n);
+    s.xbuf2.resize(n);
+    w.X.GetRange(std::uint64_t(u) * n, n, s.xbuf.data());
+    w.X.GetRange(std::uint64_t(v) * n, n, s.xbuf2.data());
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      s.xbuf[i] += s.xbuf2[i];
+    }
+    if (!pass.lazySums)
+    {
+      w.X.SetRange(std::uint64_t(u) * n, n, s.xbuf.data());
+    }
+  }
   if (!pass.lazySums)
   {
     Quadric Q = w.Q.Get(u);
     AddTo(Q, w.Q.Get(v));
     w.Q.Set(u, Q);
     // The collapse's error (RunStats::achievedError): its cost per unit of the summed quadric's
-    // trace. (With lazy sums Compact measures it, where it adds the quadrics.)
+    // (geometric) trace. (With lazy sums Compact measures it, where it adds the quadrics.)
     const double trace = Trace(Q);
     if (trace > 0)
     {
@@ -382,6 +435,10 @@ std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const 
     }
   }
   InterpolateAttributes(mesh, u, v, double(c.t), s);
+  if (mesh.xSize && !((su | sv) & kFixed))
+  {
+    OptimalAttributes(mesh, u, s);
+  }
   w.S.Set(v, State(kRemoved | kMarked));
   w.S.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
   return removed;
@@ -710,13 +767,15 @@ void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t 
 
 // Restricts a collapse chunk's views to what its collapses write: the records of the vertices
 // [lo, hi) (states, positions, quadrics, point data) and any face; nothing else.
-void ChunkBounds(Views& w, std::uint64_t lo, std::uint64_t hi, std::size_t recSize)
+void ChunkBounds(
+  Views& w, std::uint64_t lo, std::uint64_t hi, std::size_t recSize, std::size_t xSize)
 {
   const storage::WriteBounds vertices{ lo, hi, 0, 0 };
   w.S.Restrict(vertices);
   w.P.Restrict(vertices);
   w.Q.Restrict(vertices);
   w.A.Restrict({ lo * recSize, hi * recSize, 0, 0 });
+  w.X.Restrict({ lo * xSize, hi * xSize, 0, 0 });
   for (View<std::uint32_t>* v : { &w.RO, &w.RF, &w.O })
   {
     v->Restrict(storage::WriteBounds::None());
@@ -774,6 +833,11 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
   {
     phase.helperWrites.push_back({ mesh.attr.Id(), pass.splitMid * mesh.recSize,
       mesh.attr.Size() - pass.splitMid * mesh.recSize });
+  }
+  if (mesh.xSize)
+  {
+    phase.helperWrites.push_back({ mesh.extra.Id(), pass.splitMid * mesh.xSize,
+      mesh.extra.Size() - pass.splitMid * mesh.xSize });
   }
   if (pass.scratch.size() < std::size_t(std::max(ctx.threads, 2)))
   {
@@ -841,7 +905,7 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
           // vertices, whose ids are anywhere); checked in builds with SIPMSS_CHECK_WRITES.
           Views chunk;
           mesh.BindViews(chunk, mesh.dml);
-          ChunkBounds(chunk, lo, hi, mesh.recSize);
+          ChunkBounds(chunk, lo, hi, mesh.recSize, mesh.xSize);
           ScratchViews use(s, chunk);
           // progress and abort: the calling thread only
           cursor[c] = Step(ctx, mesh, pass, cursor[c], end[c], lo, hi, quota[c], s, runs[c],

@@ -24,6 +24,30 @@ Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, Stat
   return { o.cost, { o.px, o.py, o.pz }, o.t };
 }
 
+// Q, the sum of u's and v's quadrics: returns its trace (the error bound's unit) and, with
+// attributes (mesh.xSize > 0), adds the attribute error of the summed extensions to it
+// (Attributes.h), which s.xbuf then holds.
+double EdgeQuadric(const MeshState& mesh, const Views& w, std::uint32_t u, std::uint32_t v,
+  Quadric& Q, Scratch& s)
+{
+  const double trace = Trace(Q);
+  if (!mesh.xSize)
+  {
+    return trace;
+  }
+  const std::size_t n = mesh.xSize;
+  s.xbuf.resize(n);
+  s.xbuf2.resize(n);
+  w.X.GetRange(std::uint64_t(u) * n, n, s.xbuf.data());
+  w.X.GetRange(std::uint64_t(v) * n, n, s.xbuf2.data());
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    s.xbuf[i] += s.xbuf2[i];
+  }
+  AddAttributeError(s.xbuf.data(), mesh.channels.size(), Q);
+  return trace;
+}
+
 // Offers an edge to x: directly when x is this thread's, else queued for x's thread. The result
 // does not depend on the order of offers (the best two by (cost, partner) are kept), so the
 // parallel sweep in core and the sequential one out of core give identical candidates.
@@ -257,6 +281,7 @@ void Evaluate(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u
         const std::uint32_t v = c.partner;
         Quadric Q = w.Q.Get(v);
         AddTo(Q, w.Q.Get(u));
+        EdgeQuadric(mesh, w, u, v, Q, s);
         const Placement pl = Place(Q, w.P.Get(u), w.P.Get(v), su, w.S.Get(v));
         // c.cost stays: the same edge's cost as computed before (equal up to rounding), which
         // keeps the outcome independent of whether an offer to u came before or after this.
@@ -426,15 +451,30 @@ void EvaluateEdge(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32
   {
     Quadric Q = Qv;
     AddTo(Q, Qu);
-    OfferEdge(ctx, mesh, pass, u, v, Place(Q, pu, pv, su, sv), Trace(Q), offerV, s);
+    const double trace = EdgeQuadric(mesh, w, u, v, Q, s);
+    OfferEdge(ctx, mesh, pass, u, v, Place(Q, pu, pv, su, sv), trace, offerV, s);
     return;
   }
   // Queued: placed in pairs (the offers do not depend on their order).
   EdgeBatch& b = s.batch;
   const int l = b.n;
-  for (int k = 0; k < 10; ++k)
+  if (mesh.xSize)
   {
-    b.q[k][l] = Qv.q[k] + Qu.q[k]; // (AddTo's sum)
+    Quadric Q = Qv;
+    AddTo(Q, Qu);
+    b.trace[l] = EdgeQuadric(mesh, w, u, v, Q, s);
+    for (int k = 0; k < 10; ++k)
+    {
+      b.q[k][l] = Q.q[k];
+    }
+  }
+  else
+  {
+    for (int k = 0; k < 10; ++k)
+    {
+      b.q[k][l] = Qv.q[k] + Qu.q[k]; // (AddTo's sum)
+    }
+    b.trace[l] = b.q[0][l] + b.q[4][l] + b.q[7][l];
   }
   b.pu[0][l] = pu.x;
   b.pu[1][l] = pu.y;
@@ -512,7 +552,7 @@ void FlushEdges(RunContext& ctx, MeshState& mesh, PassState& pass, Scratch& s)
   for (int l = 0; l < n; ++l)
   {
     OfferEdge(ctx, mesh, pass, b.u[l], b.v[l], { cost[l], { px[l], py[l], pz[l] }, t[l] },
-      b.q[0][l] + b.q[4][l] + b.q[7][l], b.offerV[l], s);
+      b.trace[l], b.offerV[l], s);
   }
 }
 
@@ -574,8 +614,9 @@ void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, S
     }
     Quadric Q = w.Q.Get(nb.v);
     AddTo(Q, Qu);
+    const double trace = EdgeQuadric(mesh, w, u, nb.v, Q, s);
     const Placement pl = Place(Q, ru.px, nb.p, su, sv);
-    if (!std::isfinite(pl.cost) || pl.cost > ctx.maxErr2 * Trace(Q))
+    if (!std::isfinite(pl.cost) || pl.cost > ctx.maxErr2 * trace)
     {
       continue;
     }

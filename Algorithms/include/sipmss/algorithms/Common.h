@@ -15,6 +15,13 @@
 namespace sipmss::algorithms
 {
 
+// The input has no array of the name an option gives (a lock, selection or attribute array).
+class MissingArrayError : public io::MeshIOError
+{
+public:
+  using io::MeshIOError::MeshIOError;
+};
+
 // Thrown when the caller's Progress::Aborted() returned true.
 class AbortedError : public std::runtime_error
 {

@@ -43,6 +43,10 @@ struct TriangleMesh
 {
   std::vector<float> points;             // 3 per vertex
   std::vector<std::uint32_t> triangles;  // 3 per triangle
+  // Optional per-vertex attribute values (attributeStride per vertex; CompareOptions::
+  // attributeGroups), interpolated linearly over the triangles.
+  std::vector<float> attributes;
+  std::size_t attributeStride = 0;
 
   std::size_t NumberOfPoints() const { return points.size() / 3; }
   std::size_t NumberOfTriangles() const { return triangles.size() / 3; }
@@ -56,6 +60,10 @@ struct CompareOptions
   std::uint64_t samples = 0;
   std::uint64_t seed = 1;
   int threads = 0; // <= 0: every core (storage::ResolveThreads)
+  // Attribute errors: each group (first component, count) of both meshes' attributes (the same
+  // stride) is compared at every sample: the value interpolated at the sample against the value
+  // interpolated at its nearest point on the other mesh (barycentric), as a Euclidean distance.
+  std::vector<std::array<std::size_t, 2>> attributeGroups;
 };
 
 struct CompareResult
@@ -71,6 +79,9 @@ struct CompareResult
   // forward = reference samples against the candidate, backward = candidate samples against the
   // reference.
   double forwardRms = 0, backwardRms = 0;
+  // Per attribute group (CompareOptions::attributeGroups), two-sided over the same samples: the
+  // RMS and the largest difference, in the attribute's units.
+  std::vector<double> attributeRms, attributeMax;
 };
 
 // Two-sided comparison. Throws std::invalid_argument when a mesh is empty, has zero total area,
@@ -93,6 +104,10 @@ OneSided SampleDistance(const TriangleMesh& from, const TriangleMesh& to, std::u
 // Degenerate triangles (collinear vertices, coincident vertices, a single point) are handled as
 // the union of their edges.
 double PointTriangleDistanceSquared(
+  const double p[3], const double a[3], const double b[3], const double c[3]);
+// The barycentric coordinates (of a, b, c) of the point of triangle (a, b, c) nearest to p
+// (Ericson's regions; a degenerate triangle: its nearest edge's).
+std::array<double, 3> ClosestPointBarycentric(
   const double p[3], const double a[3], const double b[3], const double c[3]);
 
 // The spatial index behind the distance queries, public for tests and other algorithms.

@@ -1,6 +1,7 @@
 // Algorithm I: linear-time iterative full edge collapse with quadric error metrics, on the DML.
 #pragma once
 
+#include "sipmss/algorithms/Attributes.h"
 #include "sipmss/algorithms/Common.h"
 
 #include <functional>
@@ -10,13 +11,6 @@
 
 namespace sipmss::algorithms
 {
-
-// The input has no point array of the name a lock or selection array gives (DecimateOptions).
-class MissingArrayError : public io::MeshIOError
-{
-public:
-  using io::MeshIOError::MeshIOError;
-};
 
 struct DecimateOptions
 {
@@ -50,6 +44,9 @@ struct DecimateOptions
   // diagonal is below this fraction of the input's (errorDiagonal when given), unless it holds a
   // vertex the lock or selection array keeps. RunStats counts them.
   double pruneSize = 0;
+  // Attribute-aware error (Attributes.h): these point attributes, with their weights, join the
+  // quadrics; a merged vertex takes their optimal values. Empty: geometry only.
+  std::vector<AttributeWeight> attributes;
   double boundaryWeight = kDefaultDecimateBoundaryWeight; // weight of the boundary constraint quadrics
   double weldDistance = kNoWeld;    // >= 0: weld input vertices closer than this first
   storage::Profile storage;          // memory budget, directories, mode policy

@@ -65,6 +65,9 @@ struct SimplifyRequest
   // Decimate, two-stage: removes disconnected pieces smaller than this fraction of the input's
   // bounding-box diagonal first (DecimateOptions::pruneSize; 0: none).
   double pruneSize = 0;
+  // Every algorithm: point attributes that join the error, with weights, as
+  // ParseAttributeWeights reads them ("normals:0.5,colors:1"; empty: geometry only).
+  std::string attributes;
 
   // Storage and threads.
   double memoryBudgetMB = kAutomaticMemoryBudget; // see MemoryBudgetProblem
@@ -91,6 +94,7 @@ enum class Parameter : std::uint8_t
   LockArray,
   SelectionArray,
   PruneSize,
+  Attributes,
   MemoryBudget,
   Threads
 };
