@@ -174,6 +174,48 @@ std::vector<AttributeChannel> AttributeChannels(
   return out;
 }
 
+std::size_t RecordSize(const io::VertexLayout& layout)
+{
+  return ((layout.normals ? 3 : 0) + (layout.texcoords ? 2 : 0) + layout.scalars.size()) *
+    sizeof(float) + (layout.colors ? 4 : 0);
+}
+
+void PackRecord(const io::VertexLayout& layout, const io::VertexChunk& c, std::size_t i,
+  std::uint8_t* record)
+{
+  std::size_t at = 0;
+  auto put = [&](float f) {
+    std::memcpy(record + at, &f, sizeof(float));
+    at += sizeof(float);
+  };
+  if (layout.normals)
+  {
+    for (int d = 0; d < 3; ++d)
+    {
+      put(c.normals ? c.normals[3 * i + d] : 0.0f);
+    }
+  }
+  if (layout.texcoords)
+  {
+    for (int d = 0; d < 2; ++d)
+    {
+      put(c.texcoords ? c.texcoords[2 * i + d] : 0.0f);
+    }
+  }
+  const std::size_t ns = layout.scalars.size();
+  for (std::size_t d = 0; d < ns; ++d)
+  {
+    put(c.scalars ? c.scalars[ns * i + d] : 0.0f);
+  }
+  if (layout.colors)
+  {
+    for (int d = 0; d < 4; ++d)
+    {
+      record[at + std::size_t(d)] = c.rgba ? c.rgba[4 * i + std::size_t(d)] : 255;
+    }
+  }
+}
+
 double ChannelValue(const AttributeChannel& c, const std::uint8_t* record)
 {
   if (c.floatIndex >= 0)

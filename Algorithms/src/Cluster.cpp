@@ -54,6 +54,27 @@ struct ClusterState
     , triangles(dml)
   {
   }
+  // The blocks opened by id (the arrays close themselves): freed with the run, also in a
+  // caller's DML (two-stage goes on in it).
+  ~ClusterState()
+  {
+    for (storage::BlockId id : { this->attrBlock, this->chanBlock, this->extBlock })
+    {
+      try
+      {
+        if (id >= 0)
+        {
+          this->dml.CloseBlock(id);
+        }
+      }
+      catch (...)
+      {
+        // (a destructor: the DML frees every block when it goes)
+      }
+    }
+  }
+  ClusterState(const ClusterState&) = delete;
+  ClusterState& operator=(const ClusterState&) = delete;
   DML& dml;
   ClusterGrid grid;
   const ClusterOptions& options;
@@ -64,6 +85,15 @@ struct ClusterState
   double achievedErr2 = 0; // the largest representative's error (Emit; RunStats::achievedError)
   std::size_t attrStride = 0;
   std::vector<float> attrBuf;
+  // Attribute-aware error (ClusterOptions::attributes): the channels, their values per input
+  // vertex (chanBlock: k floats) and the extension per cell (extBlock: xSize doubles).
+  std::vector<AttributeChannel> channels;
+  std::size_t xSize = 0;
+  storage::BlockId chanBlock = -1, extBlock = -1;
+  std::uint64_t chanCap = 0;
+  std::vector<std::uint8_t> recBuf;
+  std::vector<float> chanBuf;
+  std::vector<double> extBuf, faceExt, cornerValues;
   Array<VertexRec> vertices;
   Array<CellRec> cells;
   PinWindow<VertexRec> vertexWindow{ dml, storage::Access::Write };
@@ -121,7 +151,11 @@ void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e);
 template <class F>
 void UpdateCell(ClusterState& cluster, std::uint32_t cell, F&& f);
 void AddTriangle(ClusterState& cluster, const std::uint32_t* f);
-void Representative(ClusterState& cluster, const CellRec& rec, double p[3]);
+void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q, double p[3]);
+void OptimalCellAttributes(ClusterState& cluster, const double p[3], std::vector<float>& normals,
+  std::vector<std::uint8_t>& rgba, std::vector<float>& texcoords, std::vector<float>& scalars);
+void AddFaceAttributeTerms(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
+  const VertexRec& b, const VertexRec& c, double area);
 
 void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
 {
@@ -132,7 +166,8 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
     const std::uint64_t gridCells =
       std::uint64_t(cluster.grid.dims[0]) * cluster.grid.dims[1] * cluster.grid.dims[2];
     profile.structures.clear();
-    AddClusterStructures(profile, h.vertexCount, h.faceCount, gridCells);
+    AddClusterStructures(profile, h.vertexCount, h.faceCount, gridCells,
+      AttributeChannels(h.layout, cluster.options.attributes).size());
     cluster.dml.Config(profile);
   }
   cluster.header = h;
@@ -145,6 +180,19 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
   {
     cluster.attrBlock = cluster.dml.OpenBlock(cluster.attrStride * sizeof(float), 1024);
     cluster.attrBuf.assign(cluster.attrStride, 0.f);
+  }
+  cluster.channels = AttributeChannels(h.layout, cluster.options.attributes);
+  cluster.xSize = AttributeExtraSize(cluster.channels.size());
+  if (cluster.xSize)
+  {
+    const std::size_t k = cluster.channels.size();
+    cluster.chanCap = std::max<std::uint64_t>(h.vertexCount, 1024);
+    cluster.chanBlock = cluster.dml.OpenBlock(k * sizeof(float), cluster.chanCap);
+    cluster.extBlock = cluster.dml.OpenBlock(cluster.xSize * sizeof(double), 1024);
+    cluster.recBuf.assign(RecordSize(h.layout), 0);
+    cluster.chanBuf.assign(3 * k, 0.f);
+    cluster.extBuf.assign(cluster.xSize, 0.0);
+    cluster.faceExt.assign(cluster.xSize, 0.0);
   }
   cluster.expected = h.vertexCount + h.faceCount;
   if (!cluster.expected)
@@ -212,6 +260,22 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
     {
       AccumulateAttributes(cluster, c, i, cell);
     }
+    if (cluster.xSize)
+    {
+      // The vertex's weighted channel values (its faces' attribute terms need them).
+      const std::size_t k = cluster.channels.size();
+      if (c.first + i >= cluster.chanCap)
+      {
+        cluster.chanCap = std::max<std::uint64_t>(c.first + c.count, 2 * cluster.chanCap);
+        cluster.dml.Resize(cluster.chanBlock, cluster.chanCap);
+      }
+      PackRecord(cluster.layout, c, i, cluster.recBuf.data());
+      for (std::size_t j = 0; j < k; ++j)
+      {
+        cluster.chanBuf[j] = float(ChannelValue(cluster.channels[j], cluster.recBuf.data()));
+      }
+      cluster.dml.Write(cluster.chanBlock, k * sizeof(float), c.first + i, cluster.chanBuf.data());
+    }
   }
   cluster.verticesSeen = std::max<std::uint64_t>(cluster.verticesSeen, c.first + c.count);
   cluster.done += c.count;
@@ -267,6 +331,11 @@ void ReleaseInputBlocks(ClusterState& cluster)
   cluster.cellWindow.Release();
   cluster.vertices.Close();
   cluster.cellMap.Release();
+  if (cluster.chanBlock >= 0)
+  {
+    cluster.dml.CloseBlock(cluster.chanBlock);
+    cluster.chanBlock = -1;
+  }
 }
 
 void FinishTriangles(ClusterState& cluster)
@@ -368,14 +437,21 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
       continue;
     }
     const CellRec rec = cluster.cells.Get(c);
+    // The quadric to minimize: the cell's, with its attribute error (Attributes.h).
+    Quadric Q = rec.q;
+    if (cluster.xSize)
+    {
+      cluster.dml.Read(cluster.extBlock, cluster.xSize * sizeof(double), c, cluster.extBuf.data());
+      AddAttributeError(cluster.extBuf.data(), cluster.channels.size(), Q);
+    }
     double p[3];
-    Representative(cluster, rec, p);
+    Representative(cluster, rec, Q, p);
     // The representative's error, at its position as written.
     const double trace = QuadricTrace(rec.q.q);
     if (trace > 0)
     {
       cluster.achievedErr2 = std::max(cluster.achievedErr2,
-        QuadricValue(rec.q.q, double(float(p[0])), double(float(p[1])), double(float(p[2]))) /
+        QuadricValue(Q.q, double(float(p[0])), double(float(p[1])), double(float(p[2]))) /
           trace);
     }
     if (cluster.options.exportQuadric)
@@ -413,6 +489,10 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
       for (std::size_t j = 0; j < cluster.layout.scalars.size(); ++j)
       {
         scalars.push_back(attr[k + j] * inv);
+      }
+      if (cluster.xSize && cluster.extBuf[0] > 0)
+      {
+        OptimalCellAttributes(cluster, p, normals, rgba, texcoords, scalars);
       }
     }
     if (xyz.size() / 3 == chunk)
@@ -478,6 +558,10 @@ void AddCell(ClusterState& cluster, const float* p)
     {
       cluster.dml.Resize(cluster.attrBlock, cluster.cells.Size());
     }
+  }
+  if (cluster.xSize && cluster.numCells >= cluster.dml.Count(cluster.extBlock))
+  {
+    cluster.dml.Resize(cluster.extBlock, cluster.cells.Size());
   }
   CellRec rec{};
   rec.first[0] = p[0];
@@ -690,6 +774,10 @@ void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
     {
       UpdateCell(cluster, cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
     }
+    if (cluster.xSize)
+    {
+      AddFaceAttributeTerms(cluster, f, a, b, c, w);
+    }
   }
   if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
   {
@@ -702,14 +790,103 @@ void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
   }
 }
 
+// The face's attribute terms (Attributes.h), added to each corner's cell extension (in the
+// clustering's coordinates: the cells' quadrics are absolute).
+void AddFaceAttributeTerms(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
+  const VertexRec& b, const VertexRec& c, double area)
+{
+  const std::size_t k = cluster.channels.size();
+  for (int i = 0; i < 3; ++i)
+  {
+    cluster.dml.Read(cluster.chanBlock, k * sizeof(float), f[i], cluster.chanBuf.data() + k * i);
+  }
+  std::vector<double>& s = cluster.cornerValues;
+  s.assign(cluster.chanBuf.begin(), cluster.chanBuf.end());
+  const Vec3 pa = Position(a), pb = Position(b), pc = Position(c);
+  const double p0[3] = { pa.x, pa.y, pa.z }, p1[3] = { pb.x, pb.y, pb.z },
+               p2[3] = { pc.x, pc.y, pc.z };
+  std::fill(cluster.faceExt.begin(), cluster.faceExt.end(), 0.0);
+  AddFaceAttributes(p0, p1, p2, s.data(), s.data() + k, s.data() + 2 * k, k, area,
+    cluster.faceExt.data());
+  const std::size_t es = cluster.xSize * sizeof(double);
+  for (const std::uint32_t cell : { a.cell, b.cell, c.cell })
+  {
+    cluster.dml.Read(cluster.extBlock, es, cell, cluster.extBuf.data());
+    for (std::size_t i = 0; i < cluster.xSize; ++i)
+    {
+      cluster.extBuf[i] += cluster.faceExt[i];
+    }
+    cluster.dml.Write(cluster.extBlock, es, cell, cluster.extBuf.data());
+  }
+}
+
+// The last output vertex's weighted channels (the tails of the output arrays) take their optimal
+// values at the representative p from the cell's extension in cluster.extBuf; normals are
+// renormalized.
+void OptimalCellAttributes(ClusterState& cluster, const double p[3], std::vector<float>& normals,
+  std::vector<std::uint8_t>& rgba, std::vector<float>& texcoords, std::vector<float>& scalars)
+{
+  const io::VertexLayout& l = cluster.layout;
+  std::vector<std::uint8_t>& rec = cluster.recBuf;
+  const std::size_t ns = l.scalars.size();
+  // Pack the vertex's record from the tails (the layout of PackRecord), set, unpack.
+  io::VertexChunk one;
+  one.count = 1;
+  one.normals = l.normals ? normals.data() + normals.size() - 3 : nullptr;
+  one.rgba = l.colors ? rgba.data() + rgba.size() - 4 : nullptr;
+  one.texcoords = l.texcoords ? texcoords.data() + texcoords.size() - 2 : nullptr;
+  one.scalars = ns ? scalars.data() + scalars.size() - ns : nullptr;
+  PackRecord(l, one, 0, rec.data());
+  bool normal = false;
+  for (std::size_t j = 0; j < cluster.channels.size(); ++j)
+  {
+    SetChannelValue(
+      cluster.channels[j], OptimalAttribute(cluster.extBuf.data(), j, p[0], p[1], p[2]), rec.data());
+    normal |= cluster.channels[j].normal;
+  }
+  std::size_t at = 0;
+  auto get = [&]() {
+    float f;
+    std::memcpy(&f, rec.data() + at, sizeof(float));
+    at += sizeof(float);
+    return f;
+  };
+  if (l.normals)
+  {
+    float* n = normals.data() + normals.size() - 3;
+    for (int d = 0; d < 3; ++d)
+    {
+      n[d] = get();
+    }
+    const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    for (int d = 0; d < 3 && normal && len > 0; ++d)
+    {
+      n[d] /= len;
+    }
+  }
+  if (l.texcoords)
+  {
+    texcoords[texcoords.size() - 2] = get();
+    texcoords[texcoords.size() - 1] = get();
+  }
+  for (std::size_t d = 0; d < ns; ++d)
+  {
+    scalars[scalars.size() - ns + d] = get();
+  }
+  if (l.colors)
+  {
+    std::copy_n(rec.data() + at, 4, rgba.data() + rgba.size() - 4);
+  }
+}
+
 // Minimizes the cell quadric with a pseudo-inverse about the cell's mean (Lindstrom); when the
 // minimizer leaves the cell (by more than placementSlack), the fallback is used.
-void Representative(ClusterState& cluster, const CellRec& rec, double p[3])
+void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q, double p[3])
 {
   const double inv = 1.0 / double(std::max<std::uint32_t>(rec.count, 1));
   const Eigen::Vector3d mean(rec.sum[0] * inv, rec.sum[1] * inv, rec.sum[2] * inv);
   Eigen::Matrix3d A;
-  const double* q = rec.q.q;
+  const double* q = Q.q;
   A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
   const Eigen::Vector3d b(q[3], q[6], q[8]);
   Eigen::Vector3d x = mean;
@@ -977,7 +1154,7 @@ std::uint64_t MaxGridCells(const ClusterOptions& options)
 double EstimateClusterBytes(std::uint64_t V, std::uint64_t F, const ClusterOptions& options)
 {
   storage::Profile p;
-  AddClusterStructures(p, V, F, MaxGridCells(options));
+  AddClusterStructures(p, V, F, MaxGridCells(options), 4 * options.attributes.size());
   double bytes = 0;
   for (const auto& s : p.structures)
   {
@@ -998,7 +1175,7 @@ RunStats ClusterReordered(const MeshSource& source, io::MeshSink& output,
   detail::StoredMesh mesh(dml);
   detail::ReadAndReorder(source, mesh, dml, options.storage,
     [&options](storage::Profile& p, std::uint64_t v, std::uint64_t f) {
-      AddClusterStructures(p, v, f, MaxGridCells(options));
+      AddClusterStructures(p, v, f, MaxGridCells(options), 4 * options.attributes.size());
     },
     [&options](std::uint64_t v, std::uint64_t f) {
       return kWork::kCluster * double(v + f) +

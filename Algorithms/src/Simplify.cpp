@@ -200,6 +200,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
     o.boundaryWeight = r.EffectiveBoundaryWeight();
     o.boundaryQuadrics = o.boundaryWeight > 0;
     o.threads = r.threads;
+    ParseAttributeWeights(r.attributes, o.attributes); // (valid: Problems)
     if (r.bounds)
     {
       o.useBounds = true;

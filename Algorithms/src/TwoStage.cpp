@@ -121,6 +121,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     co.maximumGridDimension = options.gridDimension;
     co.storage = options.decimate.storage;
     co.threads = options.threads;
+    co.attributes = options.decimate.attributes;
     co.dml = &dml;
     if (options.carryQuadrics)
     {

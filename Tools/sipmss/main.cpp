@@ -639,34 +639,12 @@ public:
     {
       return;
     }
-    const std::size_t nf = (this->layout_.normals ? 3 : 0) + (this->layout_.texcoords ? 2 : 0) +
-      this->layout_.scalars.size();
-    std::vector<std::uint8_t> rec(nf * sizeof(float) + 4);
+    std::vector<std::uint8_t> rec(algorithms::RecordSize(this->layout_));
     std::vector<float>& out = this->mesh_.attributes;
     out.resize(std::max(out.size(), k * (c.first + c.count)));
     for (std::size_t i = 0; i < c.count; ++i)
     {
-      float* f = reinterpret_cast<float*>(rec.data());
-      std::size_t at = 0;
-      if (c.normals)
-      {
-        for (int d = 0; d < 3; ++d)
-          f[at++] = c.normals[3 * i + d];
-      }
-      if (c.texcoords)
-      {
-        for (int d = 0; d < 2; ++d)
-          f[at++] = c.texcoords[2 * i + d];
-      }
-      const std::size_t ns = this->layout_.scalars.size();
-      for (std::size_t d = 0; d < ns && c.scalars; ++d)
-      {
-        f[at++] = c.scalars[ns * i + d];
-      }
-      if (c.rgba)
-      {
-        std::copy_n(c.rgba + 4 * i, 4, rec.data() + nf * sizeof(float));
-      }
+      algorithms::PackRecord(this->layout_, c, i, rec.data());
       for (std::size_t j = 0; j < k; ++j)
       {
         out[k * (c.first + i) + j] = float(algorithms::ChannelValue(this->channels_[j], rec.data()));

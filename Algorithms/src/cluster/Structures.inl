@@ -81,10 +81,18 @@ struct TriSlot
 
 // The structures of a clustering run on V vertices and F faces over a grid of gridCells cells
 // (the paper's Config table).
-void AddClusterStructures(
-  storage::Profile& profile, std::uint64_t V, std::uint64_t F, std::uint64_t gridCells)
+// channels: the attribute channels (ClusterOptions::attributes; an upper bound before the header
+// is known): k floats per vertex, an extension per cell.
+void AddClusterStructures(storage::Profile& profile, std::uint64_t V, std::uint64_t F,
+  std::uint64_t gridCells, std::size_t channels)
 {
   const std::uint64_t maxCells = std::min<std::uint64_t>(V, gridCells);
+  if (channels)
+  {
+    profile.structures.push_back({ "vertex attributes", channels * sizeof(float), V, 0.0 });
+    profile.structures.push_back(
+      { "cell attribute quadrics", AttributeExtraSize(channels) * sizeof(double), maxCells, 0.0 });
+  }
   profile.structures.push_back({ "vertices", sizeof(VertexRec), V, 0.0 });
   profile.structures.push_back({ "cells", sizeof(CellRec), maxCells, 0.0 });
   profile.structures.push_back({ "cell map", sizeof(KeySlot), 2 * maxCells, 0.0 });

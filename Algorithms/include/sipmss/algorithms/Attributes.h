@@ -74,6 +74,11 @@ inline std::size_t AttributeExtraSize(std::size_t k)
   return k ? kAttributeB + 4 * k : 0;
 }
 
+// Bytes of the packed record of a layout, and vertex i of a chunk packed into `record`.
+std::size_t RecordSize(const io::VertexLayout& layout);
+void PackRecord(const io::VertexLayout& layout, const io::VertexChunk& chunk, std::size_t i,
+  std::uint8_t* record);
+
 // The scaled value of channel c in a packed record.
 double ChannelValue(const AttributeChannel& c, const std::uint8_t* record);
 // Writes scaled value s of channel c into a packed record (colors rounded and clamped).

@@ -2,6 +2,7 @@
 // on the DML, with indexed-face input.
 #pragma once
 
+#include "sipmss/algorithms/Attributes.h"
 #include "sipmss/algorithms/Common.h"
 
 namespace sipmss::algorithms
@@ -45,7 +46,12 @@ struct ClusterOptions
   std::function<void()> sourceConsumed;
   // The layout step for incoherent inputs (only for a run on a DML of its own).
   LayoutPolicy layout = LayoutPolicy::Automatic;
-  // Optional: called for each output vertex with its cell's quadric (the layout of Quadric.h).
+  // Attribute-aware error (Attributes.h): these point attributes, with their weights, join the
+  // cell quadrics; a representative takes their optimal values at its position (the other point
+  // data: the cell's mean). Empty: geometry only.
+  std::vector<AttributeWeight> attributes;
+  // Optional: called for each output vertex with its cell's (geometric) quadric (the layout of
+  // Quadric.h).
   std::function<void(std::uint64_t vertex, const double quadric[10])> exportQuadric;
 };
 
