@@ -21,6 +21,7 @@ vtkSIPMSSFilterBase::vtkSIPMSSFilterBase() = default;
 vtkSIPMSSFilterBase::~vtkSIPMSSFilterBase()
 {
   this->SetFileName(nullptr);
+  this->SetAttributes(nullptr);
   this->SetTemporaryDirectories(nullptr);
 }
 
@@ -62,6 +63,8 @@ const char* vtkSIPMSSFilterBase::PropertyName(sipmss::algorithms::Parameter para
       return "SelectionArray";
     case Parameter::PruneSize:
       return "PruneSize";
+    case Parameter::Attributes:
+      return "Attributes";
     case Parameter::MemoryBudget:
       return "MemoryBudgetMB";
     default:
@@ -106,6 +109,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     : this->OperationMode == OUT_OF_CORE        ? sipmss::storage::ModePolicy::OutOfCore
                                                 : sipmss::storage::ModePolicy::Automatic;
   request.threads = this->NumberOfThreads;
+  request.attributes = this->Attributes ? this->Attributes : "";
   this->FillRequest(request);
   const auto problems = sipmss::algorithms::Problems(request);
   if (!problems.empty())
@@ -175,6 +179,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     }
     vtkIdType skipped = 0;
     source = bridge::PolyDataSource(input, &skipped);
+    request.attributes = bridge::CoreAttributeNames(input, request.attributes);
     if (skipped)
     {
       vtkWarningMacro("Ignoring " << skipped << " vertex and line cells of the input.");
@@ -287,6 +292,7 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
 {
   this->Superclass::PrintSelf(os, indent);
   os << indent << "FileName: " << (this->FileName ? this->FileName : "(none)") << "\n";
+  os << indent << "Attributes: " << (this->Attributes ? this->Attributes : "(none)") << "\n";
   os << indent << "MemoryBudgetMB: " << this->MemoryBudgetMB << "\n";
   os << indent << "TemporaryDirectories: "
      << (this->TemporaryDirectories ? this->TemporaryDirectories : "(default)") << "\n";

@@ -66,6 +66,21 @@ public:
 
   ///@{
   /**
+   * Point attributes that join the error, with weights: "NAME[:WEIGHT],..." (a weight defaults
+   * to 1), e.g. "Normals:0.5,RGBA:1". A NAME is a point array of the input (its normals, its
+   * unsigned char colors, its texture coordinates, a scalar array, or an array of several
+   * components), or one of the keywords normals, colors (rgb, rgba), texcoords (uv): a file's
+   * attributes. A weight of 1 makes a change of 1 in the attribute (colors from 0 to 1) across a
+   * distance d cost about as much as moving the surface by d (meshoptimizer's weighting). Merged
+   * vertices take the attributes' optimal values. Empty (default): geometry only. The CLI's
+   * --attributes takes the same list.
+   */
+  vtkSetStringMacro(Attributes);
+  vtkGetStringMacro(Attributes);
+  ///@}
+
+  ///@{
+  /**
    * Memory budget of the data management layer in MiB (at least 0.0625). 0 (default) is
    * automatic: half of what this process may use (the lowest of the cgroup memory limit,
    * ulimit -v/-d and MemAvailable, read when the filter runs). -1 is unbounded (always in core).
@@ -162,6 +177,7 @@ protected:
 #endif
 
   char* FileName = nullptr;
+  char* Attributes = nullptr;
   double MemoryBudgetMB = 0.0;
   char* TemporaryDirectories = nullptr;
   int OperationMode = AUTOMATIC;

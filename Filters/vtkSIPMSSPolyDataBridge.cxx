@@ -1,5 +1,7 @@
 #include "vtkSIPMSSPolyDataBridge.h"
 
+#include "sipmss/algorithms/Attributes.h"
+
 #include "vtkCellData.h"
 
 #include "vtkAlgorithm.h"
@@ -85,6 +87,37 @@ AttributePlan Plan(vtkPointData* pointData)
   return plan;
 }
 
+} // namespace
+
+std::string CoreAttributeNames(vtkPolyData* input, const std::string& list)
+{
+  std::vector<sipmss::algorithms::AttributeWeight> weights;
+  if (!sipmss::algorithms::ParseAttributeWeights(list, weights).empty())
+  {
+    return list;
+  }
+  const AttributePlan plan = Plan(input->GetPointData());
+  for (auto& a : weights)
+  {
+    auto is = [&a](vtkDataArray* x) { return x && x->GetName() && a.name == x->GetName(); };
+    if (is(plan.normals))
+    {
+      a.name = "normals";
+    }
+    else if (is(plan.colors))
+    {
+      a.name = "colors";
+    }
+    else if (is(plan.tcoords))
+    {
+      a.name = "texcoords";
+    }
+  }
+  return sipmss::algorithms::FormatAttributeWeights(weights);
+}
+
+namespace
+{
 // A new array like `like` (type, name, components and their names) of n tuples.
 vtkSmartPointer<vtkDataArray> NewArrayLike(vtkDataArray* like, vtkIdType n)
 {

@@ -17,6 +17,13 @@ namespace vtkSIPMSSPolyDataBridge
 // char scalars, texture coordinates and every other 1-component numeric array.
 sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* skippedCells);
 
+// An attribute list (algorithms::ParseAttributeWeights' syntax) with the names of the input's
+// arrays that the core carries as normals, colors or texture coordinates given as the core's
+// keywords (normals, colors, texcoords); other names are the core's already (scalar arrays, and
+// NAME for the components NAME_0, NAME_1, ... of a larger array). A list that does not parse is
+// returned as it is.
+std::string CoreAttributeNames(vtkPolyData* input, const std::string& list);
+
 // Bounds of the input's points (xmin xmax ymin ymax zmin zmax).
 // The input's bounds; throws MeshIOError naming the first point with a non-finite coordinate
 // (the filters call it for every pipeline input before a run).

@@ -110,21 +110,25 @@ std::vector<AttributeChannel> AttributeChannels(
   {
     const double scale = a.weight;
     std::vector<AttributeChannel> mine;
-    if (a.name == "normals" && layout.normals)
+    // (keywords in any case: the VTK readers' arrays are Normals, RGBA and TCoords)
+    std::string key = a.name;
+    std::transform(key.begin(), key.end(), key.begin(),
+      [](unsigned char c) { return char(std::tolower(c)); });
+    if (key == "normals" && layout.normals)
     {
       for (int i = 0; i < 3; ++i)
       {
         mine.push_back({ i, -1, scale, true });
       }
     }
-    else if ((a.name == "colors" || a.name == "rgb" || a.name == "rgba") && layout.colors)
+    else if ((key == "colors" || key == "rgb" || key == "rgba") && layout.colors)
     {
-      for (int i = 0; i < (a.name == "rgba" ? 4 : 3); ++i)
+      for (int i = 0; i < (key == "rgba" ? 4 : 3); ++i)
       {
         mine.push_back({ -1, colorBase + i, scale / 255.0, false });
       }
     }
-    else if ((a.name == "texcoords" || a.name == "uv") && layout.texcoords)
+    else if ((key == "texcoords" || key == "uv" || key == "tcoords") && layout.texcoords)
     {
       for (int i = 0; i < 2; ++i)
       {

@@ -93,6 +93,7 @@ CASES = [
     (vtkSIPMSSCluster, {"BoundaryWeight": 1.0}, ["--boundary-weight", "1"], True),
     (vtkSIPMSSCluster, {"UseBounds": True, "Bounds": (-0.5, 1.5, -0.5, 1.5, -0.5, 1.5)},
      ["--bounds", "-0.5", "1.5", "-0.5", "1.5", "-0.5", "1.5"], True),
+    (vtkSIPMSSCluster, {"Attributes": "keep:1"}, ["--attributes", "keep:1"], True),
     (vtkSIPMSSCluster, {"NumberOfThreads": 1}, ["--threads", "1"], False),
     (vtkSIPMSSCluster, {"OperationMode": 2, "MemoryBudgetMB": 1.0},
      ["--mode", "out-of-core", "--memory-mb", "1"], False),
@@ -114,6 +115,9 @@ CASES = [
     # (the two halves of the sheet are pieces of their own: the selected one is pruned)
     (vtkSIPMSSDecimate, {"SelectionArray": "region", "PruneSize": 0.9},
      ["--selection-array", "region", "--prune-size", "0.9"], True),
+    (vtkSIPMSSDecimate, {"Attributes": "region:0.5,keep"}, ["--attributes", "region:0.5,keep"], True),
+    (vtkSIPMSSDecimate, {"PreClusterGridDimension": 30, "Attributes": "keep:2"},
+     ["--algorithm", "two-stage", "--grid", "30", "--attributes", "keep:2"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 30}, ["--algorithm", "two-stage", "--grid", "30"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 300}, ["--algorithm", "two-stage"], True),
     (vtkSIPMSSDecimate, {"NumberOfThreads": 1, "OperationMode": 1},
@@ -208,6 +212,10 @@ class FrontEnds(unittest.TestCase):
                  (vtkSIPMSSDecimate, "WeldDistance", float("inf"), ["--weld", "inf"], "--weld"),
                  (vtkSIPMSSDecimate, "MaximumError", nan, ["--max-error", "nan"], "--max-error"),
                  (vtkSIPMSSDecimate, "PruneSize", nan, ["--prune-size", "nan"], "--prune-size"),
+                 (vtkSIPMSSDecimate, "Attributes", "keep:-1", ["--attributes", "keep:-1"],
+                  "--attributes"),
+                 (vtkSIPMSSCluster, "Attributes", "keep,,region", ["--attributes", "keep,,region"],
+                  "--attributes"),
                  (vtkSIPMSSCluster, "BoundaryWeight", 2e9, ["--boundary-weight", "2e9"],
                   "--boundary-weight"),
                  (vtkSIPMSSDecimate, "MemoryBudgetMB", 0.01, ["--memory-mb", "0.01"], "--memory-mb")]

@@ -59,10 +59,11 @@ struct AttributeChannel
   bool normal = false; // a component of the normals (renormalized after a merge)
 };
 
-// The channels of `weights` in `layout`, scaled by their weight (colors also by 1/255). Names: "normals" (3 channels), "colors" or "rgb"
-// (3), "rgba" (4), "texcoords" or "uv" (2), a scalar of the layout, or NAME for the scalars
-// NAME_0, NAME_1, ... (a VTK array of several components). An unknown name, or one given twice,
-// throws MissingArrayError (the message lists the names the input has).
+// The channels of `weights` in `layout`, scaled by their weight (colors also by 1/255). Names:
+// the keywords "normals" (3 channels), "colors" or "rgb" (3), "rgba" (4), "texcoords", "uv" or
+// "tcoords" (2), in any case; a scalar of the layout; or NAME for the scalars NAME_0, NAME_1, ...
+// (a VTK array of several components). An unknown name, or a channel named twice (e.g. colors
+// and rgba), throws MissingArrayError (the message lists the names the input has).
 std::vector<AttributeChannel> AttributeChannels(
   const io::VertexLayout& layout, const std::vector<AttributeWeight>& weights);
 
