@@ -688,6 +688,78 @@ TEST_F(CLI, LockAndSelectionArraysNameAVertexProperty)
   EXPECT_NE(weld.out.find("--weld"), std::string::npos) << weld.out;
 }
 
+// --attributes weighs vertex properties in every algorithm; compare --attributes measures them.
+// A name the input lacks is an error naming the file (nothing written); a bad list is a usage
+// error.
+TEST_F(CLI, AttributesJoinTheErrorAndCompareMeasuresThem)
+{
+  const int n = 24;
+  const std::string in = this->P("colored.ply");
+  {
+    std::ofstream f(in);
+    f << "ply\nformat ascii 1.0\nelement vertex " << (n + 1) * (n + 1)
+      << "\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\n"
+         "property uchar green\nproperty uchar blue\nproperty float h\nelement face "
+      << 2 * n * n << "\nproperty list uchar int vertex_indices\nend_header\n";
+    for (int j = 0; j <= n; ++j)
+    {
+      for (int i = 0; i <= n; ++i)
+      {
+        const bool left = 3 * i < n;
+        f << i << " " << j << " " << (i * j) % 5 * 0.1 << " " << (left ? 250 : 10) << " 40 "
+          << (left ? 10 : 200) << " " << 0.5 * i << "\n";
+      }
+    }
+    for (int j = 0; j < n; ++j)
+    {
+      for (int i = 0; i < n; ++i)
+      {
+        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+        f << "3 " << a << " " << b << " " << c << "\n3 " << a << " " << c << " " << d << "\n";
+      }
+    }
+  }
+  auto colorRms = [&](const std::string& out) {
+    Result c = RunCli("compare " + in + " " + out + " --attributes colors,h --samples 20000");
+    EXPECT_EQ(c.status, 0) << c.out;
+    const std::size_t at = c.out.find("\"colors\"");
+    EXPECT_NE(at, std::string::npos) << c.out;
+    EXPECT_NE(c.out.find("\"h\""), std::string::npos) << c.out;
+    const std::size_t rms = c.out.find("\"rms\": ", at);
+    return std::stod(c.out.substr(rms + 7, 24));
+  };
+  for (const char* algorithm : { "decimate --target 100", "two-stage --grid 12 --target 100" })
+  {
+    Result plain = RunCli("simplify " + in + " " + this->P("plain.ply") + " --algorithm " +
+      algorithm + " --quiet");
+    ASSERT_EQ(plain.status, 0) << plain.out;
+    Result aware = RunCli("simplify " + in + " " + this->P("aware.ply") + " --algorithm " +
+      algorithm + " --attributes colors:1 --quiet");
+    ASSERT_EQ(aware.status, 0) << aware.out;
+    const double e0 = colorRms(this->P("plain.ply")), e1 = colorRms(this->P("aware.ply"));
+    EXPECT_LT(e1, 0.7 * e0) << algorithm;
+  }
+  Result cluster = RunCli("simplify " + in + " " + this->P("c.ply") +
+    " --algorithm cluster --grid 8 --attributes RGB:1,h:0.1 --quiet");
+  EXPECT_EQ(cluster.status, 0) << cluster.out;
+  Result missing = RunCli("simplify " + in + " " + this->P("m.ply") +
+    " --algorithm decimate --attributes normals:1 --quiet");
+  EXPECT_EQ(missing.status, 1) << missing.out;
+  EXPECT_NE(missing.out.find("colored.ply"), std::string::npos) << missing.out;
+  EXPECT_NE(missing.out.find("'normals'"), std::string::npos) << missing.out;
+  EXPECT_NE(missing.out.find("colors (rgb, rgba), h"), std::string::npos) << missing.out;
+  EXPECT_FALSE(fs::exists(this->P("m.ply")));
+  Result bad = RunCli("simplify " + in + " " + this->P("b.ply") + " --attributes colors:0");
+  EXPECT_EQ(bad.status, 2) << bad.out;
+  EXPECT_NE(bad.out.find("--attributes"), std::string::npos) << bad.out;
+  EXPECT_FALSE(fs::exists(this->P("b.ply")));
+  Result noNormals = RunCli("compare " + in + " " + this->P("c.ply") + " --attributes normals");
+  EXPECT_EQ(noNormals.status, 1) << noNormals.out;
+  EXPECT_NE(noNormals.out.find("colored.ply"), std::string::npos) << noNormals.out;
+  Result badList = RunCli("compare " + in + " " + this->P("c.ply") + " --attributes a,,b");
+  EXPECT_EQ(badList.status, 2) << badList.out;
+}
+
 TEST_F(CLI, RepairsAreReported)
 {
   // one good triangle, one face with two vertices and one with a repeated vertex

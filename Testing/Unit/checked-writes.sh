@@ -2,19 +2,22 @@
 # Runs decimation, clustering and two-stage with sipmss-checked (the cores built with
 # SIPMSS_CHECK_WRITES: a parallel phase's write outside its worker's declared range throws) and
 # with sipmss, on a generated scan large enough for every parallel phase: in core on two threads
-# and at 8 MB on two (the helper threads on forked DMLs). The outputs must be the same bytes.
+# and at 8 MB on two (the helper threads on forked DMLs), also with attribute-aware error (its
+# per-vertex extensions are written by the same phases). The outputs must be the same bytes.
 #   checked-writes.sh SIPMSS SIPMSS_CHECKED SIPMSS_MESHGEN
 set -euo pipefail
 sipmss="$1" checked="$2" meshgen="$3"
 tmp="$(mktemp -d "${TMPDIR:-/tmp}/sipmss-checked-XXXXXX")"
 trap 'rm -rf "$tmp"' EXIT
-"$meshgen" scan "$tmp/scan.ply" --triangles 600000 >/dev/null
+"$meshgen" scan "$tmp/plain.ply" --triangles 600000 >/dev/null
+"$meshgen" colorize "$tmp/plain.ply" "$tmp/colored.ply" --cells 6
 status=0
+input=plain
 run() {
   local name="$1"
   shift
-  "$sipmss" simplify "$tmp/scan.ply" "$tmp/$name.ply" --quiet "$@"
-  if ! "$checked" simplify "$tmp/scan.ply" "$tmp/$name-checked.ply" --quiet "$@"; then
+  "$sipmss" simplify "$tmp/$input.ply" "$tmp/$name.ply" --quiet "$@"
+  if ! "$checked" simplify "$tmp/$input.ply" "$tmp/$name-checked.ply" --quiet "$@"; then
     echo "FAIL: $name: sipmss-checked failed (a write out of its declared range?)"
     status=1
     return
@@ -33,4 +36,10 @@ done
 run "lods-8mb" --algorithm decimate --reduction 0.99 --lods 3 --memory-mb 8 --threads 2
 run "two-stage-8mb" --algorithm two-stage --grid 200 --target 5000 --memory-mb 8 --threads 2
 run "cluster-8mb" --algorithm cluster --grid 100 --memory-mb 8 --threads 2
+input=colored
+attributes=(--attributes normals:0.5,colors:1)
+run "attributes-core-t2" --algorithm decimate --target 20000 --memory-mb unbounded --threads 2 "${attributes[@]}"
+run "attributes-8mb-t2" --algorithm decimate --target 20000 --memory-mb 8 --threads 2 "${attributes[@]}"
+run "attributes-two-stage-8mb" --algorithm two-stage --grid 200 --target 5000 --memory-mb 8 --threads 2 "${attributes[@]}"
+run "attributes-cluster-8mb" --algorithm cluster --grid 100 --memory-mb 8 --threads 2 "${attributes[@]}"
 exit "$status"
