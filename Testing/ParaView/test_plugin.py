@@ -35,6 +35,21 @@ decimate.NumberOfThreads = 1
 decimate.UpdatePipeline()
 assert decimate.GetDataInformation().GetNumberOfCells() == n_dec
 
+# attribute-aware error: a point array of the input and its normals by their VTK names
+calc = Calculator(Input=sphere, ResultArrayName="band", Function="10*coordsX*coordsX")
+plain = SIPMSSDecimate(Input=calc, TargetNumberOfTriangles=1000)
+aware = SIPMSSDecimate(Input=calc, TargetNumberOfTriangles=1000, Attributes="band:1,Normals:0.5")
+for f in (plain, aware):
+    f.UpdatePipeline()
+out_plain = servermanager.Fetch(plain)
+out_aware = servermanager.Fetch(aware)
+assert out_aware.GetPointData().GetArray("band") is not None
+assert out_aware.GetPointData().GetNormals() is not None
+assert out_aware.GetNumberOfCells() == out_plain.GetNumberOfCells() == 1000
+differs = any(out_plain.GetPoint(i) != out_aware.GetPoint(i)
+              for i in range(min(out_plain.GetNumberOfPoints(), out_aware.GetNumberOfPoints())))
+assert differs, "the attributes changed nothing"
+
 # stream a file without loading it first (the "SIPMSS Cluster File" source)
 with tempfile.TemporaryDirectory() as tmp:
     path = os.path.join(tmp, "sphere.ply")
