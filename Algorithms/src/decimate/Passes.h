@@ -128,6 +128,14 @@ using storage::Workers;
 
 
 constexpr std::uint32_t kNone = 0xffffffffu;
+
+// The attribute-aware paths (mesh.xSize > 0) are out of line and cold: a run without attributes
+// keeps the hot loops' code as it was.
+#if defined(__GNUC__)
+#define SIPMSS_COLD __attribute__((noinline, cold))
+#else
+#define SIPMSS_COLD
+#endif
 constexpr int kCostBins = 1 << 15;
 constexpr int kGroups = 4;
 // Step 3 in chunks (StepChunks): by default at most kStepChunks chunks of at least
@@ -861,6 +869,8 @@ void Prune(RunContext& ctx, MeshState& mesh);
 // step 1 of a pass, the candidate sweep (Sweep.inl)
 double EdgeQuadric(const MeshState& mesh, const Views& w, std::uint32_t u, std::uint32_t v,
   Quadric& Q, Scratch& s);
+void AddEdgeAttributeError(const MeshState& mesh, const Views& w, std::uint32_t u, std::uint32_t v,
+  Quadric& Q, Scratch& s);
 void Apply(Views& w, std::uint32_t x, std::uint32_t partner, const Placement& pl, bool fromPartner);
 Placement Place(const Quadric& Q, const Vec3& pu, const Vec3& pv, State su, State sv);
 void Offer(MeshState& mesh, PassState& pass, std::uint32_t x, std::uint32_t partner,
@@ -886,6 +896,8 @@ bool Legal(RunContext& ctx, MeshState& mesh, std::uint32_t u, const Nb& nb, cons
 bool LegalFaces(RunContext& ctx, MeshState& mesh, std::uint32_t u, std::uint32_t v, std::uint32_t m,
   const std::uint32_t opp[2], const Vec3& p, Scratch& s);
 void InterpolateAttributes(MeshState& mesh, std::uint32_t u, std::uint32_t v, double t, Scratch& s);
+void SumExtensions(MeshState& mesh, PassState& pass, std::uint32_t u, std::uint32_t v, Scratch& s);
+void OptimalAttributes(MeshState& mesh, std::uint32_t u, Scratch& s);
 std::uint64_t Collapse(
   MeshState& mesh, PassState& pass, std::uint32_t u, const Cand& c, Scratch& s);
 Try TryCollapse(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u, Scratch& s,

@@ -319,9 +319,30 @@ void InterpolateAttributes(MeshState& mesh, std::uint32_t u, std::uint32_t v, do
   w.A.SetRange(std::uint64_t(u) * rec, rec, s.abuf.data());
 }
 
+// With attributes: u's and v's extensions summed into s.xbuf, and into u's unless the sums are
+// lazy (the optimal values need the sum even then: u's and v's are current until Compact).
+SIPMSS_COLD void SumExtensions(
+  MeshState& mesh, PassState& pass, std::uint32_t u, std::uint32_t v, Scratch& s)
+{
+  Views& w = mesh.W(s);
+  const std::size_t n = mesh.xSize;
+  s.xbuf.resize(n);
+  s.xbuf2.resize(n);
+  w.X.GetRange(std::uint64_t(u) * n, n, s.xbuf.data());
+  w.X.GetRange(std::uint64_t(v) * n, n, s.xbuf2.data());
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    s.xbuf[i] += s.xbuf2[i];
+  }
+  if (!pass.lazySums)
+  {
+    w.X.SetRange(std::uint64_t(u) * n, n, s.xbuf.data());
+  }
+}
+
 // With attributes: the weighted channels of u's record take their optimal values at u's (new)
 // position from the summed extension in s.xbuf (Attributes.h); normals are renormalized.
-void OptimalAttributes(MeshState& mesh, std::uint32_t u, Scratch& s)
+SIPMSS_COLD void OptimalAttributes(MeshState& mesh, std::uint32_t u, Scratch& s)
 {
   Views& w = mesh.W(s);
   const std::size_t rec = mesh.recSize;
@@ -405,21 +426,7 @@ std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const 
   }
   if (mesh.xSize)
   {
-    // The summed extension (its attributes' optimal values below need it even with lazy sums:
-    // u's and v's are current until Compact).
-    const std::size_t n = mesh.xSize;
-    s.xbuf.resize(n);
-    s.xbuf2.resize(n);
-    w.X.GetRange(std::uint64_t(u) * n, n, s.xbuf.data());
-    w.X.GetRange(std::uint64_t(v) * n, n, s.xbuf2.data());
-    for (std::size_t i = 0; i < n; ++i)
-    {
-      s.xbuf[i] += s.xbuf2[i];
-    }
-    if (!pass.lazySums)
-    {
-      w.X.SetRange(std::uint64_t(u) * n, n, s.xbuf.data());
-    }
+    SumExtensions(mesh, pass, u, v, s);
   }
   if (!pass.lazySums)
   {

@@ -31,10 +31,17 @@ double EdgeQuadric(const MeshState& mesh, const Views& w, std::uint32_t u, std::
   Quadric& Q, Scratch& s)
 {
   const double trace = Trace(Q);
-  if (!mesh.xSize)
+  if (mesh.xSize)
   {
-    return trace;
+    AddEdgeAttributeError(mesh, w, u, v, Q, s);
   }
+  return trace;
+}
+
+// (Out of line: a run without attributes keeps the sweep's code as it was.)
+SIPMSS_COLD void AddEdgeAttributeError(const MeshState& mesh, const Views& w, std::uint32_t u,
+  std::uint32_t v, Quadric& Q, Scratch& s)
+{
   const std::size_t n = mesh.xSize;
   s.xbuf.resize(n);
   s.xbuf2.resize(n);
@@ -45,7 +52,6 @@ double EdgeQuadric(const MeshState& mesh, const Views& w, std::uint32_t u, std::
     s.xbuf[i] += s.xbuf2[i];
   }
   AddAttributeError(s.xbuf.data(), mesh.channels.size(), Q);
-  return trace;
 }
 
 // Offers an edge to x: directly when x is this thread's, else queued for x's thread. The result
@@ -458,23 +464,23 @@ void EvaluateEdge(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32
   // Queued: placed in pairs (the offers do not depend on their order).
   EdgeBatch& b = s.batch;
   const int l = b.n;
+  for (int k = 0; k < 10; ++k)
+  {
+    b.q[k][l] = Qv.q[k] + Qu.q[k]; // (AddTo's sum)
+  }
+  b.trace[l] = b.q[0][l] + b.q[4][l] + b.q[7][l];
   if (mesh.xSize)
   {
-    Quadric Q = Qv;
-    AddTo(Q, Qu);
-    b.trace[l] = EdgeQuadric(mesh, w, u, v, Q, s);
+    Quadric Q;
+    for (int k = 0; k < 10; ++k)
+    {
+      Q.q[k] = b.q[k][l];
+    }
+    AddEdgeAttributeError(mesh, w, u, v, Q, s);
     for (int k = 0; k < 10; ++k)
     {
       b.q[k][l] = Q.q[k];
     }
-  }
-  else
-  {
-    for (int k = 0; k < 10; ++k)
-    {
-      b.q[k][l] = Qv.q[k] + Qu.q[k]; // (AddTo's sum)
-    }
-    b.trace[l] = b.q[0][l] + b.q[4][l] + b.q[7][l];
   }
   b.pu[0][l] = pu.x;
   b.pu[1][l] = pu.y;
