@@ -180,6 +180,13 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     vtkIdType skipped = 0;
     source = bridge::PolyDataSource(input, &skipped);
     request.attributes = bridge::CoreAttributeNames(input, request.attributes);
+    for (const auto& p : sipmss::algorithms::Problems(request))
+    {
+      // (the input's array names as keywords may name one attribute twice: Normals and normals)
+      vtkErrorMacro(<< this->PropertyName(p.parameter) << " " << p.problem << ".");
+      output->Initialize();
+      return 0;
+    }
     if (skipped)
     {
       vtkWarningMacro("Ignoring " << skipped << " vertex and line cells of the input.");

@@ -106,7 +106,7 @@ std::string CoreAttributeNames(vtkPolyData* input, const std::string& list)
     }
     else if (is(plan.colors))
     {
-      a.name = "colors";
+      a.name = plan.colors->GetNumberOfComponents() == 4 ? "rgba" : "colors";
     }
     else if (is(plan.tcoords))
     {

@@ -4,6 +4,9 @@
 
 #include <algorithm>
 #include <cctype>
+#include <charconv>
+#include <limits>
+#include <system_error>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
@@ -15,34 +18,42 @@ namespace sipmss::algorithms
 std::string ParseAttributeWeights(const std::string& text, std::vector<AttributeWeight>& out)
 {
   out.clear();
+  const auto notSpace = [](unsigned char c) { return !std::isspace(c); };
+  const auto trim = [&notSpace](std::string x) {
+    x.erase(x.begin(), std::find_if(x.begin(), x.end(), notSpace));
+    x.erase(std::find_if(x.rbegin(), x.rend(), notSpace).base(), x.end());
+    return x;
+  };
+  if (std::find_if(text.begin(), text.end(), notSpace) == text.end())
+  {
+    return {}; // an empty list
+  }
   std::size_t at = 0;
   while (at <= text.size())
   {
     const std::size_t comma = std::min(text.find(',', at), text.size());
-    std::string item = text.substr(at, comma - at);
+    const std::string item = trim(text.substr(at, comma - at));
     at = comma + 1;
-    const auto notSpace = [](unsigned char c) { return !std::isspace(c); };
-    item.erase(item.begin(), std::find_if(item.begin(), item.end(), notSpace));
-    item.erase(std::find_if(item.rbegin(), item.rend(), notSpace).base(), item.end());
     if (item.empty())
     {
-      if (text.find_first_not_of(" \t") == std::string::npos)
-      {
-        break; // an empty list
-      }
       return "has an empty entry in '" + text + "' (expected NAME[:WEIGHT],...)";
     }
     AttributeWeight a;
     const std::size_t colon = item.rfind(':');
-    a.name = item.substr(0, colon);
+    a.name = trim(item.substr(0, colon));
     if (colon != std::string::npos)
     {
-      const std::string w = item.substr(colon + 1);
-      char* end = nullptr;
-      a.weight = std::strtod(w.c_str(), &end);
-      if (w.empty() || *end != '\0')
+      // (std::from_chars: the C locale's number syntax whatever the process's locale)
+      const std::string w = trim(item.substr(colon + 1));
+      const auto r = std::from_chars(w.data(), w.data() + w.size(), a.weight);
+      if (w.empty() || r.ptr != w.data() + w.size() ||
+        (r.ec != std::errc() && r.ec != std::errc::result_out_of_range))
       {
         return "has a weight that is not a number in '" + item + "' (expected NAME[:WEIGHT])";
+      }
+      if (r.ec == std::errc::result_out_of_range)
+      {
+        a.weight = std::numeric_limits<double>::infinity(); // (refused below)
       }
     }
     if (a.name.empty())
@@ -110,11 +121,35 @@ std::vector<AttributeChannel> AttributeChannels(
   {
     const double scale = a.weight;
     std::vector<AttributeChannel> mine;
-    // (keywords in any case: the VTK readers' arrays are Normals, RGBA and TCoords)
+    // A scalar's own name first, then NAME for NAME_0, NAME_1, ... (the components of a VTK
+    // array, in order), then the keywords in any case (the VTK readers' arrays are Normals, RGBA
+    // and TCoords): a scalar array called like a keyword is that array.
+    const auto it = std::find(layout.scalars.begin(), layout.scalars.end(), a.name);
+    if (it != layout.scalars.end())
+    {
+      mine.push_back({ scalarBase + int(it - layout.scalars.begin()), -1, scale, false });
+    }
+    else
+    {
+      for (int c = 0;; ++c)
+      {
+        const auto ic = std::find(
+          layout.scalars.begin(), layout.scalars.end(), a.name + "_" + std::to_string(c));
+        if (ic == layout.scalars.end())
+        {
+          break;
+        }
+        mine.push_back({ scalarBase + int(ic - layout.scalars.begin()), -1, scale, false });
+      }
+    }
     std::string key = a.name;
     std::transform(key.begin(), key.end(), key.begin(),
       [](unsigned char c) { return char(std::tolower(c)); });
-    if (key == "normals" && layout.normals)
+    if (!mine.empty())
+    {
+      // (a scalar's)
+    }
+    else if (key == "normals" && layout.normals)
     {
       for (int i = 0; i < 3; ++i)
       {
@@ -133,28 +168,6 @@ std::vector<AttributeChannel> AttributeChannels(
       for (int i = 0; i < 2; ++i)
       {
         mine.push_back({ texBase + i, -1, scale, false });
-      }
-    }
-    else
-    {
-      const auto it = std::find(layout.scalars.begin(), layout.scalars.end(), a.name);
-      if (it != layout.scalars.end())
-      {
-        mine.push_back({ scalarBase + int(it - layout.scalars.begin()), -1, scale, false });
-      }
-      else
-      {
-        // NAME for NAME_0, NAME_1, ... (the components of a VTK array, in order).
-        for (int c = 0;; ++c)
-        {
-          const auto ic = std::find(layout.scalars.begin(), layout.scalars.end(),
-            a.name + "_" + std::to_string(c));
-          if (ic == layout.scalars.end())
-          {
-            break;
-          }
-          mine.push_back({ scalarBase + int(ic - layout.scalars.begin()), -1, scale, false });
-        }
       }
     }
     if (mine.empty())
@@ -252,9 +265,11 @@ void AddFaceAttributes(const double p0[3], const double p1[3], const double p2[3
   const double b = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2];
   const double c = e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2];
   const double det = a * c - b * b;
-  if (!(det > 0) || !(w > 0))
+  if (!(det > 1e-10 * a * c) || !(w > 0))
   {
-    return; // a degenerate face has no plane to fit over
+    // A degenerate face has no plane to fit over; a sliver (sin^2 of its angle at p0 below
+    // 1e-10) would fit a gradient of unbounded size and pin its corners: neither counts.
+    return;
   }
   extra[0] += w;
   for (std::size_t j = 0; j < k; ++j)

@@ -215,12 +215,13 @@ void RunOnOwnState(const DecimateOptions& options, Progress& progress, RunStats&
 }
 
 // The bytes of a decimation's structures on V vertices and F faces (without point data): the
-// table the decimation declares (BeginInput).
-double DecimateBytes(std::uint64_t V, std::uint64_t F)
+// table the decimation declares (BeginInput), with the attribute extensions of `channels`
+// channels (an upper bound before the header is known: 4 per attribute name).
+double DecimateBytes(std::uint64_t V, std::uint64_t F, std::size_t channels)
 {
   return double(V) *
-    double(
-      sizeof(Vec3) + sizeof(Quadric) + sizeof(State) + sizeof(Cand) + 4 * sizeof(std::uint32_t)) +
+    double(sizeof(Vec3) + sizeof(Quadric) + sizeof(State) + sizeof(Cand) +
+      4 * sizeof(std::uint32_t) + AttributeExtraSize(channels) * sizeof(double)) +
     double(F) * double(sizeof(Tri) + 3 * sizeof(std::uint32_t));
 }
 
@@ -235,8 +236,9 @@ RunStats DecimateReordered(const MeshSource& input, io::MeshSink& output,
   RunStats before;
   detail::StoredMesh mesh(dml);
   detail::ReadAndReorder(input, mesh, dml, options.storage,
-    [](storage::Profile& p, std::uint64_t v, std::uint64_t f) {
-      p.structures.push_back({ "decimate", 1, std::uint64_t(DecimateBytes(v, f)), 0.0 });
+    [&options](storage::Profile& p, std::uint64_t v, std::uint64_t f) {
+      p.structures.push_back({ "decimate", 1,
+        std::uint64_t(DecimateBytes(v, f, 4 * options.attributes.size())), 0.0 });
     },
     [&options](std::uint64_t v, std::uint64_t f) { return EstimateDecimateWork(v, f, options); },
     progress, before, options.threads);

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <sstream>
+#include <stdexcept>
 
 namespace sipmss::algorithms
 {
@@ -189,6 +190,17 @@ storage::Profile MakeProfile(const SimplifyRequest& r)
 
 namespace
 {
+// The attribute list of a request (Simplify's caller has checked Problems: a list that does not
+// parse is a programming error, never silently shortened).
+void ParseValidAttributes(const std::string& text, std::vector<AttributeWeight>& out)
+{
+  const std::string problem = ParseAttributeWeights(text, out);
+  if (!problem.empty())
+  {
+    throw std::invalid_argument("the attribute list " + problem);
+  }
+}
+
 RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const MeshSource& input,
   io::MeshSink& output, Progress& progress, const LevelCallback& onLevel)
 {
@@ -200,7 +212,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
     o.boundaryWeight = r.EffectiveBoundaryWeight();
     o.boundaryQuadrics = o.boundaryWeight > 0;
     o.threads = r.threads;
-    ParseAttributeWeights(r.attributes, o.attributes); // (valid: Problems)
+    ParseValidAttributes(r.attributes, o.attributes);
     if (r.bounds)
     {
       o.useBounds = true;
@@ -220,7 +232,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   o.lockArray = r.lockArray;
   o.selectionArray = r.selectionArray;
   o.pruneSize = r.pruneSize;
-  ParseAttributeWeights(r.attributes, o.attributes); // (valid: Problems)
+  ParseValidAttributes(r.attributes, o.attributes);
   o.storage = profile;
   o.threads = r.threads;
   if (r.algorithm == Algorithm::Decimate)

@@ -38,6 +38,13 @@ TEST(AlgorithmsAttributes, ParsesTheListEveryFrontEndTakes)
   EXPECT_TRUE(w.empty());
   EXPECT_EQ(alg::ParseAttributeWeights("  ", w), "");
   EXPECT_TRUE(w.empty());
+  EXPECT_EQ(alg::ParseAttributeWeights(" normals : 0.5 ,\tuv:2\n", w), "");
+  ASSERT_EQ(w.size(), 2u);
+  EXPECT_EQ(w[0].name, "normals");
+  EXPECT_EQ(w[0].weight, 0.5);
+  EXPECT_EQ(w[1].name, "uv");
+  EXPECT_EQ(alg::ParseAttributeWeights("\n", w), "");
+  EXPECT_TRUE(w.empty());
   // (a NAME may hold a colon: the weight is after the last one)
   EXPECT_EQ(alg::ParseAttributeWeights("a:b:2", w), "");
   EXPECT_EQ(w[0].name, "a:b");
@@ -81,6 +88,15 @@ TEST(AlgorithmsAttributes, ChannelsFollowThePackedRecord)
   EXPECT_EQ(c[3].floatIndex, 6);
   EXPECT_EQ(c[4].floatIndex, 7);
   EXPECT_EQ(one("TCoords").size(), 2u);
+  // A scalar array named like a keyword is that array, not the keyword's attribute.
+  io::VertexLayout k = l;
+  k.scalars = { "Normals_0", "Normals_1", "Normals_2", "uv" };
+  std::vector<alg::AttributeWeight> kw = { { "Normals", 1.0 }, { "uv", 1.0 } };
+  c = alg::AttributeChannels(k, kw);
+  ASSERT_EQ(c.size(), 4u);
+  EXPECT_EQ(c[0].floatIndex, 5);
+  EXPECT_FALSE(c[0].normal);
+  EXPECT_EQ(c[3].floatIndex, 8);
   std::vector<alg::AttributeWeight> w = { { "missing", 1.0 } };
   try
   {

@@ -753,6 +753,11 @@ TEST_F(CLI, AttributesJoinTheErrorAndCompareMeasuresThem)
   EXPECT_EQ(bad.status, 2) << bad.out;
   EXPECT_NE(bad.out.find("--attributes"), std::string::npos) << bad.out;
   EXPECT_FALSE(fs::exists(this->P("b.ply")));
+  // (compare measures the attributes as they are: weights are ignored)
+  Result w1 = RunCli("compare " + in + " " + this->P("c.ply") + " --attributes colors --samples 5000");
+  Result w3 = RunCli("compare " + in + " " + this->P("c.ply") + " --attributes colors:3 --samples 5000");
+  EXPECT_EQ(w1.status, 0) << w1.out;
+  EXPECT_EQ(w1.out, w3.out);
   Result noNormals = RunCli("compare " + in + " " + this->P("c.ply") + " --attributes normals");
   EXPECT_EQ(noNormals.status, 1) << noNormals.out;
   EXPECT_NE(noNormals.out.find("colored.ply"), std::string::npos) << noNormals.out;

@@ -676,6 +676,10 @@ int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t sa
   {
     throw CLI::ValidationError("--attributes", problem);
   }
+  for (algorithms::AttributeWeight& n : names)
+  {
+    n.weight = 1.0; // (compare measures the attributes as they are)
+  }
   algorithms::TriangleMesh a, b;
   CompareSink sa(a, names, ref), sb(b, names, cand);
   io::ReadMesh(ref, sa);
@@ -687,6 +691,11 @@ int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t sa
     {
       throw io::MeshIOError(path + ": nothing to compare: the input has no valid triangle");
     }
+  }
+  if (sa.groups != sb.groups)
+  {
+    throw io::MeshIOError(cand + ": its attributes " + attributes +
+      " do not have the components of " + ref + "'s");
   }
   algorithms::CompareOptions o;
   o.samples = samples;
@@ -817,11 +826,11 @@ int main(int argc, char** argv)
     "vertex that --lock-array or --selection-array keeps stays");
   CLI::Option_group* attributes = simplify->add_option_group("Attributes");
   attributes->add_option("--attributes", rq.attributes,
-    "point attributes that join the error, NAME[:WEIGHT],... (weight default 1): normals, colors "
-    "(or rgb, rgba), texcoords (or uv), or a scalar vertex property; e.g. normals:0.5,colors:1. "
-    "A weight of 1 makes an attribute difference of 1 (colors from 0 to 1) cost as much as a "
-    "distance of the input's largest bounding-box side; merged vertices take the attributes' "
-    "optimal values (default: geometry only)");
+    "point attributes that join the error, NAME[:WEIGHT],... (weight default 1): a vertex "
+    "property of INPUT, or normals, colors (or rgb, rgba), texcoords (or uv); e.g. "
+    "normals:0.5,colors:1. A weight of 1 makes a change of 1 in the attribute (colors from 0 to "
+    "1) across a distance d cost about as much as moving the surface by d (meshoptimizer's "
+    "weighting); merged vertices take the attributes' optimal values (default: geometry only)");
   CLI::Option_group* storageGroup = simplify->add_option_group("Memory and storage");
   storageGroup->add_option("--memory-mb", sa.memory,
     "memory budget in MiB (at least 0.0625), auto (= 0, the default: half of what this process "

@@ -59,10 +59,10 @@ struct AttributeChannel
   bool normal = false; // a component of the normals (renormalized after a merge)
 };
 
-// The channels of `weights` in `layout`, scaled by their weight (colors also by 1/255). Names:
-// the keywords "normals" (3 channels), "colors" or "rgb" (3), "rgba" (4), "texcoords", "uv" or
-// "tcoords" (2), in any case; a scalar of the layout; or NAME for the scalars NAME_0, NAME_1, ...
-// (a VTK array of several components). An unknown name, or a channel named twice (e.g. colors
+// The channels of `weights` in `layout`, scaled by their weight (colors also by 1/255). A name is,
+// in this order: a scalar of the layout; NAME for the scalars NAME_0, NAME_1, ... (a VTK array of
+// several components); or a keyword in any case, "normals" (3 channels), "colors" or "rgb" (3),
+// "rgba" (4), "texcoords", "uv" or "tcoords" (2). An unknown name, or a channel named twice (e.g. colors
 // and rgba), throws MissingArrayError (the message lists the names the input has).
 std::vector<AttributeChannel> AttributeChannels(
   const io::VertexLayout& layout, const std::vector<AttributeWeight>& weights);
@@ -87,7 +87,8 @@ void SetChannelValue(const AttributeChannel& c, double s, std::uint8_t* record);
 
 // Adds face (p0, p1, p2) with weight w (its area) and weighted corner values s0/s1/s2 (k
 // channels each) to the extension `extra` (AttributeExtraSize(k) doubles). Positions in the
-// caller's (local) coordinates. A degenerate face adds nothing.
+// caller's (local) coordinates. A degenerate face or a sliver (the squared sine of its angle at p0
+// below 1e-10) adds nothing.
 void AddFaceAttributes(const double p0[3], const double p1[3], const double p2[3],
   const double* s0, const double* s1, const double* s2, std::size_t k, double w, double* extra);
 // Adds the attribute error of an extension (the attributes minimized out) to the geometric
