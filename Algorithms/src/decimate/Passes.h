@@ -492,7 +492,7 @@ struct alignas(kCacheLine) Scratch
   std::vector<std::uint32_t> ids, next = std::vector<std::uint32_t>(64),
                                   prev = std::vector<std::uint32_t>(64);
   std::vector<std::uint8_t> abuf, abuf2; // point data of a collapse
-  std::vector<double> xbuf, xbuf2;        // attribute quadrics' extensions of an edge
+  std::vector<double> xbuf, xbuf2, xbuf3; // attribute quadrics' extensions of an edge
   std::uint32_t lo = 0, hi = kNone;        // the vertices whose candidates this thread writes
   std::vector<std::vector<Deferred>> out; // offers to the other threads' vertices, by thread
   EdgeBatch batch;                        // the sweep's edges waiting for their placement

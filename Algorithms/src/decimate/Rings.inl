@@ -600,10 +600,10 @@ void FaceAttributes(const MeshState& mesh, const Views& w, const Tri& t, Attribu
     p[c][0] = q.x;
     p[c][1] = q.y;
     p[c][2] = q.z;
-    w.A.GetRange(std::uint64_t(t.v[c]) * mesh.recSize, mesh.recSize, as.rec.data());
+    const std::uint8_t* rec = w.A.Run(std::uint64_t(t.v[c]) * mesh.recSize, mesh.recSize, as.rec);
     for (std::size_t j = 0; j < k; ++j)
     {
-      as.s[c * k + j] = ChannelValue(mesh.channels[j], as.rec.data());
+      as.s[c * k + j] = ChannelValue(mesh.channels[j], rec);
     }
   }
   const Vec3 n = Cross(w.P.Get(t.v[1]) - w.P.Get(t.v[0]), w.P.Get(t.v[2]) - w.P.Get(t.v[0]));

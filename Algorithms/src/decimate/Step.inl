@@ -327,12 +327,11 @@ SIPMSS_COLD void SumExtensions(
   Views& w = mesh.W(s);
   const std::size_t n = mesh.xSize;
   s.xbuf.resize(n);
-  s.xbuf2.resize(n);
-  w.X.GetRange(std::uint64_t(u) * n, n, s.xbuf.data());
-  w.X.GetRange(std::uint64_t(v) * n, n, s.xbuf2.data());
+  const double* a = w.X.Run(std::uint64_t(u) * n, n, s.xbuf2);
+  const double* b = w.X.Run(std::uint64_t(v) * n, n, s.xbuf3);
   for (std::size_t i = 0; i < n; ++i)
   {
-    s.xbuf[i] += s.xbuf2[i];
+    s.xbuf[i] = a[i] + b[i];
   }
   if (!pass.lazySums)
   {

@@ -44,12 +44,12 @@ SIPMSS_COLD void AddEdgeAttributeError(const MeshState& mesh, const Views& w, st
 {
   const std::size_t n = mesh.xSize;
   s.xbuf.resize(n);
-  s.xbuf2.resize(n);
-  w.X.GetRange(std::uint64_t(u) * n, n, s.xbuf.data());
-  w.X.GetRange(std::uint64_t(v) * n, n, s.xbuf2.data());
+  // (in place in core; copied into the scratch out of core)
+  const double* a = w.X.Run(std::uint64_t(u) * n, n, s.xbuf2);
+  const double* b = w.X.Run(std::uint64_t(v) * n, n, s.xbuf3);
   for (std::size_t i = 0; i < n; ++i)
   {
-    s.xbuf[i] += s.xbuf2[i];
+    s.xbuf[i] = a[i] + b[i];
   }
   AddAttributeError(s.xbuf.data(), mesh.channels.size(), Q);
 }
