@@ -1,5 +1,5 @@
 // vtkSIPMSSDecimate: reduction target, levels of detail on port 1, in core == out of core,
-// point data carried, bad input.
+// point data carried, attributes in the error by their VTK names, bad input.
 #include "vtkSIPMSSDecimate.h"
 
 #include "SIPMSSTestUtilities.h"
@@ -9,6 +9,7 @@
 #include "vtkNew.h"
 #include "vtkPointData.h"
 #include "vtkSphereSource.h"
+#include "vtkUnsignedCharArray.h"
 
 namespace
 {
@@ -87,6 +88,75 @@ int TestSphere()
   return EXIT_SUCCESS;
 }
 
+// Attributes named as the pipeline names them (the sphere's Normals, an RGB array): they change
+// the result, keep their arrays' names and types, give the same bytes out of core; a name the
+// input lacks, or one attribute named twice, is an error.
+int TestAttributes()
+{
+  vtkNew<vtkSphereSource> sphere;
+  sphere->SetThetaResolution(90);
+  sphere->SetPhiResolution(90);
+  sphere->Update();
+  vtkPolyData* in = sphere->GetOutput();
+  vtkNew<vtkUnsignedCharArray> colors;
+  colors->SetName("Colors");
+  colors->SetNumberOfComponents(3);
+  for (vtkIdType i = 0; i < in->GetNumberOfPoints(); ++i)
+  {
+    const bool red = in->GetPoint(i)[0] > 0.1;
+    colors->InsertNextTuple3(red ? 230 : 20, 40, red ? 20 : 230);
+  }
+  in->GetPointData()->AddArray(colors);
+  SIPMSS_CHECK(in->GetPointData()->GetNormals() != nullptr);
+  auto run = [&](const char* attributes, int mode) {
+    vtkSmartPointer<vtkSIPMSSDecimate> d = vtkSmartPointer<vtkSIPMSSDecimate>::New();
+    d->SetInputData(in);
+    d->SetTargetNumberOfTriangles(600);
+    d->SetAttributes(attributes);
+    d->SetOperationMode(mode);
+    if (mode == vtkSIPMSSFilterBase::OUT_OF_CORE)
+    {
+      d->SetMemoryBudgetMB(64.0 / 1024.0);
+    }
+    d->Update();
+    return d;
+  };
+  auto plain = run("", vtkSIPMSSFilterBase::IN_CORE);
+  auto aware = run("Colors:1,Normals:0.5", vtkSIPMSSFilterBase::IN_CORE);
+  auto ooc = run("Colors:1,Normals:0.5", vtkSIPMSSFilterBase::OUT_OF_CORE);
+  SIPMSS_CHECK(aware->GetOutput()->GetNumberOfPolys() == 600);
+  SIPMSS_CHECK(!SameMesh(plain->GetOutput(), aware->GetOutput()));
+  SIPMSS_CHECK(ooc->GetUsedOutOfCore());
+  SIPMSS_CHECK(SameMesh(aware->GetOutput(), ooc->GetOutput()));
+  vtkDataArray* oc = aware->GetOutput()->GetPointData()->GetArray("Colors");
+  SIPMSS_CHECK(oc && oc->GetDataType() == VTK_UNSIGNED_CHAR && oc->GetNumberOfComponents() == 3);
+  vtkDataArray* ocOoc = ooc->GetOutput()->GetPointData()->GetArray("Colors");
+  SIPMSS_CHECK(ocOoc != nullptr);
+  for (vtkIdType i = 0; i < oc->GetNumberOfTuples(); ++i)
+  {
+    for (int k = 0; k < 3; ++k)
+    {
+      SIPMSS_CHECK(oc->GetComponent(i, k) == ocOoc->GetComponent(i, k));
+    }
+  }
+  SIPMSS_CHECK(aware->GetOutput()->GetPointData()->GetNormals() != nullptr);
+  for (const char* bad : { "Nope:1", "Normals:1,normals:2" })
+  {
+    vtkNew<ErrorRecorder> errors;
+    vtkNew<vtkSIPMSSDecimate> d;
+    d->AddObserver(vtkCommand::ErrorEvent, errors);
+    d->GetExecutive()->AddObserver(vtkCommand::ErrorEvent, errors);
+    d->SetInputData(in);
+    d->SetAttributes(bad);
+    d->Update();
+    SIPMSS_CHECK(errors->Count > 0);
+    SIPMSS_CHECK(d->GetOutput()->GetNumberOfPoints() == 0);
+    const std::string what = std::string(bad) == "Nope:1" ? "'Nope'" : "twice";
+    SIPMSS_CHECK(errors->All.find(what) != std::string::npos);
+  }
+  return EXIT_SUCCESS;
+}
+
 int TestBadInput()
 {
   vtkNew<ErrorRecorder> errors;
@@ -103,7 +173,8 @@ int TestBadInput()
 
 int TestSIPMSSDecimate(int, char*[])
 {
-  if (TestSphere() != EXIT_SUCCESS || TestBadInput() != EXIT_SUCCESS)
+  if (TestSphere() != EXIT_SUCCESS || TestAttributes() != EXIT_SUCCESS ||
+    TestBadInput() != EXIT_SUCCESS)
   {
     return EXIT_FAILURE;
   }
