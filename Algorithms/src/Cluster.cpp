@@ -270,11 +270,16 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
         cluster.dml.Resize(cluster.chanBlock, cluster.chanCap);
       }
       PackRecord(cluster.layout, c, i, cluster.recBuf.data());
+      float* chans = static_cast<float*>(cluster.dml.BasePointer(cluster.chanBlock));
+      float* v = chans ? chans + (c.first + i) * k : cluster.chanBuf.data();
       for (std::size_t j = 0; j < k; ++j)
       {
-        cluster.chanBuf[j] = float(ChannelValue(cluster.channels[j], cluster.recBuf.data()));
+        v[j] = float(ChannelValue(cluster.channels[j], cluster.recBuf.data()));
       }
-      cluster.dml.Write(cluster.chanBlock, k * sizeof(float), c.first + i, cluster.chanBuf.data());
+      if (!chans)
+      {
+        cluster.dml.Write(cluster.chanBlock, k * sizeof(float), c.first + i, v);
+      }
     }
   }
   cluster.verticesSeen = std::max<std::uint64_t>(cluster.verticesSeen, c.first + c.count);
@@ -796,12 +801,22 @@ void AddFaceAttributeTerms(ClusterState& cluster, const std::uint32_t* f, const 
   const VertexRec& b, const VertexRec& c, double area)
 {
   const std::size_t k = cluster.channels.size();
+  // (in core the blocks' memory directly: BasePointer is null out of core)
+  const float* chans = static_cast<const float*>(cluster.dml.BasePointer(cluster.chanBlock));
+  std::vector<double>& s = cluster.cornerValues;
+  s.resize(3 * k);
   for (int i = 0; i < 3; ++i)
   {
-    cluster.dml.Read(cluster.chanBlock, k * sizeof(float), f[i], cluster.chanBuf.data() + k * i);
+    const float* v = chans ? chans + std::size_t(f[i]) * k : cluster.chanBuf.data() + k * i;
+    if (!chans)
+    {
+      cluster.dml.Read(cluster.chanBlock, k * sizeof(float), f[i], cluster.chanBuf.data() + k * i);
+    }
+    for (std::size_t j = 0; j < k; ++j)
+    {
+      s[k * i + j] = v[j];
+    }
   }
-  std::vector<double>& s = cluster.cornerValues;
-  s.assign(cluster.chanBuf.begin(), cluster.chanBuf.end());
   const Vec3 pa = Position(a), pb = Position(b), pc = Position(c);
   const double p0[3] = { pa.x, pa.y, pa.z }, p1[3] = { pb.x, pb.y, pb.z },
                p2[3] = { pc.x, pc.y, pc.z };
@@ -809,14 +824,22 @@ void AddFaceAttributeTerms(ClusterState& cluster, const std::uint32_t* f, const 
   AddFaceAttributes(p0, p1, p2, s.data(), s.data() + k, s.data() + 2 * k, k, area,
     cluster.faceExt.data());
   const std::size_t es = cluster.xSize * sizeof(double);
+  double* exts = static_cast<double*>(cluster.dml.BasePointer(cluster.extBlock));
   for (const std::uint32_t cell : { a.cell, b.cell, c.cell })
   {
-    cluster.dml.Read(cluster.extBlock, es, cell, cluster.extBuf.data());
+    double* e = exts ? exts + std::size_t(cell) * cluster.xSize : cluster.extBuf.data();
+    if (!exts)
+    {
+      cluster.dml.Read(cluster.extBlock, es, cell, e);
+    }
     for (std::size_t i = 0; i < cluster.xSize; ++i)
     {
-      cluster.extBuf[i] += cluster.faceExt[i];
+      e[i] += cluster.faceExt[i];
     }
-    cluster.dml.Write(cluster.extBlock, es, cell, cluster.extBuf.data());
+    if (!exts)
+    {
+      cluster.dml.Write(cluster.extBlock, es, cell, e);
+    }
   }
 }
 
