@@ -179,7 +179,15 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     }
     vtkIdType skipped = 0;
     source = bridge::PolyDataSource(input, &skipped);
-    request.attributes = bridge::CoreAttributeNames(input, request.attributes);
+    std::string ambiguous;
+    request.attributes = bridge::CoreAttributeNames(input, request.attributes, ambiguous);
+    if (!ambiguous.empty())
+    {
+      vtkErrorMacro(<< this->PropertyName(sipmss::algorithms::Parameter::Attributes) << " "
+                    << ambiguous << ".");
+      output->Initialize();
+      return 0;
+    }
     for (const auto& p : sipmss::algorithms::Problems(request))
     {
       // (the input's array names as keywords may name one attribute twice: Normals and normals)

@@ -2,6 +2,8 @@
 
 #include "sipmss/algorithms/Attributes.h"
 
+#include <algorithm>
+
 #include "vtkCellData.h"
 
 #include "vtkAlgorithm.h"
@@ -89,29 +91,46 @@ AttributePlan Plan(vtkPointData* pointData)
 
 } // namespace
 
-std::string CoreAttributeNames(vtkPolyData* input, const std::string& list)
+std::string CoreAttributeNames(vtkPolyData* input, const std::string& list, std::string& problem)
 {
+  problem.clear();
   std::vector<sipmss::algorithms::AttributeWeight> weights;
   if (!sipmss::algorithms::ParseAttributeWeights(list, weights).empty())
   {
     return list;
   }
   const AttributePlan plan = Plan(input->GetPointData());
+  const std::vector<std::string>& scalars = plan.layout.scalars;
   for (auto& a : weights)
   {
     auto is = [&a](vtkDataArray* x) { return x && x->GetName() && a.name == x->GetName(); };
+    std::string keyword;
     if (is(plan.normals))
     {
-      a.name = "normals";
+      keyword = "normals";
     }
     else if (is(plan.colors))
     {
-      a.name = plan.colors->GetNumberOfComponents() == 4 ? "rgba" : "colors";
+      keyword = plan.colors->GetNumberOfComponents() == 4 ? "rgba" : "colors";
     }
     else if (is(plan.tcoords))
     {
-      a.name = "texcoords";
+      keyword = "texcoords";
     }
+    if (keyword.empty())
+    {
+      continue;
+    }
+    // (the core takes a scalar's name before a keyword: another array called like the keyword
+    // would be taken instead)
+    if (std::find(scalars.begin(), scalars.end(), keyword) != scalars.end() ||
+      std::find(scalars.begin(), scalars.end(), keyword + "_0") != scalars.end())
+    {
+      problem = "cannot tell the array '" + a.name + "' from the point array '" + keyword +
+        "' of the input: rename one of them";
+      return list;
+    }
+    a.name = keyword;
   }
   return sipmss::algorithms::FormatAttributeWeights(weights);
 }

@@ -21,8 +21,10 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
 // arrays that the core carries as normals, colors or texture coordinates given as the core's
 // keywords (normals, colors, texcoords); other names are the core's already (scalar arrays, and
 // NAME for the components NAME_0, NAME_1, ... of a larger array). A list that does not parse is
-// returned as it is.
-std::string CoreAttributeNames(vtkPolyData* input, const std::string& list);
+// returned as it is. A name that would become a keyword the input also has as a point array's name
+// (e.g. the normals "N" and another array called "normals") sets `problem` (the list is returned
+// as it is).
+std::string CoreAttributeNames(vtkPolyData* input, const std::string& list, std::string& problem);
 
 // Bounds of the input's points (xmin xmax ymin ymax zmin zmax).
 // The input's bounds; throws MeshIOError naming the first point with a non-finite coordinate

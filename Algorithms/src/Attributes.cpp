@@ -44,7 +44,11 @@ std::string ParseAttributeWeights(const std::string& text, std::vector<Attribute
     if (colon != std::string::npos)
     {
       // (std::from_chars: the C locale's number syntax whatever the process's locale)
-      const std::string w = trim(item.substr(colon + 1));
+      std::string w = trim(item.substr(colon + 1));
+      if (w.size() > 1 && w[0] == '+' && w[1] != '+' && w[1] != '-')
+      {
+        w.erase(0, 1); // (one leading '+', as strtod and the readers take it)
+      }
       const auto r = std::from_chars(w.data(), w.data() + w.size(), a.weight);
       if (w.empty() || r.ptr != w.data() + w.size() ||
         (r.ec != std::errc() && r.ec != std::errc::result_out_of_range))
@@ -53,7 +57,7 @@ std::string ParseAttributeWeights(const std::string& text, std::vector<Attribute
       }
       if (r.ec == std::errc::result_out_of_range)
       {
-        a.weight = std::numeric_limits<double>::infinity(); // (refused below)
+        return "has a weight out of range in '" + item + "'";
       }
     }
     if (a.name.empty())
@@ -265,10 +269,16 @@ void AddFaceAttributes(const double p0[3], const double p1[3], const double p2[3
   const double b = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2];
   const double c = e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2];
   const double det = a * c - b * b;
-  if (!(det > 1e-10 * a * c) || !(w > 0))
+  // |e1 x e2|^2 = det is the product of any two squared edge lengths times the squared sine of
+  // their angle; with the two longest, of the smallest angle.
+  const double e3 = a + c - 2 * b; // |p2 - p1|^2
+  const double longest = std::max({ a, c, e3 });
+  const double second = a + c + e3 - longest - std::min({ a, c, e3 });
+  if (!(det > 1e-10 * longest * second) || !(w > 0))
   {
-    // A degenerate face has no plane to fit over; a sliver (sin^2 of its angle at p0 below
-    // 1e-10) would fit a gradient of unbounded size and pin its corners: neither counts.
+    // A degenerate face has no plane to fit over; a sliver (the squared sine of its smallest
+    // angle below 1e-10) would fit a gradient of unbounded size and pin its corners: neither
+    // counts.
     return;
   }
   extra[0] += w;

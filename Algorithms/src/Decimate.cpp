@@ -216,7 +216,8 @@ void RunOnOwnState(const DecimateOptions& options, Progress& progress, RunStats&
 
 // The bytes of a decimation's structures on V vertices and F faces (without point data): the
 // table the decimation declares (BeginInput), with the attribute extensions of `channels`
-// channels (an upper bound before the header is known: 4 per attribute name).
+// channels (before the header is known, an estimate: 4 per attribute name; the DML counts the
+// real bytes).
 double DecimateBytes(std::uint64_t V, std::uint64_t F, std::size_t channels)
 {
   return double(V) *

@@ -154,6 +154,24 @@ int TestAttributes()
     const std::string what = std::string(bad) == "Nope:1" ? "'Nope'" : "twice";
     SIPMSS_CHECK(errors->All.find(what) != std::string::npos);
   }
+  // Another point array called like the keyword the normals become: refused, not mixed up.
+  vtkNew<vtkFloatArray> shadow;
+  shadow->SetName("normals");
+  shadow->SetNumberOfTuples(in->GetNumberOfPoints());
+  shadow->Fill(0.0);
+  in->GetPointData()->AddArray(shadow);
+  {
+    vtkNew<ErrorRecorder> errors;
+    vtkNew<vtkSIPMSSDecimate> d;
+    d->AddObserver(vtkCommand::ErrorEvent, errors);
+    d->GetExecutive()->AddObserver(vtkCommand::ErrorEvent, errors);
+    d->SetInputData(in);
+    d->SetAttributes("Normals:1");
+    d->Update();
+    SIPMSS_CHECK(errors->Count > 0);
+    SIPMSS_CHECK(errors->All.find("cannot tell the array 'Normals'") != std::string::npos);
+  }
+  in->GetPointData()->RemoveArray("normals");
   return EXIT_SUCCESS;
 }
 

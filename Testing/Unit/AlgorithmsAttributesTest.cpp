@@ -45,6 +45,12 @@ TEST(AlgorithmsAttributes, ParsesTheListEveryFrontEndTakes)
   EXPECT_EQ(w[1].name, "uv");
   EXPECT_EQ(alg::ParseAttributeWeights("\n", w), "");
   EXPECT_TRUE(w.empty());
+  EXPECT_EQ(alg::ParseAttributeWeights("a:+0.25,b:.5", w), "");
+  EXPECT_EQ(w[0].weight, 0.25);
+  EXPECT_EQ(w[1].weight, 0.5);
+  EXPECT_NE(alg::ParseAttributeWeights("a:1e-400", w).find("out of range"), std::string::npos);
+  EXPECT_NE(alg::ParseAttributeWeights("a:+-1", w), "");
+  EXPECT_NE(alg::ParseAttributeWeights("  ,  ", w), "");
   // (a NAME may hold a colon: the weight is after the last one)
   EXPECT_EQ(alg::ParseAttributeWeights("a:b:2", w), "");
   EXPECT_EQ(w[0].name, "a:b");

@@ -42,8 +42,11 @@ run "attributes-core-t2" --algorithm decimate --target 20000 --memory-mb unbound
 run "attributes-8mb-t2" --algorithm decimate --target 20000 --memory-mb 8 --threads 2 "${attributes[@]}"
 run "attributes-two-stage-8mb" --algorithm two-stage --grid 200 --target 5000 --memory-mb 8 --threads 2 "${attributes[@]}"
 run "attributes-cluster-8mb" --algorithm cluster --grid 100 --memory-mb 8 --threads 2 "${attributes[@]}"
+run "attributes-cluster-core" --algorithm cluster --grid 100 --memory-mb unbounded --threads 2 "${attributes[@]}"
+run "attributes-two-stage-core" --algorithm two-stage --grid 200 --target 5000 --memory-mb unbounded --threads 2 "${attributes[@]}"
 # (in core and out of core give the same bytes, with and without attributes)
-for pair in "decimate-core-t2 decimate-8mb-t2" "attributes-core-t2 attributes-8mb-t2"; do
+for pair in "decimate-core-t2 decimate-8mb-t2" "attributes-core-t2 attributes-8mb-t2" \
+  "attributes-cluster-core attributes-cluster-8mb" "attributes-two-stage-core attributes-two-stage-8mb"; do
   set -- $pair
   if cmp -s "$tmp/$1.ply" "$tmp/$2.ply"; then
     echo "ok: $1 = $2"

@@ -692,10 +692,14 @@ int RunCompare(const std::string& ref, const std::string& cand, std::uint64_t sa
       throw io::MeshIOError(path + ": nothing to compare: the input has no valid triangle");
     }
   }
-  if (sa.groups != sb.groups)
+  for (std::size_t g = 0; g < names.size(); ++g)
   {
-    throw io::MeshIOError(cand + ": its attributes " + attributes +
-      " do not have the components of " + ref + "'s");
+    if (sa.groups[g] != sb.groups[g])
+    {
+      throw io::MeshIOError(cand + ": its attribute '" + names[g].name + "' has " +
+        std::to_string(sb.groups[g][1]) + " components, " + ref + "'s has " +
+        std::to_string(sa.groups[g][1]));
+    }
   }
   algorithms::CompareOptions o;
   o.samples = samples;

@@ -87,8 +87,8 @@ void SetChannelValue(const AttributeChannel& c, double s, std::uint8_t* record);
 
 // Adds face (p0, p1, p2) with weight w (its area) and weighted corner values s0/s1/s2 (k
 // channels each) to the extension `extra` (AttributeExtraSize(k) doubles). Positions in the
-// caller's (local) coordinates. A degenerate face or a sliver (the squared sine of its angle at p0
-// below 1e-10) adds nothing.
+// caller's (local) coordinates. A degenerate face or a sliver (the squared sine of its smallest
+// angle below 1e-10) adds nothing.
 void AddFaceAttributes(const double p0[3], const double p1[3], const double p2[3],
   const double* s0, const double* s1, const double* s2, std::size_t k, double w, double* extra);
 // Adds the attribute error of an extension (the attributes minimized out) to the geometric
