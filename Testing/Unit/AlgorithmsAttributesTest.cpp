@@ -5,6 +5,8 @@
 #include "sipmss/algorithms/Compare.h"
 #include "sipmss/algorithms/Simplify.h"
 
+#include "AlgorithmsTestUtil.h"
+
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -174,57 +176,9 @@ TEST(AlgorithmsAttributes, ALinearFieldHasNoErrorAndItsOwnValues)
 
 // ---- whole runs
 
-struct Mesh
-{
-  std::vector<float> p;
-  std::vector<std::uint32_t> t;
-  std::vector<std::string> names; // point scalars
-  std::vector<float> s;           // names.size() per vertex
-};
-
-alg::MeshSource Source(const Mesh& m)
-{
-  return [&m](io::MeshSink& sink, const io::ReadOptions& options) {
-    io::MeshHeader h;
-    h.vertexCount = m.p.size() / 3;
-    h.faceCount = m.t.size() / 3;
-    h.layout.scalars = m.names;
-    sink.Begin(h);
-    io::VertexChunk c;
-    c.count = m.p.size() / 3;
-    c.xyz = m.p.data();
-    c.scalars = m.names.empty() ? nullptr : m.s.data();
-    sink.Vertices(c);
-    io::ReadStats st;
-    st.vertices = c.count;
-    if (!options.verticesOnly)
-    {
-      sink.Triangles(m.t.data(), m.t.size() / 3);
-      st.triangles = m.t.size() / 3;
-      sink.End(st);
-    }
-    return st;
-  };
-}
-
-struct Collect final : io::MeshSink
-{
-  Mesh m;
-  void Begin(const io::MeshHeader& h) override { this->m.names = h.layout.scalars; }
-  void Vertices(const io::VertexChunk& c) override
-  {
-    this->m.p.insert(this->m.p.end(), c.xyz, c.xyz + 3 * c.count);
-    if (c.scalars)
-    {
-      this->m.s.insert(this->m.s.end(), c.scalars, c.scalars + this->m.names.size() * c.count);
-    }
-  }
-  void Triangles(const std::uint32_t* i, std::size_t n) override
-  {
-    this->m.t.insert(this->m.t.end(), i, i + 3 * n);
-  }
-  void End(const io::ReadStats&) override {}
-};
+using sipmss::testing::Collect;
+using sipmss::testing::MemorySource;
+using sipmss::testing::Mesh;
 
 struct Quiet final : alg::Progress
 {
@@ -246,7 +200,7 @@ Mesh Grid(int n, const std::vector<std::string>& names, F... fields)
       m.p.insert(m.p.end(), { float(x), float(y), float(z) });
       for (double v : { fields(x, y, z)... })
       {
-        m.s.push_back(float(v));
+        m.scalar.push_back(float(v));
       }
     }
   }
@@ -277,7 +231,7 @@ Mesh Simplified(const Mesh& in, alg::Algorithm algorithm, const std::string& att
   EXPECT_TRUE(alg::Problems(r).empty());
   Collect out;
   Quiet q;
-  alg::Simplify(r, Source(in), out, q);
+  alg::Simplify(r, MemorySource(in), out, q);
   return out.m;
 }
 
@@ -288,8 +242,8 @@ double AttributeRms(const Mesh& a, const Mesh& b, std::size_t k)
     alg::TriangleMesh t;
     t.points = m.p;
     t.triangles = m.t;
-    t.attributeStride = m.names.size();
-    t.attributes = m.s;
+    t.attributeStride = m.Names().size();
+    t.attributes = m.scalar;
     return t;
   };
   alg::CompareOptions o;
@@ -327,11 +281,11 @@ TEST(AlgorithmsAttributes, MergedVerticesTakeTheOptimalValues)
     auto worst = [&](const std::string& attributes) {
       const Mesh out =
         Simplified(in, a, attributes, -1, "", a == alg::Algorithm::Cluster ? 10 : 0);
-      EXPECT_FALSE(out.s.empty());
+      EXPECT_FALSE(out.scalar.empty());
       double e = 0;
-      for (std::size_t v = 0; v < out.s.size(); ++v)
+      for (std::size_t v = 0; v < out.scalar.size(); ++v)
       {
-        e = std::max(e, std::abs(double(out.s[v]) - f(out.p[3 * v], out.p[3 * v + 1], 0.0)));
+        e = std::max(e, std::abs(double(out.scalar[v]) - f(out.p[3 * v], out.p[3 * v + 1], 0.0)));
       }
       return e;
     };
@@ -354,7 +308,7 @@ TEST(AlgorithmsAttributes, OutOfCoreGivesTheSameBytes)
     const Mesh ooc = Simplified(in, a, "c:0.5,h:2", 0.0625, "", grid);
     EXPECT_EQ(core.p, ooc.p) << alg::ToString(a);
     EXPECT_EQ(core.t, ooc.t) << alg::ToString(a);
-    EXPECT_EQ(core.s, ooc.s) << alg::ToString(a);
+    EXPECT_EQ(core.scalar, ooc.scalar) << alg::ToString(a);
   }
 }
 
@@ -367,7 +321,7 @@ TEST(AlgorithmsAttributes, LockedVerticesKeepTheirPointData)
   std::size_t kept = 0;
   for (std::size_t v = 0; v < in.p.size() / 3; ++v)
   {
-    if (in.s[2 * v + 1] == 0.0f)
+    if (in.scalar[2 * v + 1] == 0.0f)
     {
       continue;
     }
@@ -378,7 +332,7 @@ TEST(AlgorithmsAttributes, LockedVerticesKeepTheirPointData)
         out.p[3 * w + 2] == in.p[3 * v + 2])
       {
         found = true;
-        EXPECT_EQ(out.s[2 * w], in.s[2 * v]) << "locked vertex " << v;
+        EXPECT_EQ(out.scalar[2 * w], in.scalar[2 * v]) << "locked vertex " << v;
       }
     }
     EXPECT_TRUE(found) << "locked vertex " << v;
@@ -399,7 +353,7 @@ TEST(AlgorithmsAttributes, AMissingNameIsAnError)
     r.attributes = "normals:1";
     Collect out;
     Quiet q;
-    EXPECT_THROW(alg::Simplify(r, Source(in), out, q), alg::MissingArrayError) << alg::ToString(a);
+    EXPECT_THROW(alg::Simplify(r, MemorySource(in), out, q), alg::MissingArrayError) << alg::ToString(a);
   }
   alg::SimplifyRequest r;
   r.attributes = "c:0";
@@ -413,7 +367,7 @@ TEST(AlgorithmsAttributes, CompareMeasuresAttributeDifferences)
 {
   const Mesh a = Grid(10, { "s" }, [](double x, double, double) { return x; });
   Mesh b = a;
-  for (float& v : b.s)
+  for (float& v : b.scalar)
   {
     v += 0.25f;
   }

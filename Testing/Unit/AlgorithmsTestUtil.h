@@ -3,6 +3,7 @@
 
 #include "sipmss/algorithms/Common.h"
 
+#include <string>
 #include <vector>
 
 namespace sipmss::testing
@@ -11,7 +12,16 @@ struct Mesh
 {
   std::vector<float> p;
   std::vector<std::uint32_t> t;
-  std::vector<float> scalar; // optional point scalar "s"
+  // Optional point scalars: `names` with names.size() values per vertex in `scalar`; without
+  // names, a non-empty `scalar` is the one scalar "s".
+  std::vector<float> scalar;
+  std::vector<std::string> names;
+  std::vector<std::string> Names() const
+  {
+    return !this->names.empty() ? this->names
+                                : (this->scalar.empty() ? std::vector<std::string>{}
+                                                        : std::vector<std::string>{ "s" });
+  }
 };
 
 inline algorithms::MeshSource MemorySource(const Mesh& m)
@@ -20,10 +30,7 @@ inline algorithms::MeshSource MemorySource(const Mesh& m)
     io::MeshHeader h;
     h.vertexCount = m.p.size() / 3;
     h.faceCount = m.t.size() / 3;
-    if (!m.scalar.empty())
-    {
-      h.layout.scalars = { "s" };
-    }
+    h.layout.scalars = m.Names();
     sink.Begin(h);
     io::VertexChunk c;
     c.count = m.p.size() / 3;
@@ -46,13 +53,21 @@ struct Collect final : io::MeshSink
 {
   Mesh m;
   io::MeshHeader header;
-  void Begin(const io::MeshHeader& h) override { this->header = h; }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->header = h;
+    if (h.layout.scalars.size() != 1 || h.layout.scalars[0] != "s")
+    {
+      this->m.names = h.layout.scalars;
+    }
+  }
   void Vertices(const io::VertexChunk& c) override
   {
     this->m.p.insert(this->m.p.end(), c.xyz, c.xyz + 3 * c.count);
     if (c.scalars)
     {
-      this->m.scalar.insert(this->m.scalar.end(), c.scalars, c.scalars + c.count);
+      this->m.scalar.insert(this->m.scalar.end(), c.scalars,
+        c.scalars + this->header.layout.scalars.size() * c.count);
     }
   }
   void Triangles(const std::uint32_t* i, std::size_t n) override
