@@ -204,15 +204,7 @@ Mesh Grid(int n, const std::vector<std::string>& names, F... fields)
       }
     }
   }
-  auto id = [n](int i, int j) { return std::uint32_t(j * (n + 1) + i); };
-  for (int j = 0; j < n; ++j)
-  {
-    for (int i = 0; i < n; ++i)
-    {
-      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j), id(i + 1, j + 1) });
-      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
-    }
-  }
+  sipmss::testing::GridTriangles(n, m.t);
   return m;
 }
 

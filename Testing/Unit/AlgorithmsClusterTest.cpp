@@ -45,13 +45,7 @@ Mesh Plane(int n)
       m.p.insert(m.p.end(), { float(i) / n, float(j) / n, 0.f });
       m.scalar.push_back(float(i) / n);
     }
-  auto id = [n](int i, int j) { return std::uint32_t(j * (n + 1) + i); };
-  for (int j = 0; j < n; ++j)
-    for (int i = 0; i < n; ++i)
-    {
-      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j), id(i + 1, j + 1) });
-      m.t.insert(m.t.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
-    }
+  sipmss::testing::GridTriangles(n, m.t);
   return m;
 }
 

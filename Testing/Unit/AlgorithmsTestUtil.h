@@ -24,6 +24,21 @@ struct Mesh
   }
 };
 
+// The triangles of an (n + 1) x (n + 1) grid of vertices numbered row by row: two per quad, the
+// same diagonal in each.
+inline void GridTriangles(int n, std::vector<std::uint32_t>& t)
+{
+  auto id = [n](int i, int j) { return std::uint32_t(j * (n + 1) + i); };
+  for (int j = 0; j < n; ++j)
+  {
+    for (int i = 0; i < n; ++i)
+    {
+      t.insert(t.end(), { id(i, j), id(i + 1, j), id(i + 1, j + 1) });
+      t.insert(t.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
+    }
+  }
+}
+
 inline algorithms::MeshSource MemorySource(const Mesh& m)
 {
   return [&m](io::MeshSink& sink, const io::ReadOptions& options) {
