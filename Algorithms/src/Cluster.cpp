@@ -159,6 +159,8 @@ void AddFaceAttributeTerms(ClusterState& cluster, const std::uint32_t* f, const 
 
 void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
 {
+  cluster.channels = AttributeChannels(h.layout, cluster.options.attributes);
+  cluster.xSize = AttributeExtraSize(cluster.channels.size());
   if (cluster.configure && h.vertexCount)
   {
     // The paper's Config: the table of structures with their maximum counts decides the mode.
@@ -166,8 +168,7 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
     const std::uint64_t gridCells =
       std::uint64_t(cluster.grid.dims[0]) * cluster.grid.dims[1] * cluster.grid.dims[2];
     profile.structures.clear();
-    AddClusterStructures(profile, h.vertexCount, h.faceCount, gridCells,
-      AttributeChannels(h.layout, cluster.options.attributes).size());
+    AddClusterStructures(profile, h.vertexCount, h.faceCount, gridCells, cluster.channels.size());
     cluster.dml.Config(profile);
   }
   cluster.header = h;
@@ -181,8 +182,6 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
     cluster.attrBlock = cluster.dml.OpenBlock(cluster.attrStride * sizeof(float), 1024);
     cluster.attrBuf.assign(cluster.attrStride, 0.f);
   }
-  cluster.channels = AttributeChannels(h.layout, cluster.options.attributes);
-  cluster.xSize = AttributeExtraSize(cluster.channels.size());
   if (cluster.xSize)
   {
     const std::size_t k = cluster.channels.size();

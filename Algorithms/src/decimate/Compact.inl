@@ -30,7 +30,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   constexpr std::uint32_t kTop = 0x80000000u;
   std::uint64_t k = 0;
   std::uint32_t end = 0;
-  std::vector<double> xa, xb; // (lazy sums of the attribute extensions)
+  std::vector<double> xsum, xa, xb; // (lazy sums of the attribute extensions)
   for (std::uint64_t v = 0; v < nv; ++v)
   {
     ctx.Tick(nf + v, total);
@@ -56,16 +56,8 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
       const double trace = Trace(Q);
       if (mesh.xSize)
       {
-        const std::size_t n = mesh.xSize;
-        xa.resize(n);
-        xb.resize(n);
-        mesh.views.X.GetRange(v * n, n, xa.data());
-        mesh.views.X.GetRange(std::uint64_t(c.partner) * n, n, xb.data());
-        for (std::size_t i = 0; i < n; ++i)
-        {
-          xa[i] += xb[i];
-        }
-        mesh.views.X.SetRange(v * n, n, xa.data());
+        SumExtension(mesh.views.X, mesh.xSize, v, c.partner, xsum, xa, xb);
+        mesh.views.X.SetRange(v * mesh.xSize, mesh.xSize, xsum.data());
       }
       if (trace > 0)
       {

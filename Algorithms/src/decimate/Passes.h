@@ -283,6 +283,20 @@ struct Views
   View<std::uint32_t> O;
 };
 
+// The sum of vertices u's and v's attribute extensions (n doubles each, MeshState::extra) into
+// `sum`: read in place in core, through the buffers a and b out of core.
+inline void SumExtension(const View<double>& X, std::size_t n, std::uint64_t u, std::uint64_t v,
+  std::vector<double>& sum, std::vector<double>& a, std::vector<double>& b)
+{
+  sum.resize(n);
+  const double* x = X.Run(u * n, n, a);
+  const double* y = X.Run(v * n, n, b);
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    sum[i] = x[i] + y[i];
+  }
+}
+
 // Fetches the cache lines of element *p: its first and its last byte (a quadric spans two lines,
 // a position or a face straddles two at some indices).
 template <class T>

@@ -593,20 +593,21 @@ struct AttributeScratch
 void FaceAttributes(const MeshState& mesh, const Views& w, const Tri& t, AttributeScratch& as)
 {
   const std::size_t k = mesh.channels.size();
+  Vec3 q[3];
   double p[3][3];
   for (int c = 0; c < 3; ++c)
   {
-    const Vec3 q = w.P.Get(t.v[c]);
-    p[c][0] = q.x;
-    p[c][1] = q.y;
-    p[c][2] = q.z;
+    q[c] = w.P.Get(t.v[c]);
+    p[c][0] = q[c].x;
+    p[c][1] = q[c].y;
+    p[c][2] = q[c].z;
     const std::uint8_t* rec = w.A.Run(std::uint64_t(t.v[c]) * mesh.recSize, mesh.recSize, as.rec);
     for (std::size_t j = 0; j < k; ++j)
     {
       as.s[c * k + j] = ChannelValue(mesh.channels[j], rec);
     }
   }
-  const Vec3 n = Cross(w.P.Get(t.v[1]) - w.P.Get(t.v[0]), w.P.Get(t.v[2]) - w.P.Get(t.v[0]));
+  const Vec3 n = Cross(q[1] - q[0], q[2] - q[0]);
   AddFaceAttributes(p[0], p[1], p[2], as.s.data(), as.s.data() + k, as.s.data() + 2 * k, k,
     0.5 * std::sqrt(Dot(n, n)), as.x.data());
 }

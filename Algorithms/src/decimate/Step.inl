@@ -325,17 +325,10 @@ SIPMSS_COLD void SumExtensions(
   MeshState& mesh, PassState& pass, std::uint32_t u, std::uint32_t v, Scratch& s)
 {
   Views& w = mesh.W(s);
-  const std::size_t n = mesh.xSize;
-  s.xbuf.resize(n);
-  const double* a = w.X.Run(std::uint64_t(u) * n, n, s.xbuf2);
-  const double* b = w.X.Run(std::uint64_t(v) * n, n, s.xbuf3);
-  for (std::size_t i = 0; i < n; ++i)
-  {
-    s.xbuf[i] = a[i] + b[i];
-  }
+  SumExtension(w.X, mesh.xSize, u, v, s.xbuf, s.xbuf2, s.xbuf3);
   if (!pass.lazySums)
   {
-    w.X.SetRange(std::uint64_t(u) * n, n, s.xbuf.data());
+    w.X.SetRange(std::uint64_t(u) * mesh.xSize, mesh.xSize, s.xbuf.data());
   }
 }
 

@@ -42,15 +42,7 @@ double EdgeQuadric(const MeshState& mesh, const Views& w, std::uint32_t u, std::
 SIPMSS_COLD void AddEdgeAttributeError(const MeshState& mesh, const Views& w, std::uint32_t u,
   std::uint32_t v, Quadric& Q, Scratch& s)
 {
-  const std::size_t n = mesh.xSize;
-  s.xbuf.resize(n);
-  // (in place in core; copied into the scratch out of core)
-  const double* a = w.X.Run(std::uint64_t(u) * n, n, s.xbuf2);
-  const double* b = w.X.Run(std::uint64_t(v) * n, n, s.xbuf3);
-  for (std::size_t i = 0; i < n; ++i)
-  {
-    s.xbuf[i] = a[i] + b[i];
-  }
+  SumExtension(w.X, mesh.xSize, u, v, s.xbuf, s.xbuf2, s.xbuf3);
   AddAttributeError(s.xbuf.data(), mesh.channels.size(), Q);
 }
 
