@@ -30,6 +30,10 @@
 #include <limits>
 #include <optional>
 #include <thread>
+#include <tuple>
+#ifdef __SSE2__
+#include <emmintrin.h>
+#endif
 
 // The structures (one translation unit with this file).
 #include "cluster/Structures.inl"
@@ -47,6 +51,8 @@ struct ClusterState
     Progress& progress)
     : dml(dml)
     , grid(grid)
+    , units(FixedUnits::Make(grid.origin, grid.cellSize, grid.dims,
+        options.boundaryQuadrics ? options.boundaryWeight : 1.0))
     , options(options)
     , configure(configure)
     , progress(progress)
@@ -77,6 +83,7 @@ struct ClusterState
   ClusterState& operator=(const ClusterState&) = delete;
   DML& dml;
   ClusterGrid grid;
+  FixedUnits units; // of the exact cell sums
   const ClusterOptions& options;
   bool configure;
   Progress& progress;
@@ -141,7 +148,7 @@ std::uint64_t Candidates(const ClusterState& cluster);
 std::uint64_t OutputTriangles(const ClusterState& cluster);
 void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats);
 void Tick(ClusterState& cluster, std::uint64_t more = 0);
-void AddCell(ClusterState& cluster, const float* p);
+void AddCell(ClusterState& cluster);
 void AccumulateAttributes(
   ClusterState& cluster, const io::VertexChunk& c, std::size_t i, std::uint32_t cell);
 void Defer(ClusterState& cluster, const std::uint32_t* f);
@@ -240,7 +247,7 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
         cell = cluster.cellMap.FindOrInsert(key, cluster.numCells, &inserted);
         if (inserted)
         {
-          AddCell(cluster, p);
+          AddCell(cluster);
         }
         cached = KeySlot{ key + 1, cell };
       }
@@ -249,14 +256,9 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
     }
     cluster.vertexWindow.At(cluster.vertices.Id(), c.first + i) =
       VertexRec{ p[0], p[1], p[2], cell };
-    UpdateCell(cluster, cell, [p](CellRec& rec) {
-      rec.sum[0] += p[0];
-      rec.sum[1] += p[1];
-      rec.sum[2] += p[2];
-      ++rec.count;
-    });
     if (cluster.attrStride)
     {
+      UpdateCell(cluster, cell, [](CellRec& rec) { ++rec.vertices; });
       AccumulateAttributes(cluster, c, i, cell);
     }
     if (cluster.xSize)
@@ -288,6 +290,10 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
 
 void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count)
 {
+  // In core, the vertex records of the faces a few ahead are fetched while this one is added
+  // (their loads overlap the face's arithmetic).
+  const auto* base = static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id()));
+  constexpr std::size_t kAhead = 8;
   for (std::size_t t = 0; t < count; ++t)
   {
     if ((t & 4095) == 4095)
@@ -295,6 +301,17 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
       Tick(cluster, t);
     }
     const std::uint32_t* f = idx + 3 * t;
+    if (base && t + kAhead < count)
+    {
+      const std::uint32_t* g = f + 3 * kAhead;
+      for (int k = 0; k < 3; ++k)
+      {
+        if (g[k] < cluster.verticesSeen)
+        {
+          __builtin_prefetch(base + g[k]);
+        }
+      }
+    }
     if (f[0] >= cluster.verticesSeen || f[1] >= cluster.verticesSeen ||
       f[2] >= cluster.verticesSeen)
     {
@@ -442,7 +459,8 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
     }
     const CellRec rec = cluster.cells.Get(c);
     // The quadric to minimize: the cell's, with its attribute error (Attributes.h).
-    Quadric Q = rec.q;
+    const Quadric cellQ = cluster.units.ToDouble(rec.q);
+    Quadric Q = cellQ;
     if (cluster.xSize)
     {
       cluster.dml.Read(cluster.extBlock, cluster.xSize * sizeof(double), c, cluster.extBuf.data());
@@ -450,23 +468,27 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
     }
     double p[3];
     Representative(cluster, rec, Q, p);
-    // The representative's error, at its position as written.
-    const double trace = QuadricTrace(rec.q.q);
+    // The representative's error, at its position as written (the quadrics are about the
+    // centre).
+    const double* centre = cluster.units.centre.data();
+    const double trace = QuadricTrace(cellQ.q);
     if (trace > 0)
     {
       cluster.achievedErr2 = std::max(cluster.achievedErr2,
-        QuadricValue(Q.q, double(float(p[0])), double(float(p[1])), double(float(p[2]))) /
+        QuadricValue(Q.q, double(float(p[0])) - centre[0], double(float(p[1])) - centre[1],
+          double(float(p[2])) - centre[2]) /
           trace);
     }
     if (cluster.options.exportQuadric)
     {
-      cluster.options.exportQuadric(first + xyz.size() / 3, rec.q.q);
+      const Quadric absolute = Translated(cellQ, centre);
+      cluster.options.exportQuadric(first + xyz.size() / 3, absolute.q);
     }
     xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
     if (cluster.attrStride)
     {
       cluster.dml.Read(cluster.attrBlock, cluster.attrStride * sizeof(float), c, attr.data());
-      const float inv = rec.count ? 1.0f / float(rec.count) : 0.f;
+      const float inv = rec.vertices ? 1.0f / float(rec.vertices) : 0.f;
       std::size_t k = 0;
       if (cluster.layout.normals)
       {
@@ -496,7 +518,9 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
       }
       if (cluster.xSize && cluster.extBuf[0] > 0)
       {
-        OptimalCellAttributes(cluster, p, normals, rgba, texcoords, scalars);
+        const double* centre = cluster.units.centre.data();
+        const double rel[3] = { p[0] - centre[0], p[1] - centre[1], p[2] - centre[2] };
+        OptimalCellAttributes(cluster, rel, normals, rgba, texcoords, scalars);
       }
     }
     if (xyz.size() / 3 == chunk)
@@ -548,7 +572,7 @@ void Tick(ClusterState& cluster, std::uint64_t more)
   cluster.progress.Tick(cluster.expected ? done / double(cluster.expected) : 0.0);
 }
 
-void AddCell(ClusterState& cluster, const float* p)
+void AddCell(ClusterState& cluster)
 {
   if (cluster.numCells == kNoCell - 1)
   {
@@ -568,9 +592,7 @@ void AddCell(ClusterState& cluster, const float* p)
     cluster.dml.Resize(cluster.extBlock, cluster.cells.Size());
   }
   CellRec rec{};
-  rec.first[0] = p[0];
-  rec.first[1] = p[1];
-  rec.first[2] = p[2];
+  std::fill_n(rec.first, 3, std::numeric_limits<float>::infinity());
   cluster.cells.Set(cluster.numCells, rec);
   ++cluster.numCells;
 }
@@ -721,9 +743,13 @@ void AddBoundaryQuadrics(ClusterState& cluster)
 
 void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e)
 {
-  const VertexRec a = cluster.vertices.Get(e.a);
-  const VertexRec b = cluster.vertices.Get(e.b);
+  VertexRec a = cluster.vertices.Get(e.a);
+  VertexRec b = cluster.vertices.Get(e.b);
   const VertexRec c = cluster.vertices.Get(e.third);
+  if (std::tie(b.x, b.y, b.z) < std::tie(a.x, a.y, a.z))
+  {
+    std::swap(a, b); // (the plane from the same corners in any numbering: exact sums)
+  }
   const Vec3 pa = Position(a);
   const Vec3 ed = Position(b) - pa;
   const Vec3 fn = Cross(ed, Position(c) - pa);
@@ -736,9 +762,11 @@ void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e)
     return;
   }
   const Vec3 u = Unit(n, len);
-  const double d = -Dot(u, pa);
+  const double* centre = cluster.units.centre.data();
+  const double d = -Dot(u, Vec3{ pa.x - centre[0], pa.y - centre[1], pa.z - centre[2] });
   const double w = cluster.options.boundaryWeight * el2;
-  const Quadric q = PlaneQuadric(u.x, u.y, u.z, d, w);
+  const double un[3] = { u.x, u.y, u.z };
+  const FixedQuadric q = cluster.units.Plane(un, d, w);
   for (std::uint32_t cell : { a.cell, b.cell })
   {
     UpdateCell(cluster, cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
@@ -763,25 +791,88 @@ void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
   const VertexRec a = cluster.vertexWindow.At(vid, f[0]);
   const VertexRec b = cluster.vertexWindow.At(vid, f[1]);
   const VertexRec c = cluster.vertexWindow.At(vid, f[2]);
-  // Area-weighted plane quadric of the face (Garland-Heckbert), added to each corner's cell.
-  const Vec3 pa = Position(a);
-  const Vec3 n = Cross(Position(b) - pa, Position(c) - pa);
+  // Area-weighted plane quadric of the face (Garland-Heckbert) and the corner, added to each
+  // corner's cell, exactly (FixedUnits). The plane is computed from the lexicographically
+  // smallest corner on (orientation kept), so a face gives the same bits in any numbering.
+  const VertexRec* r[3] = { &a, &b, &c };
+  {
+    auto less = [](const VertexRec* x, const VertexRec* y) {
+      return std::tie(x->x, x->y, x->z) < std::tie(y->x, y->y, y->z);
+    };
+    const int m = less(r[1], r[0]) ? (less(r[2], r[1]) ? 2 : 1) : (less(r[2], r[0]) ? 2 : 0);
+    std::rotate(r, r + m, r + 3);
+  }
+  const Vec3 pa = Position(*r[0]);
+  const Vec3 n = Cross(Position(*r[1]) - pa, Position(*r[2]) - pa);
   const double len = std::sqrt(Dot(n, n));
+  FixedQuadric q{};
   if (len > 0)
   {
     const Vec3 u = Unit(n, len);
-    const double d = -Dot(u, pa);
+    const double* centre = cluster.units.centre.data();
+    const double d = -Dot(u, Vec3{ pa.x - centre[0], pa.y - centre[1], pa.z - centre[2] });
     const double w = 0.5 * len; // area
-    const Quadric q = PlaneQuadric(u.x, u.y, u.z, d, w);
-    const std::uint32_t cs[3] = { a.cell, b.cell, c.cell };
-    for (std::uint32_t cell : cs)
-    {
-      UpdateCell(cluster, cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
-    }
+    const double un[3] = { u.x, u.y, u.z };
+    q = cluster.units.Plane(un, d, w);
     if (cluster.xSize)
     {
       AddFaceAttributeTerms(cluster, f, a, b, c, w);
     }
+  }
+  const bool sampled = cluster.options.fallback == ClusterFallback::SampledVertex;
+  FixedSum pos[3][3];
+  for (int i = 0; i < 3; ++i)
+  {
+    const VertexRec& v = i == 0 ? a : (i == 1 ? b : c);
+    std::int32_t corner[4];
+    cluster.units.Corner(&v.x, corner);
+    for (int k = 0; k < 3; ++k)
+    {
+      pos[i][k] = FixedSum(Fixed(corner[k]));
+    }
+  }
+  auto add = [&](std::uint32_t cell, const FixedQuadric& fq, const FixedSum* p, int corners,
+               const VertexRec* smallest) {
+    UpdateCell(cluster, cell, [&](CellRec& rec) {
+      AddTo(rec.q, fq);
+      rec.sum[0] += p[0];
+      rec.sum[1] += p[1];
+      rec.sum[2] += p[2];
+      rec.corners += corners;
+      if (sampled &&
+        std::tie(smallest->x, smallest->y, smallest->z) <
+          std::tie(rec.first[0], rec.first[1], rec.first[2]))
+      {
+        rec.first[0] = smallest->x;
+        rec.first[1] = smallest->y;
+        rec.first[2] = smallest->z;
+      }
+    });
+  };
+  if (a.cell == b.cell && b.cell == c.cell)
+  {
+    // (most faces at fine grids: one update with the sums of the three corners; integer sums,
+    // so q + q + q is the same as three updates)
+    FixedQuadric q3 = q;
+    AddTo(q3, q);
+    AddTo(q3, q);
+    const FixedSum p3[3] = { pos[0][0] + pos[1][0] + pos[2][0], pos[0][1] + pos[1][1] + pos[2][1],
+      pos[0][2] + pos[1][2] + pos[2][2] };
+    const VertexRec* smallest = &a;
+    for (const VertexRec* v : { &b, &c })
+    {
+      if (std::tie(v->x, v->y, v->z) < std::tie(smallest->x, smallest->y, smallest->z))
+      {
+        smallest = v;
+      }
+    }
+    add(a.cell, q3, p3, 3, smallest);
+  }
+  else
+  {
+    add(a.cell, q, pos[0], 1, &a);
+    add(b.cell, q, pos[1], 1, &b);
+    add(c.cell, q, pos[2], 1, &c);
   }
   if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
   {
@@ -816,9 +907,11 @@ void AddFaceAttributeTerms(ClusterState& cluster, const std::uint32_t* f, const 
       s[k * i + j] = v[j];
     }
   }
-  const Vec3 pa = Position(a), pb = Position(b), pc = Position(c);
-  const double p0[3] = { pa.x, pa.y, pa.z }, p1[3] = { pb.x, pb.y, pb.z },
-               p2[3] = { pc.x, pc.y, pc.z };
+  // (about the centre, as the cells' quadrics)
+  const double* o = cluster.units.centre.data();
+  const double p0[3] = { a.x - o[0], a.y - o[1], a.z - o[2] },
+               p1[3] = { b.x - o[0], b.y - o[1], b.z - o[2] },
+               p2[3] = { c.x - o[0], c.y - o[1], c.z - o[2] };
   std::fill(cluster.faceExt.begin(), cluster.faceExt.end(), 0.0);
   AddFaceAttributes(p0, p1, p2, s.data(), s.data() + k, s.data() + 2 * k, k, area,
     cluster.faceExt.data());
@@ -905,8 +998,13 @@ void OptimalCellAttributes(ClusterState& cluster, const double p[3], std::vector
 // minimizer leaves the cell (by more than placementSlack), the fallback is used.
 void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q, double p[3])
 {
-  const double inv = 1.0 / double(std::max<std::uint32_t>(rec.count, 1));
-  const Eigen::Vector3d mean(rec.sum[0] * inv, rec.sum[1] * inv, rec.sum[2] * inv);
+  // The mean of the corners (exact sums, one rounding), about the centre as the quadric is.
+  const double* centre = cluster.units.centre.data();
+  const float* o = cluster.units.origin;
+  const double inv = cluster.units.positionBack / double(std::max<std::uint64_t>(rec.corners, 1));
+  const Eigen::Vector3d mean(double(Fixed(rec.sum[0])) * inv + (double(o[0]) - centre[0]),
+    double(Fixed(rec.sum[1])) * inv + (double(o[1]) - centre[1]),
+    double(Fixed(rec.sum[2])) * inv + (double(o[2]) - centre[2]));
   Eigen::Matrix3d A;
   const double* q = Q.q;
   A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
@@ -928,8 +1026,13 @@ void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q,
     const Eigen::Matrix3d& V = es.eigenvectors();
     x = mean + V * inverse.asDiagonal() * V.transpose() * (-b - A * mean);
   }
+  for (int d = 0; d < 3; ++d)
+  {
+    x[d] += centre[d];
+  }
+  const Eigen::Vector3d meanAbsolute(mean[0] + centre[0], mean[1] + centre[1], mean[2] + centre[2]);
   // inside the cell (with a tolerance for points on its faces)?
-  const std::uint64_t key = cluster.grid.Key(mean[0], mean[1], mean[2]);
+  const std::uint64_t key = cluster.grid.Key(meanAbsolute[0], meanAbsolute[1], meanAbsolute[2]);
   const double eps = std::max(cluster.options.placementSlack, 1e-6) * cluster.grid.cellSize;
   bool inside = true;
   {
@@ -968,9 +1071,9 @@ void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q,
   }
   else
   {
-    p[0] = mean[0];
-    p[1] = mean[1];
-    p[2] = mean[2];
+    p[0] = meanAbsolute[0];
+    p[1] = meanAbsolute[1];
+    p[2] = meanAbsolute[2];
   }
 }
 

@@ -8,6 +8,7 @@
 
 #include <cmath>
 #include <filesystem>
+#include <iterator>
 #include <set>
 
 using namespace sipmss;
@@ -97,7 +98,7 @@ TEST(Cluster, OneCellLeavesNothing)
 TEST(Cluster, PlaneStaysInItsPlaneAndKeepsOrientation)
 {
   // 16x16 grid into 4 cells per axis: representatives are on z = 0 (the quadric is rank 1, the
-  // pseudo-inverse keeps the in-plane mean), every triangle faces +z.
+  // pseudo-inverse keeps the in-plane mean of the cell's face corners), every triangle faces +z.
   const Mesh plane = Plane(16);
   Collect out = RunCluster(plane, 4);
   ASSERT_GT(out.m.t.size(), 0u);
@@ -113,12 +114,33 @@ TEST(Cluster, PlaneStaysInItsPlaneAndKeepsOrientation)
     const float nz = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
     EXPECT_GT(nz, 0.f);
   }
-  // the scalar s = x is averaged per cell: equal to the mean x of the cell's vertices, which the
-  // pseudo-inverse keeps as the representative's x
+  // Per cell: the mean of the face corners in it (each vertex once per face: the position's
+  // expansion point) and the mean of its vertices (the scalar s = x is averaged per vertex).
+  auto cellOf = [](const float* p) {
+    return std::min(3, int(p[0] * 4)) * 4 + std::min(3, int(p[1] * 4));
+  };
+  double corner[16][3] = {}, vertexX[16] = {};
+  int corners[16] = {}, vertices[16] = {};
+  for (std::uint32_t v : plane.t)
+  {
+    const int c = cellOf(&plane.p[3 * v]);
+    corner[c][0] += plane.p[3 * v];
+    corner[c][1] += plane.p[3 * v + 1];
+    ++corners[c];
+  }
+  for (std::size_t v = 0; v < plane.p.size() / 3; ++v)
+  {
+    vertexX[cellOf(&plane.p[3 * v])] += plane.scalar[v];
+    ++vertices[cellOf(&plane.p[3 * v])];
+  }
   ASSERT_EQ(out.m.scalar.size(), out.m.p.size() / 3);
   for (std::size_t i = 0; i < out.m.scalar.size(); ++i)
   {
-    EXPECT_NEAR(out.m.scalar[i], out.m.p[3 * i], 1e-5f);
+    const int c = cellOf(&out.m.p[3 * i]);
+    ASSERT_GT(corners[c], 0);
+    EXPECT_NEAR(out.m.p[3 * i], corner[c][0] / corners[c], 1e-6);
+    EXPECT_NEAR(out.m.p[3 * i + 1], corner[c][1] / corners[c], 1e-6);
+    EXPECT_NEAR(out.m.scalar[i], vertexX[c] / vertices[c], 1e-6);
   }
 }
 
@@ -266,4 +288,49 @@ TEST(Cluster, AchievedErrorIsBoundedByTheCells)
   RunCluster(Plane(16), 4, storage::ModePolicy::Automatic, 0, &flat);
   EXPECT_GE(flat.achievedError, 0.0);
   EXPECT_LT(flat.achievedError, 1e-6);
+}
+
+TEST(Cluster, TheOrderOfTheInputDoesNotChangeTheResult)
+{
+  // The cells' sums are exact (fixed point): the same faces in any order, with their corners
+  // rotated, give the same triangles at the same coordinates, bit for bit. Far from the origin
+  // too, with boundary planes (an open surface) and with the sampled-vertex fallback.
+  Mesh open = Plane(24);
+  for (std::size_t i = 0; i < open.p.size(); i += 3)
+  {
+    open.p[i + 2] = 0.1f * std::sin(7.f * open.p[i]) * std::cos(5.f * open.p[i + 1]);
+  }
+  const Mesh meshes[] = { sipmss::testing::BumpyUVSphere(30),
+    sipmss::testing::BumpyUVSphere(30, { 1e4, -3e3, 2e4 }), open };
+  for (const Mesh& m : meshes)
+  {
+    for (int variant = 0; variant < 3; ++variant)
+    {
+      ClusterOptions o;
+      o.maximumGridDimension = variant == 1 ? 23 : 9;
+      o.boundaryQuadrics = variant == 2;
+      o.fallback = variant == 1 ? ClusterFallback::SampledVertex : ClusterFallback::Mean;
+      o.layout = LayoutPolicy::Keep;
+      NullProgress progress;
+      Collect a, b;
+      Cluster(MemorySource(m), a, o, progress);
+      const Mesh shuffled = sipmss::testing::Shuffled(m, 7u + variant);
+      Cluster(MemorySource(shuffled), b, o, progress);
+      ASSERT_GT(a.m.t.size(), 30u);
+      const auto ta = sipmss::testing::TrianglesByCoordinates(a.m),
+                 tb = sipmss::testing::TrianglesByCoordinates(b.m);
+      std::vector<std::array<float, 9>> onlyA, onlyB;
+      std::set_difference(ta.begin(), ta.end(), tb.begin(), tb.end(), std::back_inserter(onlyA));
+      std::set_difference(tb.begin(), tb.end(), ta.begin(), ta.end(), std::back_inserter(onlyB));
+      EXPECT_TRUE(onlyA.empty() && onlyB.empty())
+        << "variant " << variant << ": " << onlyA.size() << " triangles only in the first run, "
+        << onlyB.size() << " only in the shuffled one, of " << ta.size();
+      for (std::size_t i = 0; i < std::min<std::size_t>(2, onlyA.size()); ++i)
+      {
+        ADD_FAILURE() << onlyA[i][0] << " " << onlyA[i][1] << " " << onlyA[i][2] << " / "
+                      << onlyB[i][0] << " " << onlyB[i][1] << " " << onlyB[i][2];
+      }
+      EXPECT_EQ(a.m.p.size(), b.m.p.size());
+    }
+  }
 }

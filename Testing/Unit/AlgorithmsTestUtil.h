@@ -3,6 +3,12 @@
 
 #include "sipmss/algorithms/Common.h"
 
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <numeric>
+#include <random>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -37,6 +43,100 @@ inline void GridTriangles(int n, std::vector<std::uint32_t>& t)
       t.insert(t.end(), { id(i, j), id(i + 1, j + 1), id(i, j + 1) });
     }
   }
+}
+
+// A closed, bumpy UV sphere of radius about 1 around `centre`: n rings of 2n vertices and the
+// two poles (4 n^2 triangles), scalar s = z.
+inline Mesh BumpyUVSphere(int n, const std::array<double, 3>& centre = { 0, 0, 0 })
+{
+  Mesh m;
+  const double pi = 3.14159265358979323846;
+  auto add = [&](double x, double y, double z) {
+    const double r = 1.0 + 0.08 * std::sin(5 * x) * std::cos(4 * y) + 0.05 * std::sin(7 * z);
+    m.p.insert(m.p.end(), { float(centre[0] + r * x), float(centre[1] + r * y),
+      float(centre[2] + r * z) });
+    m.scalar.push_back(float(z));
+  };
+  add(0, 0, 1);
+  for (int i = 1; i <= n; ++i)
+  {
+    const double theta = pi * i / (n + 1);
+    for (int j = 0; j < 2 * n; ++j)
+    {
+      const double phi = pi * j / n;
+      add(std::sin(theta) * std::cos(phi), std::sin(theta) * std::sin(phi), std::cos(theta));
+    }
+  }
+  add(0, 0, -1);
+  const std::uint32_t south = std::uint32_t(m.p.size() / 3 - 1);
+  auto ring = [n](int i, int j) { return std::uint32_t(1 + (i - 1) * 2 * n + (j % (2 * n))); };
+  for (int j = 0; j < 2 * n; ++j)
+  {
+    m.t.insert(m.t.end(), { 0, ring(1, j), ring(1, j + 1) });
+    m.t.insert(m.t.end(), { south, ring(n, j + 1), ring(n, j) });
+    for (int i = 1; i < n; ++i)
+    {
+      m.t.insert(m.t.end(), { ring(i, j), ring(i + 1, j), ring(i + 1, j + 1) });
+      m.t.insert(m.t.end(), { ring(i, j), ring(i + 1, j + 1), ring(i, j + 1) });
+    }
+  }
+  return m;
+}
+
+// The mesh with its vertices and faces in another order and each face's corners rotated (the
+// same surface, orientation kept), from a fixed seed.
+inline Mesh Shuffled(const Mesh& m, unsigned seed)
+{
+  std::mt19937 rng(seed);
+  const std::size_t nv = m.p.size() / 3, nf = m.t.size() / 3;
+  const std::size_t ns = nv ? m.scalar.size() / nv : 0;
+  std::vector<std::uint32_t> order(nv), where(nv);
+  std::iota(order.begin(), order.end(), 0u);
+  std::shuffle(order.begin(), order.end(), rng);
+  Mesh s;
+  s.names = m.names;
+  for (std::size_t i = 0; i < nv; ++i)
+  {
+    where[order[i]] = std::uint32_t(i);
+    s.p.insert(s.p.end(), m.p.begin() + 3 * order[i], m.p.begin() + 3 * order[i] + 3);
+    s.scalar.insert(
+      s.scalar.end(), m.scalar.begin() + ns * order[i], m.scalar.begin() + ns * (order[i] + 1));
+  }
+  std::vector<std::size_t> faces(nf);
+  std::iota(faces.begin(), faces.end(), std::size_t(0));
+  std::shuffle(faces.begin(), faces.end(), rng);
+  for (std::size_t f : faces)
+  {
+    const int r = int(rng() % 3);
+    for (int k = 0; k < 3; ++k)
+    {
+      s.t.push_back(where[m.t[3 * f + (k + r) % 3]]);
+    }
+  }
+  return s;
+}
+
+// A mesh's triangles by their corners' coordinates, each rotated to start at its smallest corner
+// (orientation kept): two meshes with the same set are the same surface, vertex for vertex.
+inline std::multiset<std::array<float, 9>> TrianglesByCoordinates(const Mesh& m)
+{
+  std::multiset<std::array<float, 9>> out;
+  for (std::size_t f = 0; f + 2 < m.t.size(); f += 3)
+  {
+    std::array<std::array<float, 3>, 3> c;
+    for (int k = 0; k < 3; ++k)
+    {
+      std::copy_n(m.p.begin() + 3 * m.t[f + k], 3, c[k].begin());
+    }
+    const int first = int(std::min_element(c.begin(), c.end()) - c.begin());
+    std::array<float, 9> t;
+    for (int k = 0; k < 3; ++k)
+    {
+      std::copy_n(c[(first + k) % 3].begin(), 3, t.begin() + 3 * k);
+    }
+    out.insert(t);
+  }
+  return out;
 }
 
 inline algorithms::MeshSource MemorySource(const Mesh& m)

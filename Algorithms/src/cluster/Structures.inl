@@ -50,12 +50,131 @@ struct VertexRec
   std::uint32_t cell;
 };
 
+// Exact cell sums. A cell's quadric and the sum of its faces' corners are kept in fixed point,
+// in 128-bit integers: integer addition is associative, so the sums (and the representative)
+// do not depend on the order in which the faces come, nor on how they are split into pieces
+// whose sums are added later (the distributed clustering). docs/architecture.md, "Exact cell
+// sums".
+__extension__ typedef __int128 Fixed;
+__extension__ typedef unsigned __int128 FixedSum; // (sums wrap, defined, instead of overflowing)
+
+// A weighted plane w (n.p + d)^2 is the square of (u.p + delta) with u = sqrt(w) n and delta =
+// sqrt(w) d: its quadric's ten coefficients are the products u_i u_j, u_i delta, delta^2. Each
+// face's u and delta are rounded once to 64-bit integers, and the products are exact in 128 bits:
+// four conversions a face, not ten. The positions are relative to the grid's centre, so that
+// |delta| <= sqrt(w) D / 2 for a box of diagonal D wherever the scan lies.
+struct FixedQuadric
+{
+  FixedSum q[10]; // the layout of Quadric
+};
+
+inline void AddTo(FixedQuadric& dst, const FixedQuadric& src)
+{
+  for (int i = 0; i < 10; ++i)
+  {
+    dst.q[i] += src.q[i];
+  }
+}
+
+// Rounds y (in fixed units) toward zero, within +-2^53 (a vertex far outside the grid's given
+// bounds saturates), NaN as 0.
+inline std::int64_t ToFixed(double y)
+{
+  constexpr double kLimit = 0x1p53;
+  if (!(std::abs(y) < kLimit))
+  {
+    y = y > 0 ? kLimit : (y < 0 ? -kLimit : 0.0);
+  }
+  return static_cast<std::int64_t>(y);
+}
+
+// The units of a run's fixed-point numbers, from the grid's box (diagonal D): u in 2^-53 of the
+// largest sqrt(w) (max(1, boundary weight) D^2 bounds a face's area and a boundary plane's
+// weight), delta in 2^-53 of that times D / 2, both powers of two. A sum of 2^21 planes of that
+// largest weight fits in 2^127; a face 10^12 times smaller than the largest keeps 13 digits.
+// Corner positions are in 2^-15 cell sizes from the grid's origin (within 2^31 on a grid of
+// 65535 cells; clamped beyond, a vertex outside the grid's given bounds), in single precision.
+struct FixedUnits
+{
+  double u = 1, delta = 1;     // fixed units per unit of u, of delta
+  double back[10];             // a coefficient's value per fixed unit
+  float origin[4] = {};        // the grid's origin, rounded to float (the corners' zero)
+  float position = 1;          // fixed units per unit of length
+  double positionBack = 1;
+  std::array<double, 3> centre{};
+  static FixedUnits Make(const std::array<double, 3>& origin, double cellSize,
+    const std::array<std::uint32_t, 3>& dims, double boundaryWeight)
+  {
+    FixedUnits f;
+    double d2 = 0;
+    for (int k = 0; k < 3; ++k)
+    {
+      const double extent = dims[k] * cellSize;
+      f.centre[k] = origin[k] + 0.5 * extent;
+      d2 += extent * extent;
+    }
+    const double D = std::max(std::sqrt(d2), 1e-150);
+    const double largestU = std::sqrt(std::max(1.0, boundaryWeight)) * D;
+    f.u = std::ldexp(1.0, 53 - (std::ilogb(largestU) + 1));
+    f.delta = std::ldexp(1.0, 53 - (std::ilogb(largestU * 0.5 * D) + 1));
+    const double uu = 1.0 / (f.u * f.u), ud = 1.0 / (f.u * f.delta), dd = 1.0 / (f.delta * f.delta);
+    const double back[10] = { uu, uu, uu, ud, uu, uu, ud, uu, ud, dd };
+    std::copy_n(back, 10, f.back);
+    for (int k = 0; k < 3; ++k)
+    {
+      f.origin[k] = static_cast<float>(origin[k]);
+    }
+    f.position = static_cast<float>(0x1p15 / cellSize);
+    f.positionBack = 1.0 / double(f.position);
+    return f;
+  }
+  // The quadric of the plane n.(p - centre) + d = 0 (unit n) with weight w.
+  FixedQuadric Plane(const double n[3], double d, double w) const
+  {
+    const double s = std::sqrt(w);
+    const Fixed a = ToFixed(s * n[0] * this->u), b = ToFixed(s * n[1] * this->u),
+                c = ToFixed(s * n[2] * this->u), e = ToFixed(s * d * this->delta);
+    return { { FixedSum(a * a), FixedSum(a * b), FixedSum(a * c), FixedSum(a * e),
+      FixedSum(b * b), FixedSum(b * c), FixedSum(b * e), FixedSum(c * c), FixedSum(c * e),
+      FixedSum(e * e) } };
+  }
+  // A corner's position (x, y, z of the record; the fourth lane is ignored), in one vector
+  // conversion where there is SSE2.
+  void Corner(const float* xyz, std::int32_t out[4]) const
+  {
+    constexpr float kLimit = 2147483520.f; // (the largest float below 2^31)
+#ifdef __SSE2__
+    __m128 p = _mm_mul_ps(_mm_sub_ps(_mm_loadu_ps(xyz), _mm_loadu_ps(this->origin)),
+      _mm_set1_ps(this->position));
+    p = _mm_min_ps(_mm_max_ps(p, _mm_set1_ps(-kLimit)), _mm_set1_ps(kLimit));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(out), _mm_cvttps_epi32(p));
+#else
+    for (int k = 0; k < 3; ++k)
+    {
+      const float p = (xyz[k] - this->origin[k]) * this->position;
+      out[k] = static_cast<std::int32_t>(std::min(std::max(p, -kLimit), kLimit));
+    }
+#endif
+  }
+  // The quadric (about the centre) in doubles.
+  Quadric ToDouble(const FixedQuadric& f) const
+  {
+    Quadric q;
+    for (int i = 0; i < 10; ++i)
+    {
+      q.q[i] = double(Fixed(f.q[i])) * this->back[i];
+    }
+    return q;
+  }
+};
+
 struct CellRec
 {
-  Quadric q; // the cell's plane quadric sums (Quadric.h)
-  double sum[3];
-  float first[3]; // first vertex seen in the cell (the paper's fallback)
-  std::uint32_t count;
+  FixedQuadric q; // the cell's plane quadric sums (Quadric.h) about FixedUnits::centre, exact
+  FixedSum sum[3]; // the sum of its faces' corners (FixedUnits::position from the grid's origin)
+  float first[3]; // its lexicographically smallest corner (the paper's sampled-vertex fallback)
+  std::uint32_t vertices;  // input vertices in the cell (the point data's mean)
+  std::uint64_t corners;   // corners of faces in the cell (the mean's count)
   std::uint64_t triangles; // candidate output triangles whose smallest cell is this one; later
                            // the end of its bucket
 };

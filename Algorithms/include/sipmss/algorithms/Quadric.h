@@ -29,6 +29,23 @@ inline Quadric PlaneQuadric(double nx, double ny, double nz, double d, double w)
   return { { w * nx * nx, w * nx * ny, w * nx * nz, w * nx * d, w * ny * ny, w * ny * nz,
     w * ny * d, w * nz * nz, w * nz * d, w * d * d } };
 }
+// The quadric of E(p - c), for E the quadric q: the same error, about another origin.
+inline Quadric Translated(const Quadric& q, const double c[3])
+{
+  const double* a = q.q;
+  // A c
+  const double ac[3] = { a[0] * c[0] + a[1] * c[1] + a[2] * c[2],
+    a[1] * c[0] + a[4] * c[1] + a[5] * c[2], a[2] * c[0] + a[5] * c[1] + a[7] * c[2] };
+  const double b[3] = { a[3], a[6], a[8] };
+  Quadric t = q;
+  t.q[3] = b[0] - ac[0];
+  t.q[6] = b[1] - ac[1];
+  t.q[8] = b[2] - ac[2];
+  t.q[9] = a[9] - 2.0 * (b[0] * c[0] + b[1] * c[1] + b[2] * c[2]) +
+    (ac[0] * c[0] + ac[1] * c[1] + ac[2] * c[2]);
+  return t;
+}
+
 // E(x, y, z).
 inline double QuadricValue(const double q[10], double x, double y, double z)
 {
