@@ -20,6 +20,7 @@
 #include "sipmss/algorithms/Quadric.h"
 #include "sipmss/algorithms/Vector.h"
 #include "sipmss/storage/Access.h"
+#include "sipmss/storage/Sort.h"
 #include "sipmss/storage/Threads.h"
 
 #include <Eigen/Dense>
@@ -146,7 +147,8 @@ void ExpectSizes(ClusterState& cluster, std::uint64_t verticesAndFaces);
 std::uint64_t Cells(const ClusterState& cluster);
 std::uint64_t Candidates(const ClusterState& cluster);
 std::uint64_t OutputTriangles(const ClusterState& cluster);
-void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats);
+struct DistributedOutput;
+void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, DistributedOutput* dist);
 void Tick(ClusterState& cluster, std::uint64_t more = 0);
 void AddCell(ClusterState& cluster);
 void AccumulateAttributes(
@@ -378,18 +380,171 @@ std::uint64_t Candidates(const ClusterState& cluster) { return cluster.triangles
 
 std::uint64_t OutputTriangles(const ClusterState& cluster) { return cluster.triangles.Size(); }
 
-void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
+// Output vertices, gathered in chunks.
+struct VertexBuffers
+{
+  std::vector<float> xyz, normals, texcoords, scalars;
+  std::vector<std::uint8_t> rgba;
+  std::size_t Count() const { return this->xyz.size() / 3; }
+  void Clear()
+  {
+    this->xyz.clear();
+    this->normals.clear();
+    this->texcoords.clear();
+    this->scalars.clear();
+    this->rgba.clear();
+  }
+};
+
+// Appends the vertex of a cell: its representative (the cell quadric with its attribute error;
+// the extension in cluster.extBuf) and its point data from the sums `attr`. `index` is the
+// output vertex's number (for exportQuadric).
+void AppendVertex(ClusterState& cluster, const CellRec& rec, const float* attr, VertexBuffers& v,
+  std::uint64_t index)
+{
+  // The quadric to minimize: the cell's, with its attribute error (Attributes.h).
+  const Quadric cellQ = cluster.units.ToDouble(rec.q);
+  Quadric Q = cellQ;
+  if (cluster.xSize)
+  {
+    AddAttributeError(cluster.extBuf.data(), cluster.channels.size(), Q);
+  }
+  double p[3];
+  Representative(cluster, rec, Q, p);
+  // The representative's error, at its position as written (the quadrics are about the centre).
+  const double* centre = cluster.units.centre.data();
+  const double trace = QuadricTrace(cellQ.q);
+  if (trace > 0)
+  {
+    cluster.achievedErr2 = std::max(cluster.achievedErr2,
+      QuadricValue(Q.q, double(float(p[0])) - centre[0], double(float(p[1])) - centre[1],
+        double(float(p[2])) - centre[2]) /
+        trace);
+  }
+  if (cluster.options.exportQuadric)
+  {
+    const Quadric absolute = Translated(cellQ, centre);
+    cluster.options.exportQuadric(index, absolute.q);
+  }
+  v.xyz.insert(v.xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
+  if (!cluster.attrStride)
+  {
+    return;
+  }
+  const float inv = rec.vertices ? 1.0f / float(rec.vertices) : 0.f;
+  std::size_t k = 0;
+  if (cluster.layout.normals)
+  {
+    const float n[3] = { attr[0], attr[1], attr[2] };
+    const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    const float s = len > 0 ? 1.0f / len : 0.f;
+    v.normals.insert(v.normals.end(), { n[0] * s, n[1] * s, n[2] * s });
+    k = 3;
+  }
+  if (cluster.layout.colors)
+  {
+    for (int j = 0; j < 4; ++j)
+    {
+      const float c = std::round(attr[k + j] * inv);
+      v.rgba.push_back(static_cast<std::uint8_t>(std::clamp(c, 0.f, 255.f)));
+    }
+    k += 4;
+  }
+  if (cluster.layout.texcoords)
+  {
+    v.texcoords.insert(v.texcoords.end(), { attr[k] * inv, attr[k + 1] * inv });
+    k += 2;
+  }
+  for (std::size_t j = 0; j < cluster.layout.scalars.size(); ++j)
+  {
+    v.scalars.push_back(attr[k + j] * inv);
+  }
+  if (cluster.xSize && cluster.extBuf[0] > 0)
+  {
+    const double rel[3] = { p[0] - centre[0], p[1] - centre[1], p[2] - centre[2] };
+    OptimalCellAttributes(cluster, rel, v.normals, v.rgba, v.texcoords, v.scalars);
+  }
+}
+
+// A distributed run's output (ClusterDistributed): which of this rank's triangles it writes
+// (the others are another rank's) and its vertices, computed by the cells' owners (records of
+// VertexRecordSize bytes by output number).
+struct DistributedOutput
+{
+  Array<std::uint8_t> keep;    // per triangle of Order(): 1 written here
+  storage::BlockId vertices = -1;
+  std::size_t recordSize = 0;
+};
+
+// A vertex record as the owners send it: xyz, normals, texture coordinates, scalars (floats),
+// then RGBA.
+std::size_t VertexRecordSize(const io::VertexLayout& l)
+{
+  return sizeof(float) *
+    (3 + (l.normals ? 3 : 0) + (l.texcoords ? 2 : 0) + l.scalars.size()) +
+    (l.colors ? 4 : 0);
+}
+
+void PackVertex(const io::VertexLayout& l, const VertexBuffers& v, std::size_t i, std::uint8_t* out)
+{
+  auto put = [&out](const float* f, std::size_t n) {
+    std::memcpy(out, f, n * sizeof(float));
+    out += n * sizeof(float);
+  };
+  put(v.xyz.data() + 3 * i, 3);
+  if (l.normals)
+  {
+    put(v.normals.data() + 3 * i, 3);
+  }
+  if (l.texcoords)
+  {
+    put(v.texcoords.data() + 2 * i, 2);
+  }
+  put(v.scalars.data() + l.scalars.size() * i, l.scalars.size());
+  if (l.colors)
+  {
+    std::memcpy(out, v.rgba.data() + 4 * i, 4);
+  }
+}
+
+void UnpackVertex(const io::VertexLayout& l, const std::uint8_t* in, VertexBuffers& v)
+{
+  auto get = [&in](std::vector<float>& dst, std::size_t n) {
+    const std::size_t at = dst.size();
+    dst.resize(at + n);
+    std::memcpy(dst.data() + at, in, n * sizeof(float));
+    in += n * sizeof(float);
+  };
+  get(v.xyz, 3);
+  if (l.normals)
+  {
+    get(v.normals, 3);
+  }
+  if (l.texcoords)
+  {
+    get(v.texcoords, 2);
+  }
+  get(v.scalars, l.scalars.size());
+  if (l.colors)
+  {
+    v.rgba.insert(v.rgba.end(), in, in + 4);
+  }
+}
+
+void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, DistributedOutput* dist)
 {
   const std::uint64_t numTris = cluster.triangles.Size();
+  auto& order = cluster.triangles.Order();
+  auto kept = [dist](std::uint64_t t) { return !dist || dist->keep.Get(t) != 0; };
   // Number the cells used by output triangles, in cell order.
   Array<std::uint32_t> outIndex(cluster.dml, std::max<std::uint64_t>(cluster.numCells, 1));
   {
     const std::uint32_t unused = kNoCell;
     cluster.dml.Fill(outIndex.Id(), &unused);
   }
-  auto& order = cluster.triangles.Order();
   // Progress: 4 steps over cells + triangles (mark, number, vertices, triangles).
   const double total = 2.0 * double(cluster.numCells) + 2.0 * double(numTris) + 1.0;
+  std::uint64_t outTris = 0;
   order.ForEachChunk(0, numTris, storage::Access::Read,
     [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
       for (std::uint64_t j = 0; j < n; ++j)
@@ -398,9 +553,13 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
         {
           cluster.progress.Tick(double(f + j) / total);
         }
-        for (int k = 0; k < 3; ++k)
+        if (kept(f + j))
         {
-          outIndex.Set(d[j].v[k], 0);
+          ++outTris;
+          for (int k = 0; k < 3; ++k)
+          {
+            outIndex.Set(d[j].v[k], 0);
+          }
         }
       }
     });
@@ -416,114 +575,66 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
       outIndex.Set(c, numOut++);
     }
   }
-  cluster.dml.Reconfigure(); // the input-sized blocks are gone: in core from here if it fits
+  if (!dist)
+  {
+    cluster.dml.Reconfigure(); // the input-sized blocks are gone: in core from here if it fits
+  }
 
   io::MeshHeader h;
   h.format = cluster.header.format;
   h.vertexCount = numOut;
-  h.faceCount = numTris;
+  h.faceCount = outTris;
   h.layout = cluster.layout;
   out.Begin(h);
 
   const std::size_t chunk = 1 << 13;
-  std::vector<float> xyz, normals, texcoords, scalars;
-  std::vector<std::uint8_t> rgba;
-  xyz.reserve(3 * chunk);
+  VertexBuffers v;
+  v.xyz.reserve(3 * chunk);
   std::vector<float> attr(cluster.attrStride);
+  std::vector<std::uint8_t> record(dist ? dist->recordSize : 0);
   std::uint64_t first = 0;
   auto flush = [&]() {
     io::VertexChunk vc;
     vc.first = first;
-    vc.count = xyz.size() / 3;
-    vc.xyz = xyz.data();
-    vc.normals = cluster.layout.normals ? normals.data() : nullptr;
-    vc.rgba = cluster.layout.colors ? rgba.data() : nullptr;
-    vc.texcoords = cluster.layout.texcoords ? texcoords.data() : nullptr;
-    vc.scalars = cluster.layout.scalars.empty() ? nullptr : scalars.data();
+    vc.count = v.Count();
+    vc.xyz = v.xyz.data();
+    vc.normals = cluster.layout.normals ? v.normals.data() : nullptr;
+    vc.rgba = cluster.layout.colors ? v.rgba.data() : nullptr;
+    vc.texcoords = cluster.layout.texcoords ? v.texcoords.data() : nullptr;
+    vc.scalars = cluster.layout.scalars.empty() ? nullptr : v.scalars.data();
     if (vc.count)
     {
       out.Vertices(vc);
     }
     first += vc.count;
-    xyz.clear();
-    normals.clear();
-    rgba.clear();
-    texcoords.clear();
-    scalars.clear();
+    v.Clear();
   };
   for (std::uint32_t c = 0; c < cluster.numCells; ++c)
   {
-    if (outIndex.Get(c) == kNoCell)
+    const std::uint32_t index = outIndex.Get(c);
+    if (index == kNoCell)
     {
       continue;
     }
-    const CellRec rec = cluster.cells.Get(c);
-    // The quadric to minimize: the cell's, with its attribute error (Attributes.h).
-    const Quadric cellQ = cluster.units.ToDouble(rec.q);
-    Quadric Q = cellQ;
-    if (cluster.xSize)
+    if (dist)
     {
-      cluster.dml.Read(cluster.extBlock, cluster.xSize * sizeof(double), c, cluster.extBuf.data());
-      AddAttributeError(cluster.extBuf.data(), cluster.channels.size(), Q);
+      // (computed by the cell's owner)
+      cluster.dml.Read(dist->vertices, dist->recordSize, index, record.data());
+      UnpackVertex(cluster.layout, record.data(), v);
     }
-    double p[3];
-    Representative(cluster, rec, Q, p);
-    // The representative's error, at its position as written (the quadrics are about the
-    // centre).
-    const double* centre = cluster.units.centre.data();
-    const double trace = QuadricTrace(cellQ.q);
-    if (trace > 0)
+    else
     {
-      cluster.achievedErr2 = std::max(cluster.achievedErr2,
-        QuadricValue(Q.q, double(float(p[0])) - centre[0], double(float(p[1])) - centre[1],
-          double(float(p[2])) - centre[2]) /
-          trace);
+      if (cluster.xSize)
+      {
+        cluster.dml.Read(cluster.extBlock, cluster.xSize * sizeof(double), c, cluster.extBuf.data());
+      }
+      if (cluster.attrStride)
+      {
+        cluster.dml.Read(cluster.attrBlock, cluster.attrStride * sizeof(float), c, attr.data());
+      }
+      AppendVertex(cluster, cluster.cells.Get(c), attr.data(), v, first + v.Count());
     }
-    if (cluster.options.exportQuadric)
-    {
-      const Quadric absolute = Translated(cellQ, centre);
-      cluster.options.exportQuadric(first + xyz.size() / 3, absolute.q);
-    }
-    xyz.insert(xyz.end(), { float(p[0]), float(p[1]), float(p[2]) });
-    if (cluster.attrStride)
-    {
-      cluster.dml.Read(cluster.attrBlock, cluster.attrStride * sizeof(float), c, attr.data());
-      const float inv = rec.vertices ? 1.0f / float(rec.vertices) : 0.f;
-      std::size_t k = 0;
-      if (cluster.layout.normals)
-      {
-        float n[3] = { attr[0], attr[1], attr[2] };
-        const float len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-        const float s = len > 0 ? 1.0f / len : 0.f;
-        normals.insert(normals.end(), { n[0] * s, n[1] * s, n[2] * s });
-        k = 3;
-      }
-      if (cluster.layout.colors)
-      {
-        for (int j = 0; j < 4; ++j)
-        {
-          const float v = std::round(attr[k + j] * inv);
-          rgba.push_back(static_cast<std::uint8_t>(std::clamp(v, 0.f, 255.f)));
-        }
-        k += 4;
-      }
-      if (cluster.layout.texcoords)
-      {
-        texcoords.insert(texcoords.end(), { attr[k] * inv, attr[k + 1] * inv });
-        k += 2;
-      }
-      for (std::size_t j = 0; j < cluster.layout.scalars.size(); ++j)
-      {
-        scalars.push_back(attr[k + j] * inv);
-      }
-      if (cluster.xSize && cluster.extBuf[0] > 0)
-      {
-        const double* centre = cluster.units.centre.data();
-        const double rel[3] = { p[0] - centre[0], p[1] - centre[1], p[2] - centre[2] };
-        OptimalCellAttributes(cluster, rel, normals, rgba, texcoords, scalars);
-      }
-    }
-    if (xyz.size() / 3 == chunk)
+    if (v.Count() == chunk)
     {
       flush();
       cluster.progress.Tick(double(numTris + cluster.numCells + c) / total);
@@ -542,6 +653,10 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
           cluster.progress.Tick(
             double(numTris + 2 * std::uint64_t(cluster.numCells) + f + j) / total);
         }
+        if (!kept(f + j))
+        {
+          continue;
+        }
         for (int k = 0; k < 3; ++k)
         {
           tri.push_back(outIndex.Get(d[j].v[k]));
@@ -559,11 +674,11 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats)
   }
   io::ReadStats os;
   os.vertices = numOut;
-  os.triangles = numTris;
-  os.polygons = numTris;
+  os.triangles = outTris;
+  os.polygons = outTris;
   out.End(os);
   stats.outputVertices = numOut;
-  stats.outputTriangles = numTris;
+  stats.outputTriangles = outTris;
 }
 
 void Tick(ClusterState& cluster, std::uint64_t more)
@@ -1100,6 +1215,13 @@ private:
 
 
 } // namespace
+} // namespace sipmss::algorithms
+
+// The run across ranks (one translation unit with this file).
+#include "cluster/Distributed.inl"
+
+namespace sipmss::algorithms
+{
 
 double EstimateClusterWork(std::uint64_t V, std::uint64_t F, const ClusterOptions& options)
 {
@@ -1255,7 +1377,7 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
   {
     progress.BeginPhase("output", kWork::kOutput * (cells + double(OutputTriangles(cluster))), 0.0);
     PhaseTimer timer(stats, dml, "output");
-    Emit(cluster, output, stats);
+    Emit(cluster, output, stats, nullptr);
   }
   stats.errorDiagonal = std::sqrt((bounds[1] - bounds[0]) * (bounds[1] - bounds[0]) +
     (bounds[3] - bounds[2]) * (bounds[3] - bounds[2]) +
@@ -1334,6 +1456,15 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   Progress& progress)
 {
   return TranslateOutOfMemory(progress, options.storage, [&] {
+    if (options.communicator)
+    {
+      if (options.exportQuadric || options.dml)
+      {
+        throw std::invalid_argument("the distributed clustering runs on a DML of its own and "
+                                    "exports no quadrics");
+      }
+      return ClusterDistributed(source, output, options, progress);
+    }
     if (!options.dml && options.layout == LayoutPolicy::Reorder)
     {
       return ClusterReordered(source, output, options, progress);

@@ -270,6 +270,38 @@ public:
     }
   }
   void Release() { this->slots_.Close(); }
+  // The cell of `key`, or kNoCell.
+  std::uint32_t Find(std::uint64_t key) const
+  {
+    const std::uint64_t mask = this->slots_.Size() - 1;
+    for (std::uint64_t i = this->Home(key, this->slots_.Size());; i = (i + 1) & mask)
+    {
+      const KeySlot s = this->slots_.Get(i);
+      if (s.key == 0)
+      {
+        return kNoCell;
+      }
+      if (s.key == key + 1)
+      {
+        return static_cast<std::uint32_t>(s.cell);
+      }
+    }
+  }
+  // f(key, cell) for every entry, in slot order.
+  template <class F>
+  void ForEach(F&& f)
+  {
+    this->slots_.ForEachChunk(0, this->slots_.Size(), storage::Access::Read,
+      [&](KeySlot* data, std::uint64_t, std::uint64_t count) {
+        for (std::uint64_t j = 0; j < count; ++j)
+        {
+          if (data[j].key != 0)
+          {
+            f(data[j].key - 1, static_cast<std::uint32_t>(data[j].cell));
+          }
+        }
+      });
+  }
 
 private:
   static std::uint64_t Home(std::uint64_t key, std::uint64_t capacity)

@@ -53,6 +53,12 @@ struct ClusterOptions
   // Optional: called for each output vertex with its cell's (geometric) quadric (the layout of
   // Quadric.h).
   std::function<void(std::uint64_t vertex, const double quadric[10])> exportQuadric;
+  // Optional: run across the ranks of this communicator, `input` being this rank's piece of the
+  // mesh and `output` receiving this rank's piece of the result (docs/architecture.md,
+  // "Distributed clustering"): the union of the pieces is the serial result. Every rank calls
+  // Cluster with the same options. Not with boundary planes on more than one rank, nor with
+  // exportQuadric; the input is not reordered (LayoutPolicy is ignored).
+  Communicator* communicator = nullptr;
 };
 
 // Grid geometry derived from the bounds and the maximum grid dimension.

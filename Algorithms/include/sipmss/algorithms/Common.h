@@ -2,6 +2,7 @@
 #pragma once
 
 #include "sipmss/io/MeshIO.h"
+#include "sipmss/algorithms/Communicator.h"
 #include "sipmss/storage/DML.h"
 
 #include <array>
@@ -240,6 +241,8 @@ struct RunStats
   // Simplify() computed it once for the run.
   std::uint64_t memoryBudgetBytes = 0;
   std::string memoryBudgetOrigin;
+  // A distributed run (ClusterOptions::communicator): this rank's share of the traffic.
+  CommunicationStats communication;
 };
 
 // Times one phase and records the DML mode in use when it ends.

@@ -1,0 +1,723 @@
+// Algorithm II across ranks (ClusterOptions::communicator). Each rank reads its own piece of the
+// mesh onto the one global grid; the cells' exact sums (Structures.inl, "Exact cell sums") go to
+// the cell's owner rank (a hash of its grid key), which adds them; the triangles, named by their
+// cells' keys, go to an owner too, which keeps one copy of each (the lowest rank's); the owners
+// compute the representatives of the cells the kept triangles use and send them back. Every rank
+// then writes its piece: its kept triangles and their vertices. The union of the pieces is the
+// serial result, triangle for triangle and bit for bit: the sums are exact, so their order and
+// split do not matter. Everything that grows with the mesh stays in the rank's DML; the
+// exchanges go in rounds of a bounded size. (Part of Cluster.cpp's translation unit.)
+namespace sipmss::algorithms
+{
+namespace
+{
+// The exchanges of a distributed run, counted and timed.
+class Rounds
+{
+public:
+  Rounds(Communicator& comm, std::size_t limit, CommunicationStats& stats)
+    : comm_(comm)
+    , limit_(limit)
+    , stats_(stats)
+    , send(std::size_t(comm.Size()))
+    , received(std::size_t(comm.Size()))
+  {
+    stats.rank = comm.Rank();
+    stats.ranks = comm.Size();
+  }
+  std::size_t Limit() const { return this->limit_; }
+  int Owner(std::uint64_t key) const { return int(Mix(key) % std::uint64_t(this->comm_.Size())); }
+  // Sends `send`, fills `received`, clears `send`.
+  void Exchange()
+  {
+    const auto start = std::chrono::steady_clock::now();
+    this->comm_.Exchange(this->send, this->received);
+    this->Account(start);
+    ++this->stats_.rounds;
+    for (int r = 0; r < this->comm_.Size(); ++r)
+    {
+      if (r != this->comm_.Rank())
+      {
+        this->stats_.bytesSent += this->send[r].size();
+        this->stats_.bytesReceived += this->received[r].size();
+      }
+      this->send[r].clear();
+    }
+  }
+  std::size_t Pending() const
+  {
+    std::size_t n = 0;
+    for (const auto& b : this->send)
+    {
+      n += b.size();
+    }
+    return n;
+  }
+  // Whether any rank says yes.
+  bool Any(bool mine)
+  {
+    std::uint64_t v = mine ? 1 : 0;
+    const auto start = std::chrono::steady_clock::now();
+    this->comm_.AllReduceSum(&v, 1);
+    this->Account(start);
+    return v != 0;
+  }
+  void Max(double* v, std::size_t n)
+  {
+    const auto start = std::chrono::steady_clock::now();
+    this->comm_.AllReduceMax(v, n);
+    this->Account(start);
+  }
+  void Min(double* v, std::size_t n)
+  {
+    const auto start = std::chrono::steady_clock::now();
+    this->comm_.AllReduceMin(v, n);
+    this->Account(start);
+  }
+  template <class T>
+  static void Put(std::vector<std::uint8_t>& b, const T& v)
+  {
+    const std::size_t at = b.size();
+    b.resize(at + sizeof(T));
+    std::memcpy(b.data() + at, &v, sizeof(T));
+  }
+  template <class T>
+  static T Take(const std::uint8_t*& p)
+  {
+    T v;
+    std::memcpy(&v, p, sizeof(T));
+    p += sizeof(T);
+    return v;
+  }
+
+private:
+  void Account(std::chrono::steady_clock::time_point start)
+  {
+    this->stats_.seconds +=
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  }
+  Communicator& comm_;
+  std::size_t limit_;
+  CommunicationStats& stats_;
+
+public:
+  std::vector<std::vector<std::uint8_t>> send, received;
+};
+
+// The cells a rank owns: their merged records, point data sums and attribute extensions.
+struct OwnedCells
+{
+  OwnedCells(DML& dml, Progress& progress)
+    : map(dml, progress)
+    , cells(dml, 1024)
+  {
+  }
+  CellMap map;
+  Array<CellRec> cells;
+  storage::BlockId attr = -1, ext = -1;
+  std::uint32_t count = 0;
+};
+
+// A triangle at its owner: its cells' keys (the smallest first, orientation kept), the rank that
+// sent it and its index there.
+struct TriMsg
+{
+  std::uint64_t k[3];
+  std::uint32_t rank;
+  std::uint32_t pad;
+  std::uint64_t index;
+};
+
+void MergeCell(CellRec& dst, const CellRec& src)
+{
+  AddTo(dst.q, src.q);
+  for (int k = 0; k < 3; ++k)
+  {
+    dst.sum[k] += src.sum[k];
+  }
+  dst.corners += src.corners;
+  dst.vertices += src.vertices;
+  if (std::tie(src.first[0], src.first[1], src.first[2]) <
+    std::tie(dst.first[0], dst.first[1], dst.first[2]))
+  {
+    std::copy_n(src.first, 3, dst.first);
+  }
+}
+
+// Step 1: every cell with content goes to its owner, which adds it to its own.
+void SendCellsToOwners(ClusterState& cluster, const Array<std::uint64_t>& keys, OwnedCells& owned,
+  Rounds& rounds)
+{
+  DML& dml = cluster.dml;
+  const std::size_t as = cluster.attrStride, xs = cluster.xSize;
+  if (as)
+  {
+    owned.attr = dml.OpenBlock(as * sizeof(float), 1024);
+  }
+  if (xs)
+  {
+    owned.ext = dml.OpenBlock(xs * sizeof(double), 1024);
+  }
+  const std::size_t recordSize = sizeof(std::uint64_t) + sizeof(CellRec) + as * sizeof(float) +
+    xs * sizeof(double);
+  std::vector<float> attr(as), attrSum(as);
+  std::vector<double> ext(xs), extSum(xs);
+  std::uint32_t next = 0;
+  bool more = true;
+  do
+  {
+    for (; next < cluster.numCells && rounds.Pending() < rounds.Limit(); ++next)
+    {
+      const CellRec rec = cluster.cells.Get(next);
+      if (!rec.corners && !rec.vertices)
+      {
+        continue;
+      }
+      const std::uint64_t key = keys.Get(next);
+      auto& b = rounds.send[rounds.Owner(key)];
+      Rounds::Put(b, key);
+      Rounds::Put(b, rec);
+      if (as)
+      {
+        dml.Read(cluster.attrBlock, as * sizeof(float), next, attr.data());
+        const std::size_t at = b.size();
+        b.resize(at + as * sizeof(float));
+        std::memcpy(b.data() + at, attr.data(), as * sizeof(float));
+      }
+      if (xs)
+      {
+        dml.Read(cluster.extBlock, xs * sizeof(double), next, ext.data());
+        const std::size_t at = b.size();
+        b.resize(at + xs * sizeof(double));
+        std::memcpy(b.data() + at, ext.data(), xs * sizeof(double));
+      }
+    }
+    rounds.Exchange();
+    for (const auto& from : rounds.received)
+    {
+      for (const std::uint8_t* p = from.data(); p < from.data() + from.size();)
+      {
+        const std::uint64_t key = Rounds::Take<std::uint64_t>(p);
+        const CellRec rec = Rounds::Take<CellRec>(p);
+        bool inserted = false;
+        const std::uint32_t c = owned.map.FindOrInsert(key, owned.count, &inserted);
+        if (inserted)
+        {
+          if (owned.count == owned.cells.Size())
+          {
+            owned.cells.Resize(2 * owned.cells.Size());
+          }
+          if (as && owned.count >= dml.Count(owned.attr))
+          {
+            dml.Resize(owned.attr, owned.cells.Size());
+          }
+          if (xs && owned.count >= dml.Count(owned.ext))
+          {
+            dml.Resize(owned.ext, owned.cells.Size());
+          }
+          ++owned.count;
+          CellRec empty{};
+          std::fill_n(empty.first, 3, std::numeric_limits<float>::infinity());
+          owned.cells.Set(c, empty);
+          std::fill(attrSum.begin(), attrSum.end(), 0.f);
+          std::fill(extSum.begin(), extSum.end(), 0.0);
+          if (as)
+          {
+            dml.Write(owned.attr, as * sizeof(float), c, attrSum.data());
+          }
+          if (xs)
+          {
+            dml.Write(owned.ext, xs * sizeof(double), c, extSum.data());
+          }
+        }
+        CellRec sum = owned.cells.Get(c);
+        MergeCell(sum, rec);
+        owned.cells.Set(c, sum);
+        if (as)
+        {
+          dml.Read(owned.attr, as * sizeof(float), c, attrSum.data());
+          for (std::size_t i = 0; i < as; ++i)
+          {
+            attrSum[i] += Rounds::Take<float>(p);
+          }
+          dml.Write(owned.attr, as * sizeof(float), c, attrSum.data());
+        }
+        if (xs)
+        {
+          dml.Read(owned.ext, xs * sizeof(double), c, extSum.data());
+          for (std::size_t i = 0; i < xs; ++i)
+          {
+            extSum[i] += Rounds::Take<double>(p);
+          }
+          dml.Write(owned.ext, xs * sizeof(double), c, extSum.data());
+        }
+      }
+      cluster.progress.Poll();
+    }
+    more = rounds.Any(next < cluster.numCells);
+  } while (more);
+  (void)recordSize;
+}
+
+// Step 2: every triangle (by its cells' keys) goes to its owner; of the copies that several ranks
+// made (faces on both sides of a seam between pieces that fall into the same three cells), the
+// lowest rank's is kept and the others are told to drop theirs.
+void KeepOneCopyOfEachTriangle(ClusterState& cluster, const Array<std::uint64_t>& keys,
+  Array<std::uint8_t>& keep, Rounds& rounds, int rank)
+{
+  DML& dml = cluster.dml;
+  auto& order = cluster.triangles.Order();
+  const std::uint64_t numTris = cluster.triangles.Size();
+  keep = Array<std::uint8_t>(dml, std::max<std::uint64_t>(numTris, 1));
+  {
+    const std::uint8_t one = 1;
+    dml.Fill(keep.Id(), &one);
+  }
+  Array<TriMsg> got(dml, 1024);
+  std::uint64_t numGot = 0;
+  std::uint64_t next = 0;
+  bool more = true;
+  do
+  {
+    for (; next < numTris && rounds.Pending() < rounds.Limit(); ++next)
+    {
+      const TriSlot t = order.Get(next);
+      std::uint64_t k[3] = { keys.Get(t.v[0]), keys.Get(t.v[1]), keys.Get(t.v[2]) };
+      const int m = k[0] < k[1] ? (k[0] < k[2] ? 0 : 2) : (k[1] < k[2] ? 1 : 2);
+      std::rotate(k, k + m, k + 3);
+      auto& b = rounds.send[rounds.Owner(k[0] ^ Mix(k[1] ^ Mix(k[2])))];
+      for (std::uint64_t key : k)
+      {
+        Rounds::Put(b, key);
+      }
+      Rounds::Put(b, next);
+    }
+    rounds.Exchange();
+    for (std::size_t from = 0; from < rounds.received.size(); ++from)
+    {
+      const auto& data = rounds.received[from];
+      for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
+      {
+        TriMsg msg{};
+        for (auto& key : msg.k)
+        {
+          key = Rounds::Take<std::uint64_t>(p);
+        }
+        msg.rank = std::uint32_t(from);
+        msg.index = Rounds::Take<std::uint64_t>(p);
+        if (numGot == got.Size())
+        {
+          got.Resize(2 * got.Size());
+        }
+        got.Set(numGot++, msg);
+      }
+    }
+    cluster.progress.Poll();
+    more = rounds.Any(next < numTris);
+  } while (more);
+  got.Resize(std::max<std::uint64_t>(numGot, 1));
+  if (numGot)
+  {
+    storage::Sort(dml, got, [](const TriMsg& a, const TriMsg& b) {
+      return std::tie(a.k[0], a.k[1], a.k[2], a.rank, a.index) <
+        std::tie(b.k[0], b.k[1], b.k[2], b.rank, b.index);
+    });
+  }
+  // The copies after the first of each run of equal keys are dropped by their ranks.
+  std::uint64_t at = 0;
+  TriMsg previous{};
+  do
+  {
+    for (; at < numGot && rounds.Pending() < rounds.Limit(); ++at)
+    {
+      const TriMsg msg = got.Get(at);
+      if (at > 0 && std::equal(msg.k, msg.k + 3, previous.k))
+      {
+        Rounds::Put(rounds.send[msg.rank], msg.index);
+      }
+      previous = msg;
+    }
+    rounds.Exchange();
+    for (const auto& data : rounds.received)
+    {
+      for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
+      {
+        keep.Set(Rounds::Take<std::uint64_t>(p), 0);
+      }
+    }
+    more = rounds.Any(at < numGot);
+  } while (more);
+  got.Close();
+  (void)rank;
+}
+
+// Step 3: the owners compute the vertices of the cells the kept triangles use.
+void FetchVertices(ClusterState& cluster, const Array<std::uint64_t>& keys,
+  const Array<std::uint8_t>& keep, OwnedCells& owned, DistributedOutput& out, Rounds& rounds)
+{
+  DML& dml = cluster.dml;
+  auto& order = cluster.triangles.Order();
+  const std::uint64_t numTris = cluster.triangles.Size();
+  // The cells used here, numbered in cell order (as Emit numbers them).
+  Array<std::uint32_t> index(dml, std::max<std::uint64_t>(cluster.numCells, 1));
+  {
+    const std::uint32_t unused = kNoCell;
+    dml.Fill(index.Id(), &unused);
+  }
+  for (std::uint64_t t = 0; t < numTris; ++t)
+  {
+    if (keep.Get(t))
+    {
+      const TriSlot s = order.Get(t);
+      for (int k = 0; k < 3; ++k)
+      {
+        index.Set(s.v[k], 0);
+      }
+    }
+  }
+  std::uint32_t numOut = 0;
+  for (std::uint32_t c = 0; c < cluster.numCells; ++c)
+  {
+    if (index.Get(c) != kNoCell)
+    {
+      index.Set(c, numOut++);
+    }
+  }
+  out.recordSize = VertexRecordSize(cluster.layout);
+  out.vertices = dml.OpenBlock(out.recordSize, std::max<std::uint32_t>(numOut, 1));
+  const int ranks = int(rounds.send.size());
+  std::vector<std::vector<std::uint32_t>> asked(std::size_t(ranks), std::vector<std::uint32_t>{});
+  std::vector<std::uint8_t> record(out.recordSize);
+  std::vector<float> attr(cluster.attrStride);
+  std::uint32_t next = 0;
+  bool more = true;
+  do
+  {
+    for (auto& a : asked)
+    {
+      a.clear();
+    }
+    for (; next < cluster.numCells && rounds.Pending() < rounds.Limit(); ++next)
+    {
+      const std::uint32_t i = index.Get(next);
+      if (i == kNoCell)
+      {
+        continue;
+      }
+      const std::uint64_t key = keys.Get(next);
+      const int owner = rounds.Owner(key);
+      Rounds::Put(rounds.send[owner], key);
+      asked[owner].push_back(i);
+    }
+    rounds.Exchange();
+    // (the owners answer in the order asked)
+    for (int from = 0; from < ranks; ++from)
+    {
+      const auto& data = rounds.received[from];
+      for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
+      {
+        const std::uint32_t c = owned.map.Find(Rounds::Take<std::uint64_t>(p));
+        if (c == kNoCell)
+        {
+          throw std::logic_error("a rank asked for a cell that no rank sent");
+        }
+        if (cluster.xSize)
+        {
+          dml.Read(owned.ext, cluster.xSize * sizeof(double), c, cluster.extBuf.data());
+        }
+        if (cluster.attrStride)
+        {
+          dml.Read(owned.attr, cluster.attrStride * sizeof(float), c, attr.data());
+        }
+        VertexBuffers v;
+        AppendVertex(cluster, owned.cells.Get(c), attr.data(), v, 0);
+        PackVertex(cluster.layout, v, 0, record.data());
+        auto& b = rounds.send[from];
+        b.insert(b.end(), record.begin(), record.end());
+      }
+    }
+    rounds.Exchange();
+    for (int from = 0; from < ranks; ++from)
+    {
+      const auto& data = rounds.received[from];
+      if (data.size() != asked[from].size() * out.recordSize)
+      {
+        throw std::logic_error("an owner rank answered " + std::to_string(data.size()) +
+          " bytes for " + std::to_string(asked[from].size()) + " vertices");
+      }
+      for (std::size_t j = 0; j < asked[from].size(); ++j)
+      {
+        dml.Write(out.vertices, out.recordSize, asked[from][j], data.data() + j * out.recordSize);
+      }
+    }
+    cluster.progress.Poll();
+    more = rounds.Any(next < cluster.numCells);
+  } while (more);
+}
+
+// Forwards a read to `inner`, recording the header's layout and giving `inner` another one when
+// `layout` is set (a rank whose piece is empty takes the layout the others agreed on).
+class LayoutSink final : public io::MeshSink
+{
+public:
+  LayoutSink(io::MeshSink& inner, const io::VertexLayout* layout)
+    : inner_(inner)
+    , layout_(layout)
+  {
+  }
+  const io::VertexLayout& Seen() const { return this->seen_; }
+  void Begin(const io::MeshHeader& h) override
+  {
+    this->seen_ = h.layout;
+    io::MeshHeader g = h;
+    if (this->layout_)
+    {
+      g.layout = *this->layout_;
+    }
+    this->inner_.Begin(g);
+  }
+  void Vertices(const io::VertexChunk& c) override { this->inner_.Vertices(c); }
+  void Triangles(const std::uint32_t* i, std::size_t n) override { this->inner_.Triangles(i, n); }
+  void TriangleFlags(const std::uint8_t* f, std::size_t n) override
+  {
+    this->inner_.TriangleFlags(f, n);
+  }
+  void End(const io::ReadStats& s) override { this->inner_.End(s); }
+  bool AbortRequested() override { return this->inner_.AbortRequested(); }
+
+private:
+  io::MeshSink& inner_;
+  const io::VertexLayout* layout_;
+  io::VertexLayout seen_;
+};
+
+std::string Describe(const io::VertexLayout& l)
+{
+  std::string s;
+  auto add = [&s](const std::string& name) { s += (s.empty() ? "" : ", ") + name; };
+  if (l.normals)
+  {
+    add("normals");
+  }
+  if (l.colors)
+  {
+    add("colours");
+  }
+  if (l.texcoords)
+  {
+    add("texture coordinates");
+  }
+  for (const auto& n : l.scalars)
+  {
+    add(n);
+  }
+  return s.empty() ? "no point data" : s;
+}
+
+// The point data every rank's piece carries: the first non-empty piece's. A non-empty piece with
+// other point data is an error (the same words on every rank); an empty piece takes it.
+io::VertexLayout AgreeOnLayout(
+  const io::VertexLayout& mine, std::uint64_t vertices, Rounds& rounds, int rank)
+{
+  std::vector<std::uint8_t> me;
+  Rounds::Put(me, vertices);
+  Rounds::Put(me, std::uint8_t(mine.normals));
+  Rounds::Put(me, std::uint8_t(mine.colors));
+  Rounds::Put(me, std::uint8_t(mine.texcoords));
+  Rounds::Put(me, std::uint64_t(mine.scalars.size()));
+  for (const auto& n : mine.scalars)
+  {
+    Rounds::Put(me, std::uint64_t(n.size()));
+    me.insert(me.end(), n.begin(), n.end());
+  }
+  for (auto& b : rounds.send)
+  {
+    b = me;
+  }
+  rounds.Exchange();
+  int chosen = -1;
+  io::VertexLayout agreed;
+  for (std::size_t r = 0; r < rounds.received.size(); ++r)
+  {
+    const std::uint8_t* p = rounds.received[r].data();
+    const std::uint64_t n = Rounds::Take<std::uint64_t>(p);
+    io::VertexLayout l;
+    l.normals = Rounds::Take<std::uint8_t>(p) != 0;
+    l.colors = Rounds::Take<std::uint8_t>(p) != 0;
+    l.texcoords = Rounds::Take<std::uint8_t>(p) != 0;
+    const std::uint64_t k = Rounds::Take<std::uint64_t>(p);
+    for (std::uint64_t i = 0; i < k; ++i)
+    {
+      const std::uint64_t len = Rounds::Take<std::uint64_t>(p);
+      l.scalars.emplace_back(reinterpret_cast<const char*>(p), len);
+      p += len;
+    }
+    if (!n)
+    {
+      continue;
+    }
+    if (chosen < 0)
+    {
+      chosen = int(r);
+      agreed = l;
+    }
+    else if (l.normals != agreed.normals || l.colors != agreed.colors ||
+      l.texcoords != agreed.texcoords || l.scalars != agreed.scalars)
+    {
+      throw std::runtime_error("the pieces carry different point data: rank " +
+        std::to_string(chosen) + "'s has " + Describe(agreed) + ", rank " + std::to_string(r) +
+        "'s has " + Describe(l));
+    }
+  }
+  (void)rank;
+  return chosen < 0 ? mine : agreed;
+}
+
+// The exchanges' round size: a sixteenth of the budget, from 256 KiB to 16 MiB.
+std::size_t RoundBytes(const storage::Profile& profile)
+{
+  const std::uint64_t budget = profile.memoryBudget;
+  constexpr std::uint64_t lo = 256 << 10, hi = 16 << 20;
+  return std::size_t(budget ? std::clamp<std::uint64_t>(budget / 16, lo, hi) : hi);
+}
+
+RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
+  const ClusterOptions& options, Progress& progress)
+{
+  Communicator& comm = *options.communicator;
+  RunStats stats;
+  Rounds rounds(comm, RoundBytes(options.storage), stats.communication);
+  if (options.boundaryQuadrics && comm.Size() > 1)
+  {
+    throw std::invalid_argument("boundary planes are not available on more than one rank yet");
+  }
+  const int threads = storage::ResolveThreads(options.threads);
+  const MeshSource input = threads > 1 ? Prefetched(source) : source;
+  DML dml;
+  dml.Config(options.storage);
+  // A failure on one rank reaches the others at the next agreement (instead of leaving them
+  // waiting in an exchange): every rank then throws.
+  std::exception_ptr failure;
+  auto agree = [&](const char* what) {
+    if (rounds.Any(failure != nullptr))
+    {
+      if (failure)
+      {
+        std::rethrow_exception(failure);
+      }
+      throw std::runtime_error(std::string("another rank failed ") + what);
+    }
+  };
+
+  // A vertices-only pass over the piece: its bounds, its size and its point data, which the
+  // ranks agree on (a rank with an empty piece may have none).
+  std::array<double, 6> bounds = options.bounds;
+  io::VertexLayout layout;
+  std::uint64_t vertices = 0;
+  {
+    progress.BeginPhase("bounds", 0.0, 1.0);
+    PhaseTimer timer(stats, dml, "bounds");
+    try
+    {
+      BoundsSink bs(progress, [&options](std::uint64_t v, std::uint64_t f) {
+        return kWork::kCluster * double(v + f) +
+          ClusterWorkAfterRead(v, f, options.maximumGridDimension, options);
+      });
+      LayoutSink ls(bs, nullptr);
+      io::ReadOptions ro;
+      ro.verticesOnly = true;
+      input(ls, ro);
+      layout = ls.Seen();
+      vertices = bs.VerticesSeen();
+      if (!options.useBounds)
+      {
+        bounds = bs.b;
+      }
+    }
+    catch (...)
+    {
+      failure = std::current_exception();
+    }
+    agree("reading its piece");
+    layout = AgreeOnLayout(layout, vertices, rounds, comm.Rank());
+    if (!options.useBounds)
+    {
+      double lo[3] = { bounds[0], bounds[2], bounds[4] },
+             hi[3] = { bounds[1], bounds[3], bounds[5] };
+      rounds.Min(lo, 3);
+      rounds.Max(hi, 3);
+      bounds = { lo[0], hi[0], lo[1], hi[1], lo[2], hi[2] };
+    }
+  }
+  const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
+
+  ClusterState cluster(dml, grid, options, true, progress);
+  ClusterSink clusterSink(cluster);
+  LayoutSink sink(clusterSink, vertices ? nullptr : &layout);
+  {
+    progress.BeginPhase("cluster", 1.0, 1.0);
+    PhaseTimer timer(stats, dml, "cluster");
+    try
+    {
+      const io::ReadStats read = input(sink, io::ReadOptions{});
+      stats.inputVertices = read.vertices;
+      stats.inputTriangles = read.triangles;
+      stats.droppedInputFaces = read.droppedFaces;
+    }
+    catch (...)
+    {
+      failure = std::current_exception();
+    }
+    agree("reading its piece");
+  }
+  if (options.sourceConsumed)
+  {
+    options.sourceConsumed();
+  }
+  // Each local cell's grid key (the map goes with the input's blocks).
+  Array<std::uint64_t> keys(dml, std::max<std::uint32_t>(cluster.numCells, 1));
+  cluster.cellWindow.Release();
+  cluster.cellMap.ForEach([&keys](std::uint64_t key, std::uint32_t cell) { keys.Set(cell, key); });
+  ReleaseInputBlocks(cluster);
+  {
+    progress.BeginPhase("triangles", 1.0, 1.0);
+    PhaseTimer timer(stats, dml, "triangles");
+    FinishTriangles(cluster);
+  }
+  DistributedOutput out;
+  {
+    progress.BeginPhase("exchange", 1.0, 1.0);
+    PhaseTimer timer(stats, dml, "exchange");
+    OwnedCells owned(dml, progress);
+    SendCellsToOwners(cluster, keys, owned, rounds);
+    KeepOneCopyOfEachTriangle(cluster, keys, out.keep, rounds, comm.Rank());
+    FetchVertices(cluster, keys, out.keep, owned, out, rounds);
+    if (owned.attr >= 0)
+    {
+      dml.CloseBlock(owned.attr);
+    }
+    if (owned.ext >= 0)
+    {
+      dml.CloseBlock(owned.ext);
+    }
+  }
+  keys.Close();
+  {
+    progress.BeginPhase("output", 1.0, 0.0);
+    PhaseTimer timer(stats, dml, "output");
+    Emit(cluster, output, stats, &out);
+  }
+  dml.CloseBlock(out.vertices);
+  out.keep.Close();
+  double err2 = cluster.achievedErr2;
+  rounds.Max(&err2, 1);
+  stats.errorDiagonal = std::sqrt((bounds[1] - bounds[0]) * (bounds[1] - bounds[0]) +
+    (bounds[3] - bounds[2]) * (bounds[3] - bounds[2]) +
+    (bounds[5] - bounds[4]) * (bounds[5] - bounds[4]));
+  stats.achievedError = RelativeError(err2, stats.errorDiagonal);
+  progress.Finish();
+  stats.storage = dml.GetStats();
+  return stats;
+}
+} // namespace
+} // namespace sipmss::algorithms

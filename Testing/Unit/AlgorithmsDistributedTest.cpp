@@ -1,0 +1,262 @@
+// The clustering across ranks (ClusterOptions::communicator), on ranks that are threads of this
+// process: for 1 to 4 ranks and pieces cut in several ways, the union of the ranks' outputs is
+// the serial output (the same triangles at the same coordinates, bit for bit), no triangle comes
+// out twice, and the bytes exchanged are counted.
+#include "sipmss/algorithms/Cluster.h"
+
+#include "AlgorithmsTestUtil.h"
+#include "ThreadCommunicator.h"
+
+#include <gtest/gtest.h>
+
+#include <map>
+#include <mutex>
+
+using namespace sipmss;
+using namespace sipmss::algorithms;
+using sipmss::testing::Collect;
+using sipmss::testing::MemorySource;
+using sipmss::testing::Mesh;
+
+namespace
+{
+enum class Cut
+{
+  Blocks,      // contiguous runs of faces (a file split by byte ranges)
+  Slabs,       // by the face's centroid along x (a spatial partition, as RedistributeDataSet)
+  Interleaved, // face f to rank f % N (seams everywhere)
+  LastEmpty    // blocks over N - 1 ranks; the last rank's piece is empty
+};
+
+// Rank r's piece: its faces and the vertices they use, renumbered in order of first use (a vertex
+// on a seam is in several pieces, as the pieces of a distributed vtkPolyData are).
+Mesh Piece(const Mesh& m, int ranks, int r, Cut cut)
+{
+  const std::size_t nf = m.t.size() / 3;
+  const std::size_t ns = m.p.empty() ? 0 : m.scalar.size() / (m.p.size() / 3);
+  float lo = 1e30f, hi = -1e30f;
+  for (std::size_t i = 0; i < m.p.size(); i += 3)
+  {
+    lo = std::min(lo, m.p[i]);
+    hi = std::max(hi, m.p[i]);
+  }
+  auto rankOf = [&](std::size_t f) {
+    switch (cut)
+    {
+      case Cut::Blocks:
+        return int(f * std::size_t(ranks) / nf);
+      case Cut::LastEmpty:
+        return ranks == 1 ? 0 : int(f * std::size_t(ranks - 1) / nf);
+      case Cut::Interleaved:
+        return int(f % std::size_t(ranks));
+      default:
+      {
+        float x = 0;
+        for (int k = 0; k < 3; ++k)
+        {
+          x += m.p[3 * m.t[3 * f + k]] / 3;
+        }
+        return std::min(ranks - 1, int((x - lo) / (hi - lo) * float(ranks)));
+      }
+    }
+  };
+  Mesh piece;
+  piece.names = m.names;
+  std::map<std::uint32_t, std::uint32_t> renumber;
+  for (std::size_t f = 0; f < nf; ++f)
+  {
+    if (rankOf(f) != r)
+    {
+      continue;
+    }
+    for (int k = 0; k < 3; ++k)
+    {
+      const std::uint32_t v = m.t[3 * f + k];
+      auto it = renumber.find(v);
+      if (it == renumber.end())
+      {
+        it = renumber.emplace(v, std::uint32_t(renumber.size())).first;
+        piece.p.insert(piece.p.end(), m.p.begin() + 3 * v, m.p.begin() + 3 * v + 3);
+        piece.scalar.insert(
+          piece.scalar.end(), m.scalar.begin() + ns * v, m.scalar.begin() + ns * (v + 1));
+      }
+      piece.t.push_back(it->second);
+    }
+  }
+  return piece;
+}
+
+struct Distributed
+{
+  std::vector<Collect> outputs;
+  std::vector<RunStats> stats;
+};
+
+Distributed RunDistributed(const Mesh& m, int ranks, Cut cut, const ClusterOptions& options)
+{
+  Distributed d;
+  d.outputs.resize(std::size_t(ranks));
+  d.stats.resize(std::size_t(ranks));
+  std::vector<Mesh> pieces;
+  for (int r = 0; r < ranks; ++r)
+  {
+    pieces.push_back(Piece(m, ranks, r, cut));
+  }
+  sipmss::testing::RunRanks(ranks, [&](Communicator& comm) {
+    const std::size_t r = std::size_t(comm.Rank());
+    ClusterOptions o = options;
+    o.communicator = &comm;
+    NullProgress progress;
+    d.stats[r] = Cluster(MemorySource(pieces[r]), d.outputs[r], o, progress);
+  });
+  return d;
+}
+
+// A mesh with a scalar that varies over it: a bumpy sphere far from the origin.
+Mesh Input() { return sipmss::testing::BumpyUVSphere(40, { 3.0, -2.0, 5.0 }); }
+
+void ExpectUnionIsSerial(const Mesh& m, const ClusterOptions& options, int ranks, Cut cut)
+{
+  NullProgress progress;
+  Collect serial;
+  const RunStats serialStats = Cluster(MemorySource(m), serial, options, progress);
+  const auto expected = sipmss::testing::TrianglesByCoordinates(serial.m);
+  ASSERT_GT(expected.size(), 100u);
+  const Distributed d = RunDistributed(m, ranks, cut, options);
+  std::multiset<std::array<float, 9>> all;
+  std::uint64_t triangles = 0;
+  for (int r = 0; r < ranks; ++r)
+  {
+    const Collect& out = d.outputs[std::size_t(r)];
+    const auto mine = sipmss::testing::TrianglesByCoordinates(out.m);
+    all.insert(mine.begin(), mine.end());
+    triangles += d.stats[std::size_t(r)].outputTriangles;
+    EXPECT_EQ(d.stats[std::size_t(r)].communication.ranks, ranks);
+    EXPECT_EQ(d.stats[std::size_t(r)].communication.rank, r);
+    if (ranks > 1 && cut != Cut::LastEmpty)
+    {
+      EXPECT_GT(d.stats[std::size_t(r)].communication.bytesSent, 0u) << "rank " << r;
+    }
+  }
+  EXPECT_EQ(triangles, expected.size());
+  EXPECT_TRUE(all == expected) << ranks << " ranks, cut " << int(cut) << ": " << all.size()
+                               << " triangles against " << expected.size() << " serial";
+  EXPECT_NEAR(d.stats[0].achievedError, serialStats.achievedError,
+    1e-12 + 1e-9 * serialStats.achievedError);
+  EXPECT_DOUBLE_EQ(d.stats[0].errorDiagonal, serialStats.errorDiagonal);
+}
+} // namespace
+
+TEST(ClusterDistributed, TheUnionOfThePiecesIsTheSerialResult)
+{
+  const Mesh m = Input();
+  for (int grid : { 8, 30 })
+  {
+    ClusterOptions o;
+    o.maximumGridDimension = grid;
+    for (int ranks = 1; ranks <= 4; ++ranks)
+    {
+      for (Cut cut : { Cut::Blocks, Cut::Slabs, Cut::Interleaved, Cut::LastEmpty })
+      {
+        SCOPED_TRACE("grid " + std::to_string(grid) + ", " + std::to_string(ranks) + " ranks");
+        ExpectUnionIsSerial(m, o, ranks, cut);
+      }
+    }
+  }
+}
+
+TEST(ClusterDistributed, SampledVertexGivenBoundsAndPointData)
+{
+  const Mesh m = Input();
+  ClusterOptions o;
+  o.maximumGridDimension = 17;
+  o.fallback = ClusterFallback::SampledVertex;
+  o.placementSlack = 0; // (the fallback at work)
+  ExpectUnionIsSerial(m, o, 3, Cut::Slabs);
+  o = ClusterOptions{};
+  o.useBounds = true;
+  o.bounds = { 1.5, 4.5, -3.5, -0.5, 3.5, 6.5 };
+  ExpectUnionIsSerial(m, o, 4, Cut::Interleaved);
+  // The point data of a vertex is the mean over the cell's vertices in every piece: a vertex
+  // on a seam counts once per piece, so it is close to, not the same as, the serial mean.
+  o = ClusterOptions{};
+  o.maximumGridDimension = 12;
+  NullProgress progress;
+  Collect serial;
+  Cluster(MemorySource(m), serial, o, progress);
+  const Distributed d = RunDistributed(m, 2, Cut::Slabs, o);
+  std::map<std::array<float, 3>, float> scalar;
+  for (std::size_t v = 0; v < serial.m.p.size() / 3; ++v)
+  {
+    scalar[{ serial.m.p[3 * v], serial.m.p[3 * v + 1], serial.m.p[3 * v + 2] }] = serial.m.scalar[v];
+  }
+  std::size_t checked = 0;
+  for (const Collect& out : d.outputs)
+  {
+    ASSERT_EQ(out.m.scalar.size(), out.m.p.size() / 3);
+    for (std::size_t v = 0; v < out.m.p.size() / 3; ++v)
+    {
+      const auto it = scalar.find({ out.m.p[3 * v], out.m.p[3 * v + 1], out.m.p[3 * v + 2] });
+      ASSERT_NE(it, scalar.end());
+      EXPECT_NEAR(out.m.scalar[v], it->second, 0.05);
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 50u);
+}
+
+TEST(ClusterDistributed, OutOfCoreRanksGiveTheSameResult)
+{
+  // A small budget per rank: the blocks go to files, the exchanges go in many small rounds.
+  const Mesh m = sipmss::testing::BumpyUVSphere(120);
+  ClusterOptions o;
+  o.maximumGridDimension = 60;
+  o.storage.policy = storage::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 2u << 20;
+  ExpectUnionIsSerial(m, o, 3, Cut::Slabs);
+  const Distributed d = RunDistributed(m, 3, Cut::Slabs, o);
+  for (const RunStats& s : d.stats)
+  {
+    EXPECT_TRUE(s.storage.usedOutOfCore);
+    EXPECT_GT(s.communication.rounds, 6u); // (three exchanges and their rounds)
+  }
+}
+
+TEST(ClusterDistributed, BoundaryPlanesAcrossRanksAreRefused)
+{
+  const Mesh m = Input();
+  ClusterOptions o;
+  o.boundaryQuadrics = true;
+  EXPECT_THROW(RunDistributed(m, 2, Cut::Slabs, o), std::invalid_argument);
+  // one rank is the serial run
+  ExpectUnionIsSerial(m, o, 1, Cut::Blocks);
+}
+
+TEST(ClusterDistributed, AFailureOnOneRankReachesEveryRank)
+{
+  // Rank 1's piece has a face that names a vertex it does not have: every rank fails (none
+  // waits for it in an exchange).
+  const Mesh m = Input();
+  std::vector<Mesh> pieces = { Piece(m, 2, 0, Cut::Slabs), Piece(m, 2, 1, Cut::Slabs) };
+  pieces[1].t.push_back(std::uint32_t(pieces[1].p.size() / 3 + 5));
+  pieces[1].t.push_back(0);
+  pieces[1].t.push_back(1);
+  std::mutex mutex;
+  int failed = 0;
+  sipmss::testing::RunRanks(2, [&](Communicator& comm) {
+    ClusterOptions o;
+    o.communicator = &comm;
+    NullProgress progress;
+    Collect out;
+    try
+    {
+      Cluster(MemorySource(pieces[std::size_t(comm.Rank())]), out, o, progress);
+    }
+    catch (const std::exception&)
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      ++failed;
+    }
+  });
+  EXPECT_EQ(failed, 2);
+}
