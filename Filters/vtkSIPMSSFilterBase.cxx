@@ -1,10 +1,12 @@
 #include "vtkSIPMSSFilterBase.h"
 
+#include "vtkSIPMSSCommunicator.h"
 #include "vtkSIPMSSPolyDataBridge.h"
 
 #include "vtkCellData.h"
 #include "vtkInformation.h"
 #include "vtkInformationVector.h"
+#include "vtkMultiProcessController.h"
 #include "vtkObjectFactory.h"
 #include "vtkPointData.h"
 #include "vtkPolyData.h"
@@ -12,14 +14,22 @@
 
 #include "sipmss/algorithms/Simplify.h"
 
+#include <optional>
 #include <sstream>
 #include <string>
 #include <vector>
 
-vtkSIPMSSFilterBase::vtkSIPMSSFilterBase() = default;
+vtkSIPMSSFilterBase::vtkSIPMSSFilterBase()
+{
+  this->SetController(vtkMultiProcessController::GetGlobalController());
+}
+
+vtkCxxSetObjectMacro(vtkSIPMSSFilterBase, Controller, vtkMultiProcessController);
 
 vtkSIPMSSFilterBase::~vtkSIPMSSFilterBase()
 {
+  this->SetController(nullptr);
+  this->SetRankStatistics(nullptr);
   this->SetFileName(nullptr);
   this->SetAttributes(nullptr);
   this->SetTemporaryDirectories(nullptr);
@@ -88,6 +98,24 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->AchievedError = -1;
   this->ErrorDiagonal = 0;
   this->PrunedComponents = this->PrunedTriangles = 0;
+  this->NumberOfRanks = 1;
+  this->BytesSent = this->BytesReceived = 0;
+  this->CommunicationSeconds = 0;
+  this->SetRankStatistics("");
+
+  // Under MPI (a controller of several processes): vtkSIPMSSCluster runs across the ranks on the
+  // pipeline's pieces; a file is read by rank 0 alone (not yet by byte ranges on every rank).
+  vtkMultiProcessController* controller = this->Controller;
+  const int ranks = controller ? controller->GetNumberOfProcesses() : 1;
+  const int rank = controller ? controller->GetLocalProcessId() : 0;
+  const bool fileRun = this->FileName && *this->FileName;
+  if (fileRun && ranks > 1 && rank != 0)
+  {
+    output->Initialize();
+    return 1;
+  }
+  const bool distributed = this->Distributes() && ranks > 1 && !fileRun;
+  std::optional<vtkSIPMSSCommunicator> communicator;
 
   // The request, and the same rules as the CLI's: NaN, infinities and meaningless values are
   // errors before any work.
@@ -111,6 +139,11 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   request.threads = this->NumberOfThreads;
   request.attributes = this->Attributes ? this->Attributes : "";
   this->FillRequest(request);
+  if (distributed)
+  {
+    communicator.emplace(controller);
+    request.communicator = &*communicator;
+  }
   const auto problems = sipmss::algorithms::Problems(request);
   if (!problems.empty())
   {
@@ -137,8 +170,10 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       vtkErrorMacro("No input: connect a vtkPolyData or set FileName.");
       return 0;
     }
-    if (input->GetNumberOfPoints() == 0 || input->GetNumberOfPolys() + input->GetNumberOfStrips() == 0)
+    if (!distributed &&
+      (input->GetNumberOfPoints() == 0 || input->GetNumberOfPolys() + input->GetNumberOfStrips() == 0))
     {
+      // (a rank's empty piece still takes part in a distributed run)
       vtkWarningMacro("The input has no polygons: the output is empty.");
       output->Initialize();
       return 1;
@@ -244,13 +279,28 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   bridge::PolyDataSink sink(output, this->InputPointData);
   try
   {
-    if (haveBounds)
+    if (haveBounds && distributed)
+    {
+      // The ranks find the bounds together (the core's first pass). A bad point here fails
+      // this rank's read there, where every rank learns of it (none waits for this one).
+      try
+      {
+        bridge::Bounds(vtkPolyData::GetData(inputVector[0], 0));
+      }
+      catch (const std::exception& e)
+      {
+        const std::string message = e.what();
+        source = [message](sipmss::io::MeshSink&, const sipmss::io::ReadOptions&)
+          -> sipmss::io::ReadStats { throw std::runtime_error(message); };
+      }
+    }
+    else if (haveBounds)
     {
       bounds = bridge::Bounds(vtkPolyData::GetData(inputVector[0], 0));
-    }
-    if (haveBounds && !request.bounds)
-    {
-      request.bounds = bounds; // (a clustering needs no bounds pass)
+      if (!request.bounds)
+      {
+        request.bounds = bounds; // (a clustering needs no bounds pass)
+      }
     }
     const auto start = std::chrono::steady_clock::now();
     sipmss::algorithms::RunStats stats =
@@ -282,6 +332,27 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     this->BytesRead = stats.storage.bytesRead;
     this->BytesWritten = stats.storage.bytesWritten;
     this->Reconfigurations = stats.storage.reconfigurations;
+    if (distributed)
+    {
+      const auto& c = stats.communication;
+      this->NumberOfRanks = c.ranks;
+      this->BytesSent = c.bytesSent;
+      this->BytesReceived = c.bytesReceived;
+      this->CommunicationSeconds = c.seconds;
+      const double mine[4] = { double(c.bytesSent), double(c.bytesReceived), c.seconds,
+        this->ElapsedSeconds };
+      std::vector<double> all(4 * std::size_t(ranks));
+      controller->AllGather(mine, all.data(), 4);
+      std::ostringstream text;
+      for (int r = 0; r < ranks; ++r)
+      {
+        const double* f = all.data() + 4 * r;
+        text << (r ? "; " : "") << "rank " << r << ": " << std::uint64_t(f[0]) << " bytes sent, "
+             << std::uint64_t(f[1]) << " received, " << f[2] << " s in communication of "
+             << f[3] << " s";
+      }
+      this->SetRankStatistics(text.str().c_str());
+    }
     if (stats.droppedInputFaces)
     {
       vtkWarningMacro("Dropped " << stats.droppedInputFaces << " degenerate faces of " << what

@@ -15,6 +15,7 @@
 #include "sipmssFiltersModule.h" // for export macro
 #include "vtkPolyDataAlgorithm.h"
 
+class vtkMultiProcessController;
 class vtkPointData;
 class vtkPolyData;
 
@@ -150,6 +151,26 @@ public:
   // Disconnected pieces the run removed (vtkSIPMSSDecimate's PruneSize) and their triangles.
   vtkGetMacro(PrunedComponents, vtkTypeUInt64);
   vtkGetMacro(PrunedTriangles, vtkTypeUInt64);
+  // A run across MPI ranks (vtkSIPMSSCluster with a controller of several processes): the ranks,
+  // this rank's bytes sent to and received from the others and its seconds in communication,
+  // and every rank's figures as text ("rank 0: ... ; rank 1: ..."; empty for a serial run).
+  vtkGetMacro(NumberOfRanks, int);
+  vtkGetMacro(BytesSent, vtkTypeUInt64);
+  vtkGetMacro(BytesReceived, vtkTypeUInt64);
+  vtkGetMacro(CommunicationSeconds, double);
+  vtkGetStringMacro(RankStatistics);
+  ///@}
+
+  ///@{
+  /**
+   * The processes the filter runs on (default: the global controller, ParaView's MPI controller
+   * under pvbatch and pvserver). With more than one, vtkSIPMSSCluster clusters the ranks' pieces
+   * together on one grid (each rank's output is its piece of the serial result); a FileName run
+   * is made by rank 0 alone (the others' outputs are empty). vtkSIPMSSDecimate simplifies each
+   * rank's piece on its own.
+   */
+  virtual void SetController(vtkMultiProcessController*);
+  vtkGetObjectMacro(Controller, vtkMultiProcessController);
   ///@}
 
 protected:
@@ -176,6 +197,10 @@ protected:
   vtkPointData* InputPointData = nullptr;
 #endif
 
+  // Whether this filter's runs are distributed (vtkSIPMSSCluster: yes).
+  virtual bool Distributes() const { return false; }
+
+  vtkMultiProcessController* Controller = nullptr;
   char* FileName = nullptr;
   char* Attributes = nullptr;
   double MemoryBudgetMB = 0.0;
@@ -198,6 +223,12 @@ protected:
   double ElapsedSeconds = 0.0;
   vtkTypeUInt64 InputTriangles = 0;
   vtkTypeUInt64 OutputTriangles = 0;
+  int NumberOfRanks = 1;
+  vtkTypeUInt64 BytesSent = 0;
+  vtkTypeUInt64 BytesReceived = 0;
+  double CommunicationSeconds = 0.0;
+  char* RankStatistics = nullptr;
+  vtkSetStringMacro(RankStatistics);
   double AchievedReduction = 0.0;
   double AchievedError = -1.0;
   double ErrorDiagonal = 0.0;

@@ -212,6 +212,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
     o.boundaryWeight = r.EffectiveBoundaryWeight();
     o.boundaryQuadrics = o.boundaryWeight > 0;
     o.threads = r.threads;
+    o.communicator = r.communicator;
     ParseValidAttributes(r.attributes, o.attributes);
     if (r.bounds)
     {
