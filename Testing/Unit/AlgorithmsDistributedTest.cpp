@@ -5,7 +5,7 @@
 #include "sipmss/algorithms/Cluster.h"
 
 #include "AlgorithmsTestUtil.h"
-#include "ThreadCommunicator.h"
+#include "sipmss/algorithms/ThreadCommunicator.h"
 
 #include <gtest/gtest.h>
 
@@ -102,7 +102,7 @@ Distributed RunDistributed(const Mesh& m, int ranks, Cut cut, const ClusterOptio
   {
     pieces.push_back(Piece(m, ranks, r, cut));
   }
-  sipmss::testing::RunRanks(ranks, [&](Communicator& comm) {
+  RunRanks(ranks, [&](Communicator& comm) {
     const std::size_t r = std::size_t(comm.Rank());
     ClusterOptions o = options;
     o.communicator = &comm;
@@ -243,7 +243,7 @@ TEST(ClusterDistributed, AFailureOnOneRankReachesEveryRank)
   pieces[1].t.push_back(1);
   std::mutex mutex;
   int failed = 0;
-  sipmss::testing::RunRanks(2, [&](Communicator& comm) {
+  RunRanks(2, [&](Communicator& comm) {
     ClusterOptions o;
     o.communicator = &comm;
     NullProgress progress;

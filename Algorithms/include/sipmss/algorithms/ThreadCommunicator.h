@@ -1,5 +1,5 @@
-// N ranks in one process, one thread each: the Communicator of the distributed tests (the same
-// collectives MPI would make, without MPI).
+// N ranks in one process, one thread each: a Communicator without MPI (the same collectives),
+// for the distributed tests and the scaling benchmark.
 #pragma once
 
 #include "sipmss/algorithms/Communicator.h"
@@ -12,7 +12,7 @@
 #include <thread>
 #include <vector>
 
-namespace sipmss::testing
+namespace sipmss::algorithms
 {
 class ThreadGroup
 {
@@ -54,7 +54,7 @@ private:
   std::vector<std::vector<std::vector<std::uint8_t>>> mail_; // [from][to]
 };
 
-class ThreadCommunicator final : public algorithms::Communicator
+class ThreadCommunicator final : public Communicator
 {
 public:
   ThreadCommunicator(ThreadGroup& group, int rank)
@@ -122,7 +122,7 @@ private:
 };
 
 // Runs f(communicator) on n ranks (threads) and waits for them; rethrows the first failure.
-inline void RunRanks(int n, const std::function<void(algorithms::Communicator&)>& f)
+inline void RunRanks(int n, const std::function<void(Communicator&)>& f)
 {
   ThreadGroup group(n);
   std::vector<std::exception_ptr> failures(static_cast<std::size_t>(n));
@@ -153,4 +153,4 @@ inline void RunRanks(int n, const std::function<void(algorithms::Communicator&)>
     }
   }
 }
-} // namespace sipmss::testing
+} // namespace sipmss::algorithms
