@@ -160,6 +160,9 @@ void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e);
 template <class F>
 void UpdateCell(ClusterState& cluster, std::uint32_t cell, F&& f);
 void AddTriangle(ClusterState& cluster, const std::uint32_t* f);
+void AddCandidate(ClusterState& cluster, const VertexRec& a, const VertexRec& b, const VertexRec& c);
+void AddTrianglePlain(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
+  const VertexRec& b, const VertexRec& c);
 void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q, double p[3]);
 void OptimalCellAttributes(ClusterState& cluster, const double p[3], std::vector<float>& normals,
   std::vector<std::uint8_t>& rgba, std::vector<float>& texcoords, std::vector<float>& scalars);
@@ -403,7 +406,7 @@ void AppendVertex(ClusterState& cluster, const CellRec& rec, const float* attr, 
   std::uint64_t index)
 {
   // The quadric to minimize: the cell's, with its attribute error (Attributes.h).
-  const Quadric cellQ = cluster.units.ToDouble(rec.q);
+  const Quadric cellQ = cluster.options.exactSums ? cluster.units.ToDouble(rec.q) : rec.plain;
   Quadric Q = cellQ;
   if (cluster.xSize)
   {
@@ -881,10 +884,21 @@ void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e)
   const double d = -Dot(u, Vec3{ pa.x - centre[0], pa.y - centre[1], pa.z - centre[2] });
   const double w = cluster.options.boundaryWeight * el2;
   const double un[3] = { u.x, u.y, u.z };
-  const FixedQuadric q = cluster.units.Plane(un, d, w);
+  const bool exact = cluster.options.exactSums;
+  const FixedQuadric q = exact ? cluster.units.Plane(un, d, w) : FixedQuadric{};
+  const Quadric plain = exact ? Quadric{} : PlaneQuadric(u.x, u.y, u.z, d, w);
   for (std::uint32_t cell : { a.cell, b.cell })
   {
-    UpdateCell(cluster, cell, [&q](CellRec& rec) { AddTo(rec.q, q); });
+    UpdateCell(cluster, cell, [&](CellRec& rec) {
+      if (exact)
+      {
+        AddTo(rec.q, q);
+      }
+      else
+      {
+        AddTo(rec.plain, plain);
+      }
+    });
   }
 }
 
@@ -894,6 +908,61 @@ template <class F>
 void UpdateCell(ClusterState& cluster, std::uint32_t cell, F&& f)
 {
   f(cluster.cellWindow.At(cluster.cells.Id(), cell));
+}
+
+// A face over three distinct cells is a candidate output triangle.
+void AddCandidate(ClusterState& cluster, const VertexRec& a, const VertexRec& b, const VertexRec& c)
+{
+  if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
+  {
+    // rotate the smallest cell first (orientation kept) and count it in that cell's bucket
+    std::uint32_t t[3] = { a.cell, b.cell, c.cell };
+    const int m = t[0] < t[1] ? (t[0] < t[2] ? 0 : 2) : (t[1] < t[2] ? 1 : 2);
+    const std::uint32_t r0 = t[m], r1 = t[(m + 1) % 3], r2 = t[(m + 2) % 3];
+    UpdateCell(cluster, r0, [](CellRec& rec) { ++rec.triangles; });
+    cluster.triangles.Append(r0, r1, r2);
+  }
+}
+
+// AddTriangle with ClusterOptions::exactSums off: doubles, in the input's order.
+void AddTrianglePlain(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
+  const VertexRec& b, const VertexRec& c)
+{
+  const double* centre = cluster.units.centre.data();
+  const Vec3 pa = Position(a);
+  const Vec3 n = Cross(Position(b) - pa, Position(c) - pa);
+  const double len = std::sqrt(Dot(n, n));
+  Quadric q{};
+  if (len > 0)
+  {
+    const Vec3 u = Unit(n, len);
+    const double d = -Dot(u, Vec3{ pa.x - centre[0], pa.y - centre[1], pa.z - centre[2] });
+    const double w = 0.5 * len; // area
+    q = PlaneQuadric(u.x, u.y, u.z, d, w);
+    if (cluster.xSize)
+    {
+      AddFaceAttributeTerms(cluster, f, a, b, c, w);
+    }
+  }
+  const bool sampled = cluster.options.fallback == ClusterFallback::SampledVertex;
+  for (const VertexRec* v : { &a, &b, &c })
+  {
+    UpdateCell(cluster, v->cell, [&](CellRec& rec) {
+      AddTo(rec.plain, q);
+      rec.plainSum[0] += double(v->x) - centre[0];
+      rec.plainSum[1] += double(v->y) - centre[1];
+      rec.plainSum[2] += double(v->z) - centre[2];
+      ++rec.corners;
+      if (sampled &&
+        std::tie(v->x, v->y, v->z) < std::tie(rec.first[0], rec.first[1], rec.first[2]))
+      {
+        rec.first[0] = v->x;
+        rec.first[1] = v->y;
+        rec.first[2] = v->z;
+      }
+    });
+  }
+  AddCandidate(cluster, a, b, c);
 }
 
 void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
@@ -906,6 +975,11 @@ void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
   const VertexRec a = cluster.vertexWindow.At(vid, f[0]);
   const VertexRec b = cluster.vertexWindow.At(vid, f[1]);
   const VertexRec c = cluster.vertexWindow.At(vid, f[2]);
+  if (!cluster.options.exactSums)
+  {
+    AddTrianglePlain(cluster, f, a, b, c);
+    return;
+  }
   // Area-weighted plane quadric of the face (Garland-Heckbert) and the corner, added to each
   // corner's cell, exactly (FixedUnits). The plane is computed from the lexicographically
   // smallest corner on (orientation kept), so a face gives the same bits in any numbering.
@@ -989,15 +1063,7 @@ void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
     add(b.cell, q, pos[1], 1, &b);
     add(c.cell, q, pos[2], 1, &c);
   }
-  if (a.cell != b.cell && b.cell != c.cell && a.cell != c.cell)
-  {
-    // rotate the smallest cell first (orientation kept) and count it in that cell's bucket
-    std::uint32_t t[3] = { a.cell, b.cell, c.cell };
-    const int m = t[0] < t[1] ? (t[0] < t[2] ? 0 : 2) : (t[1] < t[2] ? 1 : 2);
-    const std::uint32_t r0 = t[m], r1 = t[(m + 1) % 3], r2 = t[(m + 2) % 3];
-    UpdateCell(cluster, r0, [](CellRec& rec) { ++rec.triangles; });
-    cluster.triangles.Append(r0, r1, r2);
-  }
+  AddCandidate(cluster, a, b, c);
 }
 
 // The face's attribute terms (Attributes.h), added to each corner's cell extension (in the
@@ -1117,9 +1183,13 @@ void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q,
   const double* centre = cluster.units.centre.data();
   const float* o = cluster.units.origin;
   const double inv = cluster.units.positionBack / double(std::max<std::uint64_t>(rec.corners, 1));
-  const Eigen::Vector3d mean(double(Fixed(rec.sum[0])) * inv + (double(o[0]) - centre[0]),
-    double(Fixed(rec.sum[1])) * inv + (double(o[1]) - centre[1]),
-    double(Fixed(rec.sum[2])) * inv + (double(o[2]) - centre[2]));
+  const double plainInv = 1.0 / double(std::max<std::uint64_t>(rec.corners, 1));
+  const Eigen::Vector3d mean = cluster.options.exactSums
+    ? Eigen::Vector3d(double(Fixed(rec.sum[0])) * inv + (double(o[0]) - centre[0]),
+        double(Fixed(rec.sum[1])) * inv + (double(o[1]) - centre[1]),
+        double(Fixed(rec.sum[2])) * inv + (double(o[2]) - centre[2]))
+    : Eigen::Vector3d(
+        rec.plainSum[0] * plainInv, rec.plainSum[1] * plainInv, rec.plainSum[2] * plainInv);
   Eigen::Matrix3d A;
   const double* q = Q.q;
   A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
@@ -1458,10 +1528,10 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   return TranslateOutOfMemory(progress, options.storage, [&] {
     if (options.communicator)
     {
-      if (options.exportQuadric || options.dml)
+      if (options.exportQuadric || options.dml || !options.exactSums)
       {
-        throw std::invalid_argument("the distributed clustering runs on a DML of its own and "
-                                    "exports no quadrics");
+        throw std::invalid_argument("the distributed clustering runs on a DML of its own, with "
+                                    "exact sums, and exports no quadrics");
       }
       return ClusterDistributed(source, output, options, progress);
     }

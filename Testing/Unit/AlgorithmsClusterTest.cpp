@@ -334,3 +334,25 @@ TEST(Cluster, TheOrderOfTheInputDoesNotChangeTheResult)
     }
   }
 }
+
+TEST(Cluster, PlainSumsGiveTheExactResultToRounding)
+{
+  // ClusterOptions::exactSums off (two-stage's first stage): the same triangles, the vertices
+  // within rounding of the exact sums' (not always bit for bit).
+  const Mesh m = sipmss::testing::BumpyUVSphere(40, { 2.0, 1.0, -3.0 });
+  ClusterOptions o;
+  o.maximumGridDimension = 19;
+  NullProgress progress;
+  Collect exact, plain;
+  const RunStats se = Cluster(MemorySource(m), exact, o, progress);
+  o.exactSums = false;
+  const RunStats sp = Cluster(MemorySource(m), plain, o, progress);
+  ASSERT_EQ(exact.m.t, plain.m.t); // (the same cells in the same order)
+  ASSERT_EQ(exact.m.p.size(), plain.m.p.size());
+  for (std::size_t i = 0; i < exact.m.p.size(); ++i)
+  {
+    EXPECT_NEAR(exact.m.p[i], plain.m.p[i], 1e-5f * (1.f + std::abs(exact.m.p[i])));
+  }
+  EXPECT_NEAR(se.achievedError, sp.achievedError, 1e-6 * se.achievedError);
+  EXPECT_GT(exact.m.t.size(), 100u);
+}

@@ -170,8 +170,20 @@ struct FixedUnits
 
 struct CellRec
 {
-  FixedQuadric q; // the cell's plane quadric sums (Quadric.h) about FixedUnits::centre, exact
-  FixedSum sum[3]; // the sum of its faces' corners (FixedUnits::position from the grid's origin)
+  // The cell's plane quadric sums (Quadric.h) about FixedUnits::centre, and the sum of its faces'
+  // corners: exact (FixedUnits::position from the grid's origin), or with
+  // ClusterOptions::exactSums off doubles added in the input's order (the corners about the
+  // centre).
+  union
+  {
+    FixedQuadric q;
+    Quadric plain;
+  };
+  union
+  {
+    FixedSum sum[3];
+    double plainSum[3];
+  };
   float first[3]; // its lexicographically smallest corner (the paper's sampled-vertex fallback)
   std::uint32_t vertices;  // input vertices in the cell (the point data's mean)
   std::uint64_t corners;   // corners of faces in the cell (the mean's count)
