@@ -216,17 +216,28 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     source = bridge::PolyDataSource(input, &skipped);
     std::string ambiguous;
     request.attributes = bridge::CoreAttributeNames(input, request.attributes, ambiguous);
+    std::string problem;
     if (!ambiguous.empty())
     {
-      vtkErrorMacro(<< this->PropertyName(sipmss::algorithms::Parameter::Attributes) << " "
-                    << ambiguous << ".");
-      output->Initialize();
-      return 0;
+      problem = std::string(this->PropertyName(sipmss::algorithms::Parameter::Attributes)) + " " +
+        ambiguous + ".";
     }
     for (const auto& p : sipmss::algorithms::Problems(request))
     {
       // (the input's array names as keywords may name one attribute twice: Normals and normals)
-      vtkErrorMacro(<< this->PropertyName(p.parameter) << " " << p.problem << ".");
+      problem = std::string(this->PropertyName(p.parameter)) + " " + p.problem + ".";
+      break;
+    }
+    if (!problem.empty() && distributed)
+    {
+      // (this piece's arrays: the run fails on every rank, none waits for this one)
+      source = [problem](sipmss::io::MeshSink&, const sipmss::io::ReadOptions&)
+        -> sipmss::io::ReadStats { throw std::runtime_error(problem); };
+      request.attributes.clear();
+    }
+    else if (!problem.empty())
+    {
+      vtkErrorMacro(<< problem);
       output->Initialize();
       return 0;
     }
@@ -339,17 +350,14 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       this->BytesSent = c.bytesSent;
       this->BytesReceived = c.bytesReceived;
       this->CommunicationSeconds = c.seconds;
-      const double mine[4] = { double(c.bytesSent), double(c.bytesReceived), c.seconds,
-        this->ElapsedSeconds };
-      std::vector<double> all(4 * std::size_t(ranks));
-      controller->AllGather(mine, all.data(), 4);
+      // (every rank's figures, gathered by the run before its output)
       std::ostringstream text;
-      for (int r = 0; r < ranks; ++r)
+      for (std::size_t r = 0; 4 * r + 3 < c.perRank.size(); ++r)
       {
-        const double* f = all.data() + 4 * r;
+        const double* f = c.perRank.data() + 4 * r;
         text << (r ? "; " : "") << "rank " << r << ": " << std::uint64_t(f[0]) << " bytes sent, "
-             << std::uint64_t(f[1]) << " received, " << f[2] << " s in communication of "
-             << f[3] << " s";
+             << std::uint64_t(f[1]) << " received, " << f[2] << " s in communication, "
+             << std::uint64_t(f[3]) << " exchanges";
       }
       this->SetRankStatistics(text.str().c_str());
     }

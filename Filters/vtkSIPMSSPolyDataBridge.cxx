@@ -232,8 +232,10 @@ std::array<double, 6> Bounds(vtkPolyData* input)
     }
     for (int k = 0; k < 3; ++k)
     {
-      b[2 * k] = std::min(b[2 * k], p[k]);
-      b[2 * k + 1] = std::max(b[2 * k + 1], p[k]);
+      // (the coordinates as the core stores them: the bounds a file of these points gives)
+      const double v = double(static_cast<float>(p[k]));
+      b[2 * k] = std::min(b[2 * k], v);
+      b[2 * k + 1] = std::max(b[2 * k + 1], v);
     }
   }
   return b;

@@ -325,7 +325,7 @@ TEST(Cluster, TheOrderOfTheInputDoesNotChangeTheResult)
       EXPECT_TRUE(onlyA.empty() && onlyB.empty())
         << "variant " << variant << ": " << onlyA.size() << " triangles only in the first run, "
         << onlyB.size() << " only in the shuffled one, of " << ta.size();
-      for (std::size_t i = 0; i < std::min<std::size_t>(2, onlyA.size()); ++i)
+      for (std::size_t i = 0; i < std::min({ std::size_t(2), onlyA.size(), onlyB.size() }); ++i)
       {
         ADD_FAILURE() << onlyA[i][0] << " " << onlyA[i][1] << " " << onlyA[i][2] << " / "
                       << onlyB[i][0] << " " << onlyB[i][1] << " " << onlyB[i][2];

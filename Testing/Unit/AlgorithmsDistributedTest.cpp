@@ -224,12 +224,100 @@ TEST(ClusterDistributed, OutOfCoreRanksGiveTheSameResult)
 
 TEST(ClusterDistributed, BoundaryPlanesAcrossRanksAreRefused)
 {
+  // An open surface (a half sphere): its boundary planes change the result.
+  const Mesh m = Input();
+  Mesh upper;
+  upper.p = m.p;
+  upper.scalar = m.scalar;
+  for (std::size_t f = 0; f < m.t.size(); f += 3)
+  {
+    if (m.p[3 * m.t[f] + 2] > 5.0f && m.p[3 * m.t[f + 1] + 2] > 5.0f && m.p[3 * m.t[f + 2] + 2] > 5.0f)
+    {
+      upper.t.insert(upper.t.end(), m.t.begin() + f, m.t.begin() + f + 3);
+    }
+  }
+  const Mesh half = Piece(upper, 1, 0, Cut::Blocks); // (only the vertices its faces use)
+  ClusterOptions o;
+  o.maximumGridDimension = 16;
+  o.boundaryQuadrics = true;
+  EXPECT_THROW(RunDistributed(half, 2, Cut::Slabs, o), std::invalid_argument);
+  // one rank is the serial run, boundary planes and all
+  ExpectUnionIsSerial(half, o, 1, Cut::Blocks);
+  NullProgress progress;
+  Collect with, without;
+  Cluster(MemorySource(half), with, o, progress);
+  o.boundaryQuadrics = false;
+  Cluster(MemorySource(half), without, o, progress);
+  EXPECT_NE(with.m.p, without.m.p); // (the planes matter here)
+}
+
+TEST(ClusterDistributed, AttributesAcrossRanks)
+{
+  // With attributes the extensions are doubles added in arrival order: the same triangles, the
+  // positions equal to rounding. An empty piece takes the others' attribute list.
   const Mesh m = Input();
   ClusterOptions o;
-  o.boundaryQuadrics = true;
-  EXPECT_THROW(RunDistributed(m, 2, Cut::Slabs, o), std::invalid_argument);
-  // one rank is the serial run
-  ExpectUnionIsSerial(m, o, 1, Cut::Blocks);
+  o.maximumGridDimension = 14;
+  ParseAttributeWeights("s:2", o.attributes);
+  NullProgress progress;
+  Collect serial;
+  Cluster(MemorySource(m), serial, o, progress);
+  for (Cut cut : { Cut::Slabs, Cut::LastEmpty })
+  {
+    const Distributed d = RunDistributed(m, 3, cut, o);
+    std::size_t triangles = 0, vertices = 0;
+    for (const Collect& out : d.outputs)
+    {
+      triangles += out.m.t.size() / 3;
+      vertices += out.m.p.size() / 3;
+    }
+    EXPECT_EQ(triangles, serial.m.t.size() / 3) << int(cut);
+    EXPECT_GE(vertices, serial.m.p.size() / 3) << int(cut); // (shared vertices in several pieces)
+  }
+}
+
+TEST(ClusterDistributed, AnAbortDuringTheExchangesReachesEveryRank)
+{
+  // Rank 1 is aborted after a few polls (inside the exchanges): every rank stops, none waits.
+  struct AbortLater final : Progress
+  {
+    int polls = 0;
+    int limit;
+    explicit AbortLater(int n)
+      : limit(n)
+    {
+    }
+    void Report(double, const char*) override {}
+    bool Aborted() override { return ++this->polls > this->limit; }
+  };
+  const Mesh m = Input();
+  const std::vector<Mesh> pieces = { Piece(m, 3, 0, Cut::Slabs), Piece(m, 3, 1, Cut::Slabs),
+    Piece(m, 3, 2, Cut::Slabs) };
+  for (int limit : { 0, 3, 20, 60, 1000000 })
+  {
+    std::mutex mutex;
+    int failed = 0;
+    RunRanks(3, [&](Communicator& comm) {
+      ClusterOptions o;
+      o.communicator = &comm;
+      o.maximumGridDimension = 12;
+      NullProgress quiet;
+      AbortLater aborting(limit);
+      Progress& progress = comm.Rank() == 1 ? static_cast<Progress&>(aborting) : quiet;
+      Collect out;
+      try
+      {
+        Cluster(MemorySource(pieces[std::size_t(comm.Rank())]), out, o, progress);
+      }
+      catch (const std::exception&)
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        ++failed;
+      }
+    });
+    EXPECT_TRUE(failed == 0 || failed == 3) << "abort after " << limit << " polls: " << failed;
+    EXPECT_EQ(failed, limit == 0 ? 3 : limit == 1000000 ? 0 : failed) << limit;
+  }
 }
 
 TEST(ClusterDistributed, AFailureOnOneRankReachesEveryRank)

@@ -53,15 +53,48 @@ public:
     }
     return n;
   }
-  // Whether any rank says yes.
-  bool Any(bool mine)
+  // Runs a rank's local work. A failure (an abort, a full disk, bad input, a malformed message)
+  // is kept: the rank sends nothing more and goes on taking part in the collectives until the
+  // next Continue or Agree, where every rank learns of it and throws.
+  template <class F>
+  void Local(F&& f)
   {
-    std::uint64_t v = mine ? 1 : 0;
-    const auto start = std::chrono::steady_clock::now();
-    this->comm_.AllReduceSum(&v, 1);
-    this->Account(start);
-    return v != 0;
+    if (this->failure_)
+    {
+      return;
+    }
+    try
+    {
+      f();
+    }
+    catch (...)
+    {
+      this->failure_ = std::current_exception();
+      for (auto& b : this->send)
+      {
+        b.clear();
+      }
+    }
   }
+  bool Failed() const { return this->failure_ != nullptr; }
+  // Whether any rank has more to send; throws on every rank if one failed.
+  bool Continue(bool more)
+  {
+    std::uint64_t v[2] = { more && !this->failure_ ? 1u : 0u, this->failure_ ? 1u : 0u };
+    const auto start = std::chrono::steady_clock::now();
+    this->comm_.AllReduceSum(v, 2);
+    this->Account(start);
+    if (v[1])
+    {
+      if (this->failure_)
+      {
+        std::rethrow_exception(this->failure_);
+      }
+      throw std::runtime_error("another rank failed (see its error)");
+    }
+    return v[0] != 0;
+  }
+  void Agree() { this->Continue(false); }
   void Max(double* v, std::size_t n)
   {
     const auto start = std::chrono::steady_clock::now();
@@ -99,6 +132,7 @@ private:
   Communicator& comm_;
   std::size_t limit_;
   CommunicationStats& stats_;
+  std::exception_ptr failure_;
 
 public:
   std::vector<std::vector<std::uint8_t>> send, received;
@@ -166,226 +200,263 @@ void SendCellsToOwners(ClusterState& cluster, const Array<std::uint64_t>& keys, 
   bool more = true;
   do
   {
-    for (; next < cluster.numCells && rounds.Pending() < rounds.Limit(); ++next)
-    {
-      const CellRec rec = cluster.cells.Get(next);
-      if (!rec.corners && !rec.vertices)
+    rounds.Local([&] {
+      for (; next < cluster.numCells && rounds.Pending() < rounds.Limit(); ++next)
       {
-        continue;
-      }
-      const std::uint64_t key = keys.Get(next);
-      auto& b = rounds.send[rounds.Owner(key)];
-      Rounds::Put(b, key);
-      Rounds::Put(b, rec);
-      if (as)
-      {
-        dml.Read(cluster.attrBlock, as * sizeof(float), next, attr.data());
-        const std::size_t at = b.size();
-        b.resize(at + as * sizeof(float));
-        std::memcpy(b.data() + at, attr.data(), as * sizeof(float));
-      }
-      if (xs)
-      {
-        dml.Read(cluster.extBlock, xs * sizeof(double), next, ext.data());
-        const std::size_t at = b.size();
-        b.resize(at + xs * sizeof(double));
-        std::memcpy(b.data() + at, ext.data(), xs * sizeof(double));
-      }
-    }
-    rounds.Exchange();
-    for (const auto& from : rounds.received)
-    {
-      for (const std::uint8_t* p = from.data(); p < from.data() + from.size();)
-      {
-        const std::uint64_t key = Rounds::Take<std::uint64_t>(p);
-        const CellRec rec = Rounds::Take<CellRec>(p);
-        bool inserted = false;
-        const std::uint32_t c = owned.map.FindOrInsert(key, owned.count, &inserted);
-        if (inserted)
+        const CellRec rec = cluster.cells.Get(next);
+        if (!rec.corners && !rec.vertices)
         {
-          if (owned.count == owned.cells.Size())
+          continue;
+        }
+        const std::uint64_t key = keys.Get(next);
+        auto& b = rounds.send[rounds.Owner(key)];
+        Rounds::Put(b, key);
+        Rounds::Put(b, rec);
+        if (as)
+        {
+          dml.Read(cluster.attrBlock, as * sizeof(float), next, attr.data());
+          const std::size_t at = b.size();
+          b.resize(at + as * sizeof(float));
+          std::memcpy(b.data() + at, attr.data(), as * sizeof(float));
+        }
+        if (xs)
+        {
+          dml.Read(cluster.extBlock, xs * sizeof(double), next, ext.data());
+          const std::size_t at = b.size();
+          b.resize(at + xs * sizeof(double));
+          std::memcpy(b.data() + at, ext.data(), xs * sizeof(double));
+        }
+      }
+    });
+    rounds.Exchange();
+    rounds.Local([&] {
+      for (const auto& from : rounds.received)
+      {
+        if (from.size() % recordSize)
+        {
+          throw std::logic_error("a rank sent " + std::to_string(from.size()) +
+            " bytes of cells of " + std::to_string(recordSize) + " bytes each");
+        }
+        for (const std::uint8_t* p = from.data(); p < from.data() + from.size();)
+        {
+          const std::uint64_t key = Rounds::Take<std::uint64_t>(p);
+          const CellRec rec = Rounds::Take<CellRec>(p);
+          bool inserted = false;
+          const std::uint32_t c = owned.map.FindOrInsert(key, owned.count, &inserted);
+          if (inserted)
           {
-            owned.cells.Resize(2 * owned.cells.Size());
+            if (owned.count == owned.cells.Size())
+            {
+              owned.cells.Resize(2 * owned.cells.Size());
+            }
+            if (as && owned.count >= dml.Count(owned.attr))
+            {
+              dml.Resize(owned.attr, owned.cells.Size());
+            }
+            if (xs && owned.count >= dml.Count(owned.ext))
+            {
+              dml.Resize(owned.ext, owned.cells.Size());
+            }
+            ++owned.count;
+            CellRec empty{};
+            std::fill_n(empty.first, 3, std::numeric_limits<float>::infinity());
+            owned.cells.Set(c, empty);
+            std::fill(attrSum.begin(), attrSum.end(), 0.f);
+            std::fill(extSum.begin(), extSum.end(), 0.0);
+            if (as)
+            {
+              dml.Write(owned.attr, as * sizeof(float), c, attrSum.data());
+            }
+            if (xs)
+            {
+              dml.Write(owned.ext, xs * sizeof(double), c, extSum.data());
+            }
           }
-          if (as && owned.count >= dml.Count(owned.attr))
-          {
-            dml.Resize(owned.attr, owned.cells.Size());
-          }
-          if (xs && owned.count >= dml.Count(owned.ext))
-          {
-            dml.Resize(owned.ext, owned.cells.Size());
-          }
-          ++owned.count;
-          CellRec empty{};
-          std::fill_n(empty.first, 3, std::numeric_limits<float>::infinity());
-          owned.cells.Set(c, empty);
-          std::fill(attrSum.begin(), attrSum.end(), 0.f);
-          std::fill(extSum.begin(), extSum.end(), 0.0);
+          CellRec sum = owned.cells.Get(c);
+          MergeCell(sum, rec);
+          owned.cells.Set(c, sum);
           if (as)
           {
+            dml.Read(owned.attr, as * sizeof(float), c, attrSum.data());
+            for (std::size_t i = 0; i < as; ++i)
+            {
+              attrSum[i] += Rounds::Take<float>(p);
+            }
             dml.Write(owned.attr, as * sizeof(float), c, attrSum.data());
           }
           if (xs)
           {
+            dml.Read(owned.ext, xs * sizeof(double), c, extSum.data());
+            for (std::size_t i = 0; i < xs; ++i)
+            {
+              extSum[i] += Rounds::Take<double>(p);
+            }
             dml.Write(owned.ext, xs * sizeof(double), c, extSum.data());
           }
         }
-        CellRec sum = owned.cells.Get(c);
-        MergeCell(sum, rec);
-        owned.cells.Set(c, sum);
-        if (as)
-        {
-          dml.Read(owned.attr, as * sizeof(float), c, attrSum.data());
-          for (std::size_t i = 0; i < as; ++i)
-          {
-            attrSum[i] += Rounds::Take<float>(p);
-          }
-          dml.Write(owned.attr, as * sizeof(float), c, attrSum.data());
-        }
-        if (xs)
-        {
-          dml.Read(owned.ext, xs * sizeof(double), c, extSum.data());
-          for (std::size_t i = 0; i < xs; ++i)
-          {
-            extSum[i] += Rounds::Take<double>(p);
-          }
-          dml.Write(owned.ext, xs * sizeof(double), c, extSum.data());
-        }
+        cluster.progress.Poll();
       }
-      cluster.progress.Poll();
-    }
-    more = rounds.Any(next < cluster.numCells);
+    });
+    more = rounds.Continue(next < cluster.numCells);
   } while (more);
-  (void)recordSize;
 }
 
 // Step 2: every triangle (by its cells' keys) goes to its owner; of the copies that several ranks
 // made (faces on both sides of a seam between pieces that fall into the same three cells), the
 // lowest rank's is kept and the others are told to drop theirs.
 void KeepOneCopyOfEachTriangle(ClusterState& cluster, const Array<std::uint64_t>& keys,
-  Array<std::uint8_t>& keep, Rounds& rounds, int rank)
+  Array<std::uint8_t>& keep, Rounds& rounds)
 {
   DML& dml = cluster.dml;
   auto& order = cluster.triangles.Order();
   const std::uint64_t numTris = cluster.triangles.Size();
-  keep = Array<std::uint8_t>(dml, std::max<std::uint64_t>(numTris, 1));
-  {
+  rounds.Local([&] {
+    keep = Array<std::uint8_t>(dml, std::max<std::uint64_t>(numTris, 1));
     const std::uint8_t one = 1;
     dml.Fill(keep.Id(), &one);
-  }
+  });
   Array<TriMsg> got(dml, 1024);
   std::uint64_t numGot = 0;
   std::uint64_t next = 0;
+  constexpr std::size_t kTriBytes = 4 * sizeof(std::uint64_t);
   bool more = true;
   do
   {
-    for (; next < numTris && rounds.Pending() < rounds.Limit(); ++next)
-    {
-      const TriSlot t = order.Get(next);
-      std::uint64_t k[3] = { keys.Get(t.v[0]), keys.Get(t.v[1]), keys.Get(t.v[2]) };
-      const int m = k[0] < k[1] ? (k[0] < k[2] ? 0 : 2) : (k[1] < k[2] ? 1 : 2);
-      std::rotate(k, k + m, k + 3);
-      auto& b = rounds.send[rounds.Owner(k[0] ^ Mix(k[1] ^ Mix(k[2])))];
-      for (std::uint64_t key : k)
+    rounds.Local([&] {
+      for (; next < numTris && rounds.Pending() < rounds.Limit(); ++next)
       {
-        Rounds::Put(b, key);
-      }
-      Rounds::Put(b, next);
-    }
-    rounds.Exchange();
-    for (std::size_t from = 0; from < rounds.received.size(); ++from)
-    {
-      const auto& data = rounds.received[from];
-      for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
-      {
-        TriMsg msg{};
-        for (auto& key : msg.k)
+        const TriSlot t = order.Get(next);
+        std::uint64_t k[3] = { keys.Get(t.v[0]), keys.Get(t.v[1]), keys.Get(t.v[2]) };
+        const int m = k[0] < k[1] ? (k[0] < k[2] ? 0 : 2) : (k[1] < k[2] ? 1 : 2);
+        std::rotate(k, k + m, k + 3);
+        auto& b = rounds.send[rounds.Owner(k[0] ^ Mix(k[1] ^ Mix(k[2])))];
+        for (std::uint64_t key : k)
         {
-          key = Rounds::Take<std::uint64_t>(p);
+          Rounds::Put(b, key);
         }
-        msg.rank = std::uint32_t(from);
-        msg.index = Rounds::Take<std::uint64_t>(p);
-        if (numGot == got.Size())
-        {
-          got.Resize(2 * got.Size());
-        }
-        got.Set(numGot++, msg);
+        Rounds::Put(b, next);
       }
-    }
-    cluster.progress.Poll();
-    more = rounds.Any(next < numTris);
-  } while (more);
-  got.Resize(std::max<std::uint64_t>(numGot, 1));
-  if (numGot)
-  {
-    storage::Sort(dml, got, [](const TriMsg& a, const TriMsg& b) {
-      return std::tie(a.k[0], a.k[1], a.k[2], a.rank, a.index) <
-        std::tie(b.k[0], b.k[1], b.k[2], b.rank, b.index);
     });
-  }
+    rounds.Exchange();
+    rounds.Local([&] {
+      for (std::size_t from = 0; from < rounds.received.size(); ++from)
+      {
+        const auto& data = rounds.received[from];
+        if (data.size() % kTriBytes)
+        {
+          throw std::logic_error("a rank sent a partial triangle");
+        }
+        for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
+        {
+          TriMsg msg{};
+          for (auto& key : msg.k)
+          {
+            key = Rounds::Take<std::uint64_t>(p);
+          }
+          msg.rank = std::uint32_t(from);
+          msg.index = Rounds::Take<std::uint64_t>(p);
+          if (numGot == got.Size())
+          {
+            got.Resize(2 * got.Size());
+          }
+          got.Set(numGot++, msg);
+        }
+      }
+      cluster.progress.Poll();
+    });
+    more = rounds.Continue(next < numTris);
+  } while (more);
+  rounds.Local([&] {
+    got.Resize(std::max<std::uint64_t>(numGot, 1));
+    if (numGot)
+    {
+      storage::Sort(dml, got, [](const TriMsg& a, const TriMsg& b) {
+        return std::tie(a.k[0], a.k[1], a.k[2], a.rank, a.index) <
+          std::tie(b.k[0], b.k[1], b.k[2], b.rank, b.index);
+      });
+    }
+  });
+  rounds.Agree();
   // The copies after the first of each run of equal keys are dropped by their ranks.
   std::uint64_t at = 0;
   TriMsg previous{};
   do
   {
-    for (; at < numGot && rounds.Pending() < rounds.Limit(); ++at)
-    {
-      const TriMsg msg = got.Get(at);
-      if (at > 0 && std::equal(msg.k, msg.k + 3, previous.k))
+    rounds.Local([&] {
+      for (; at < numGot && rounds.Pending() < rounds.Limit(); ++at)
       {
-        Rounds::Put(rounds.send[msg.rank], msg.index);
+        const TriMsg msg = got.Get(at);
+        if (at > 0 && std::equal(msg.k, msg.k + 3, previous.k))
+        {
+          Rounds::Put(rounds.send[msg.rank], msg.index);
+        }
+        previous = msg;
       }
-      previous = msg;
-    }
+    });
     rounds.Exchange();
-    for (const auto& data : rounds.received)
-    {
-      for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
+    rounds.Local([&] {
+      for (const auto& data : rounds.received)
       {
-        keep.Set(Rounds::Take<std::uint64_t>(p), 0);
+        if (data.size() % sizeof(std::uint64_t))
+        {
+          throw std::logic_error("a rank sent a partial triangle index");
+        }
+        for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
+        {
+          const std::uint64_t t = Rounds::Take<std::uint64_t>(p);
+          if (t >= numTris)
+          {
+            throw std::logic_error("a rank named triangle " + std::to_string(t) + " of " +
+              std::to_string(numTris));
+          }
+          keep.Set(t, 0);
+        }
       }
-    }
-    more = rounds.Any(at < numGot);
+    });
+    more = rounds.Continue(at < numGot);
   } while (more);
   got.Close();
-  (void)rank;
 }
 
-// Step 3: the owners compute the vertices of the cells the kept triangles use.
+// Step 3: the owners compute the vertices of the cells the kept triangles use. A request is a
+// key (8 bytes) and its answer a vertex record, so a round asks for at most as many as make a
+// round's worth of answers.
 void FetchVertices(ClusterState& cluster, const Array<std::uint64_t>& keys,
   const Array<std::uint8_t>& keep, OwnedCells& owned, DistributedOutput& out, Rounds& rounds)
 {
   DML& dml = cluster.dml;
   auto& order = cluster.triangles.Order();
   const std::uint64_t numTris = cluster.triangles.Size();
+  out.recordSize = VertexRecordSize(cluster.layout);
   // The cells used here, numbered in cell order (as Emit numbers them).
   Array<std::uint32_t> index(dml, std::max<std::uint64_t>(cluster.numCells, 1));
-  {
+  rounds.Local([&] {
     const std::uint32_t unused = kNoCell;
     dml.Fill(index.Id(), &unused);
-  }
-  for (std::uint64_t t = 0; t < numTris; ++t)
-  {
-    if (keep.Get(t))
+    for (std::uint64_t t = 0; t < numTris; ++t)
     {
-      const TriSlot s = order.Get(t);
-      for (int k = 0; k < 3; ++k)
+      if (keep.Get(t))
       {
-        index.Set(s.v[k], 0);
+        const TriSlot s = order.Get(t);
+        for (int k = 0; k < 3; ++k)
+        {
+          index.Set(s.v[k], 0);
+        }
       }
     }
-  }
-  std::uint32_t numOut = 0;
-  for (std::uint32_t c = 0; c < cluster.numCells; ++c)
-  {
-    if (index.Get(c) != kNoCell)
+    std::uint32_t numOut = 0;
+    for (std::uint32_t c = 0; c < cluster.numCells; ++c)
     {
-      index.Set(c, numOut++);
+      if (index.Get(c) != kNoCell)
+      {
+        index.Set(c, numOut++);
+      }
     }
-  }
-  out.recordSize = VertexRecordSize(cluster.layout);
-  out.vertices = dml.OpenBlock(out.recordSize, std::max<std::uint32_t>(numOut, 1));
+    out.vertices = dml.OpenBlock(out.recordSize, std::max<std::uint32_t>(numOut, 1));
+  });
   const int ranks = int(rounds.send.size());
+  const std::size_t maxAsked =
+    std::max<std::size_t>(1, rounds.Limit() / out.recordSize) * sizeof(std::uint64_t);
   std::vector<std::vector<std::uint32_t>> asked(std::size_t(ranks), std::vector<std::uint32_t>{});
   std::vector<std::uint8_t> record(out.recordSize);
   std::vector<float> attr(cluster.attrStride);
@@ -397,61 +468,71 @@ void FetchVertices(ClusterState& cluster, const Array<std::uint64_t>& keys,
     {
       a.clear();
     }
-    for (; next < cluster.numCells && rounds.Pending() < rounds.Limit(); ++next)
-    {
-      const std::uint32_t i = index.Get(next);
-      if (i == kNoCell)
+    rounds.Local([&] {
+      for (; next < cluster.numCells && rounds.Pending() < maxAsked; ++next)
       {
-        continue;
+        const std::uint32_t i = index.Get(next);
+        if (i == kNoCell)
+        {
+          continue;
+        }
+        const std::uint64_t key = keys.Get(next);
+        const int owner = rounds.Owner(key);
+        Rounds::Put(rounds.send[owner], key);
+        asked[owner].push_back(i);
       }
-      const std::uint64_t key = keys.Get(next);
-      const int owner = rounds.Owner(key);
-      Rounds::Put(rounds.send[owner], key);
-      asked[owner].push_back(i);
-    }
+    });
     rounds.Exchange();
     // (the owners answer in the order asked)
-    for (int from = 0; from < ranks; ++from)
-    {
-      const auto& data = rounds.received[from];
-      for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
+    rounds.Local([&] {
+      for (int from = 0; from < ranks; ++from)
       {
-        const std::uint32_t c = owned.map.Find(Rounds::Take<std::uint64_t>(p));
-        if (c == kNoCell)
+        const auto& data = rounds.received[from];
+        if (data.size() % sizeof(std::uint64_t))
         {
-          throw std::logic_error("a rank asked for a cell that no rank sent");
+          throw std::logic_error("a rank sent a partial request");
         }
-        if (cluster.xSize)
+        for (const std::uint8_t* p = data.data(); p < data.data() + data.size();)
         {
-          dml.Read(owned.ext, cluster.xSize * sizeof(double), c, cluster.extBuf.data());
+          const std::uint32_t c = owned.map.Find(Rounds::Take<std::uint64_t>(p));
+          if (c == kNoCell)
+          {
+            throw std::logic_error("a rank asked for a cell that no rank sent");
+          }
+          if (cluster.xSize)
+          {
+            dml.Read(owned.ext, cluster.xSize * sizeof(double), c, cluster.extBuf.data());
+          }
+          if (cluster.attrStride)
+          {
+            dml.Read(owned.attr, cluster.attrStride * sizeof(float), c, attr.data());
+          }
+          VertexBuffers v;
+          AppendVertex(cluster, owned.cells.Get(c), attr.data(), v, 0);
+          PackVertex(cluster.layout, v, 0, record.data());
+          auto& b = rounds.send[from];
+          b.insert(b.end(), record.begin(), record.end());
         }
-        if (cluster.attrStride)
-        {
-          dml.Read(owned.attr, cluster.attrStride * sizeof(float), c, attr.data());
-        }
-        VertexBuffers v;
-        AppendVertex(cluster, owned.cells.Get(c), attr.data(), v, 0);
-        PackVertex(cluster.layout, v, 0, record.data());
-        auto& b = rounds.send[from];
-        b.insert(b.end(), record.begin(), record.end());
       }
-    }
+    });
     rounds.Exchange();
-    for (int from = 0; from < ranks; ++from)
-    {
-      const auto& data = rounds.received[from];
-      if (data.size() != asked[from].size() * out.recordSize)
+    rounds.Local([&] {
+      for (int from = 0; from < ranks; ++from)
       {
-        throw std::logic_error("an owner rank answered " + std::to_string(data.size()) +
-          " bytes for " + std::to_string(asked[from].size()) + " vertices");
+        const auto& data = rounds.received[from];
+        if (data.size() != asked[from].size() * out.recordSize)
+        {
+          throw std::logic_error("an owner rank answered " + std::to_string(data.size()) +
+            " bytes for " + std::to_string(asked[from].size()) + " vertices");
+        }
+        for (std::size_t j = 0; j < asked[from].size(); ++j)
+        {
+          dml.Write(out.vertices, out.recordSize, asked[from][j], data.data() + j * out.recordSize);
+        }
       }
-      for (std::size_t j = 0; j < asked[from].size(); ++j)
-      {
-        dml.Write(out.vertices, out.recordSize, asked[from][j], data.data() + j * out.recordSize);
-      }
-    }
-    cluster.progress.Poll();
-    more = rounds.Any(next < cluster.numCells);
+      cluster.progress.Poll();
+    });
+    more = rounds.Continue(next < cluster.numCells);
   } while (more);
 }
 
@@ -516,10 +597,14 @@ std::string Describe(const io::VertexLayout& l)
 
 // The point data every rank's piece carries: the first non-empty piece's. A non-empty piece with
 // other point data is an error (the same words on every rank); an empty piece takes it.
-io::VertexLayout AgreeOnLayout(
-  const io::VertexLayout& mine, std::uint64_t vertices, Rounds& rounds, int rank)
+// The attribute list goes with it: a rank turns the names of its arrays into the core's keywords
+// (the filters' CoreAttributeNames), which an empty piece cannot.
+io::VertexLayout AgreeOnLayout(const io::VertexLayout& mine, std::uint64_t vertices,
+  std::string& attributes, Rounds& rounds)
 {
   std::vector<std::uint8_t> me;
+  Rounds::Put(me, std::uint64_t(attributes.size()));
+  me.insert(me.end(), attributes.begin(), attributes.end());
   Rounds::Put(me, vertices);
   Rounds::Put(me, std::uint8_t(mine.normals));
   Rounds::Put(me, std::uint8_t(mine.colors));
@@ -537,9 +622,13 @@ io::VertexLayout AgreeOnLayout(
   rounds.Exchange();
   int chosen = -1;
   io::VertexLayout agreed;
+  std::string agreedAttributes;
   for (std::size_t r = 0; r < rounds.received.size(); ++r)
   {
     const std::uint8_t* p = rounds.received[r].data();
+    const std::uint64_t alen = Rounds::Take<std::uint64_t>(p);
+    const std::string a(reinterpret_cast<const char*>(p), alen);
+    p += alen;
     const std::uint64_t n = Rounds::Take<std::uint64_t>(p);
     io::VertexLayout l;
     l.normals = Rounds::Take<std::uint8_t>(p) != 0;
@@ -560,6 +649,7 @@ io::VertexLayout AgreeOnLayout(
     {
       chosen = int(r);
       agreed = l;
+      agreedAttributes = a;
     }
     else if (l.normals != agreed.normals || l.colors != agreed.colors ||
       l.texcoords != agreed.texcoords || l.scalars != agreed.scalars)
@@ -568,9 +658,19 @@ io::VertexLayout AgreeOnLayout(
         std::to_string(chosen) + "'s has " + Describe(agreed) + ", rank " + std::to_string(r) +
         "'s has " + Describe(l));
     }
+    else if (a != agreedAttributes)
+    {
+      throw std::runtime_error("the ranks name different attributes: rank " +
+        std::to_string(chosen) + " \"" + agreedAttributes + "\", rank " + std::to_string(r) +
+        " \"" + a + "\"");
+    }
   }
-  (void)rank;
-  return chosen < 0 ? mine : agreed;
+  if (chosen >= 0)
+  {
+    attributes = agreedAttributes;
+    return agreed;
+  }
+  return mine;
 }
 
 // The exchanges' round size: a sixteenth of the budget, from 256 KiB to 16 MiB.
@@ -582,43 +682,31 @@ std::size_t RoundBytes(const storage::Profile& profile)
 }
 
 RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
-  const ClusterOptions& options, Progress& progress)
+  const ClusterOptions& given, Progress& progress)
 {
-  Communicator& comm = *options.communicator;
+  Communicator& comm = *given.communicator;
   RunStats stats;
-  Rounds rounds(comm, RoundBytes(options.storage), stats.communication);
-  if (options.boundaryQuadrics && comm.Size() > 1)
+  Rounds rounds(comm, RoundBytes(given.storage), stats.communication);
+  if (given.boundaryQuadrics && comm.Size() > 1)
   {
     throw std::invalid_argument("boundary planes are not available on more than one rank yet");
   }
+  ClusterOptions options = given; // (with the attribute list the ranks agree on)
   const int threads = storage::ResolveThreads(options.threads);
   const MeshSource input = threads > 1 ? Prefetched(source) : source;
   DML dml;
   dml.Config(options.storage);
-  // A failure on one rank reaches the others at the next agreement (instead of leaving them
-  // waiting in an exchange): every rank then throws.
-  std::exception_ptr failure;
-  auto agree = [&](const char* what) {
-    if (rounds.Any(failure != nullptr))
-    {
-      if (failure)
-      {
-        std::rethrow_exception(failure);
-      }
-      throw std::runtime_error(std::string("another rank failed ") + what);
-    }
-  };
 
   // A vertices-only pass over the piece: its bounds, its size and its point data, which the
-  // ranks agree on (a rank with an empty piece may have none).
+  // ranks agree on (a rank with an empty piece may have none). A failure on one rank reaches
+  // the others at the next agreement (Rounds::Local, Agree, Continue): every rank then throws.
   std::array<double, 6> bounds = options.bounds;
   io::VertexLayout layout;
   std::uint64_t vertices = 0;
   {
-    progress.BeginPhase("bounds", 0.0, 1.0);
+    rounds.Local([&] { progress.BeginPhase("bounds", 0.0, 1.0); }); // (it polls)
     PhaseTimer timer(stats, dml, "bounds");
-    try
-    {
+    rounds.Local([&] {
       BoundsSink bs(progress, [&options](std::uint64_t v, std::uint64_t f) {
         return kWork::kCluster * double(v + f) +
           ClusterWorkAfterRead(v, f, options.maximumGridDimension, options);
@@ -633,13 +721,12 @@ RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
       {
         bounds = bs.b;
       }
-    }
-    catch (...)
-    {
-      failure = std::current_exception();
-    }
-    agree("reading its piece");
-    layout = AgreeOnLayout(layout, vertices, rounds, comm.Rank());
+    });
+    rounds.Agree();
+    std::string attributes = FormatAttributeWeights(options.attributes);
+    layout = AgreeOnLayout(layout, vertices, attributes, rounds);
+    options.attributes.clear();
+    ParseAttributeWeights(attributes, options.attributes);
     if (!options.useBounds)
     {
       double lo[3] = { bounds[0], bounds[2], bounds[4] },
@@ -654,43 +741,40 @@ RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
   ClusterState cluster(dml, grid, options, true, progress);
   ClusterSink clusterSink(cluster);
   LayoutSink sink(clusterSink, vertices ? nullptr : &layout);
+  Array<std::uint64_t> keys;
   {
-    progress.BeginPhase("cluster", 1.0, 1.0);
+    rounds.Local([&] { progress.BeginPhase("cluster", 1.0, 1.0); }); // (it polls)
     PhaseTimer timer(stats, dml, "cluster");
-    try
-    {
+    rounds.Local([&] {
       const io::ReadStats read = input(sink, io::ReadOptions{});
       stats.inputVertices = read.vertices;
       stats.inputTriangles = read.triangles;
       stats.droppedInputFaces = read.droppedFaces;
-    }
-    catch (...)
-    {
-      failure = std::current_exception();
-    }
-    agree("reading its piece");
-  }
-  if (options.sourceConsumed)
-  {
-    options.sourceConsumed();
-  }
-  // Each local cell's grid key (the map goes with the input's blocks).
-  Array<std::uint64_t> keys(dml, std::max<std::uint32_t>(cluster.numCells, 1));
-  cluster.cellWindow.Release();
-  cluster.cellMap.ForEach([&keys](std::uint64_t key, std::uint32_t cell) { keys.Set(cell, key); });
-  ReleaseInputBlocks(cluster);
-  {
-    progress.BeginPhase("triangles", 1.0, 1.0);
-    PhaseTimer timer(stats, dml, "triangles");
-    FinishTriangles(cluster);
+      if (options.sourceConsumed)
+      {
+        options.sourceConsumed();
+      }
+      if (options.boundaryQuadrics)
+      {
+        FinishBoundaries(cluster); // (one rank: the serial run's boundary planes)
+      }
+      // Each local cell's grid key (the map goes with the input's blocks).
+      keys = Array<std::uint64_t>(dml, std::max<std::uint32_t>(cluster.numCells, 1));
+      cluster.cellWindow.Release();
+      cluster.cellMap.ForEach(
+        [&keys](std::uint64_t key, std::uint32_t cell) { keys.Set(cell, key); });
+      ReleaseInputBlocks(cluster);
+      FinishTriangles(cluster);
+    });
+    rounds.Agree();
   }
   DistributedOutput out;
   {
-    progress.BeginPhase("exchange", 1.0, 1.0);
+    rounds.Local([&] { progress.BeginPhase("exchange", 1.0, 1.0); }); // (it polls)
     PhaseTimer timer(stats, dml, "exchange");
     OwnedCells owned(dml, progress);
     SendCellsToOwners(cluster, keys, owned, rounds);
-    KeepOneCopyOfEachTriangle(cluster, keys, out.keep, rounds, comm.Rank());
+    KeepOneCopyOfEachTriangle(cluster, keys, out.keep, rounds);
     FetchVertices(cluster, keys, out.keep, owned, out, rounds);
     if (owned.attr >= 0)
     {
@@ -702,6 +786,18 @@ RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
     }
   }
   keys.Close();
+  // The last collectives: the error and every rank's traffic (nothing waits on the writes).
+  double err2 = cluster.achievedErr2;
+  rounds.Max(&err2, 1);
+  {
+    CommunicationStats& c = stats.communication;
+    std::vector<double> mine = { double(c.bytesSent), double(c.bytesReceived), c.seconds,
+      double(c.rounds) };
+    std::vector<double> all(4 * std::size_t(comm.Size()), 0.0);
+    std::copy(mine.begin(), mine.end(), all.begin() + 4 * comm.Rank());
+    rounds.Max(all.data(), all.size());
+    c.perRank = all;
+  }
   {
     progress.BeginPhase("output", 1.0, 0.0);
     PhaseTimer timer(stats, dml, "output");
@@ -709,8 +805,6 @@ RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
   }
   dml.CloseBlock(out.vertices);
   out.keep.Close();
-  double err2 = cluster.achievedErr2;
-  rounds.Max(&err2, 1);
   stats.errorDiagonal = std::sqrt((bounds[1] - bounds[0]) * (bounds[1] - bounds[0]) +
     (bounds[3] - bounds[2]) * (bounds[3] - bounds[2]) +
     (bounds[5] - bounds[4]) * (bounds[5] - bounds[4]));

@@ -91,7 +91,8 @@ inline std::int64_t ToFixed(double y)
 // The units of a run's fixed-point numbers, from the grid's box (diagonal D): u in 2^-53 of the
 // largest sqrt(w) (max(1, boundary weight) D^2 bounds a face's area and a boundary plane's
 // weight), delta in 2^-53 of that times D / 2, both powers of two. A sum of 2^21 planes of that
-// largest weight fits in 2^127; a face 10^12 times smaller than the largest keeps 13 digits.
+// largest weight fits in 2^127; a face whose area is 10^12 times below the largest keeps 10
+// digits in u (its sqrt(w) is 10^6 times smaller), a face 10^6 times below it 13.
 // Corner positions are in 2^-15 cell sizes from the grid's origin (within 2^31 on a grid of
 // 65535 cells; clamped beyond, a vertex outside the grid's given bounds), in single precision.
 struct FixedUnits
@@ -152,7 +153,7 @@ struct FixedUnits
     for (int k = 0; k < 3; ++k)
     {
       const float p = (xyz[k] - this->origin[k]) * this->position;
-      out[k] = static_cast<std::int32_t>(std::min(std::max(p, -kLimit), kLimit));
+      out[k] = p == p ? static_cast<std::int32_t>(std::min(std::max(p, -kLimit), kLimit)) : 0;
     }
 #endif
   }

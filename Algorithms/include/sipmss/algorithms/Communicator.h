@@ -37,5 +37,8 @@ struct CommunicationStats
   std::uint64_t bytesReceived = 0; // from the other ranks
   std::uint64_t rounds = 0;        // exchanges
   double seconds = 0;
+  // Every rank's bytes sent, bytes received, seconds and rounds (4 values a rank, by rank),
+  // gathered before the output is written.
+  std::vector<double> perRank;
 };
 } // namespace sipmss::algorithms
