@@ -184,14 +184,16 @@ void SendCellsToOwners(ClusterState& cluster, const Array<std::uint64_t>& keys, 
 {
   DML& dml = cluster.dml;
   const std::size_t as = cluster.attrStride, xs = cluster.xSize;
-  if (as)
-  {
-    owned.attr = dml.OpenBlock(as * sizeof(float), 1024);
-  }
-  if (xs)
-  {
-    owned.ext = dml.OpenBlock(xs * sizeof(double), 1024);
-  }
+  rounds.Local([&] {
+    if (as)
+    {
+      owned.attr = dml.OpenBlock(as * sizeof(float), 1024);
+    }
+    if (xs)
+    {
+      owned.ext = dml.OpenBlock(xs * sizeof(double), 1024);
+    }
+  });
   const std::size_t recordSize = sizeof(std::uint64_t) + sizeof(CellRec) + as * sizeof(float) +
     xs * sizeof(double);
   std::vector<float> attr(as), attrSum(as);
