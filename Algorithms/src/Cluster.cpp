@@ -475,9 +475,59 @@ void AppendVertex(ClusterState& cluster, const CellRec& rec, const float* attr, 
 struct DistributedOutput
 {
   Array<std::uint8_t> keep;    // per triangle of Order(): 1 written here
+  Array<std::uint32_t> index;  // the cells' output numbers (NumberUsedCells)
+  std::uint32_t numOut = 0;
+  std::uint64_t outTris = 0;
   storage::BlockId vertices = -1;
   std::size_t recordSize = 0;
 };
+
+// Numbers the cells that the written triangles use (those `keep` marks, every one without it),
+// in cell order, in `index` (kNoCell: unused); returns their count and the written triangles'.
+// `tick(step)` is called every 4096 of the numTris + numCells steps.
+template <class Tick>
+std::uint32_t NumberUsedCells(ClusterState& cluster, const Array<std::uint8_t>* keep,
+  Array<std::uint32_t>& index, std::uint64_t& outTris, Tick&& tick)
+{
+  const std::uint64_t numTris = cluster.triangles.Size();
+  index = Array<std::uint32_t>(cluster.dml, std::max<std::uint64_t>(cluster.numCells, 1));
+  {
+    const std::uint32_t unused = kNoCell;
+    cluster.dml.Fill(index.Id(), &unused);
+  }
+  outTris = 0;
+  cluster.triangles.Order().ForEachChunk(0, numTris, storage::Access::Read,
+    [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
+      for (std::uint64_t j = 0; j < n; ++j)
+      {
+        if (((f + j) & 4095) == 0)
+        {
+          tick(f + j);
+        }
+        if (!keep || keep->Get(f + j))
+        {
+          ++outTris;
+          for (int k = 0; k < 3; ++k)
+          {
+            index.Set(d[j].v[k], 0);
+          }
+        }
+      }
+    });
+  std::uint32_t numOut = 0;
+  for (std::uint32_t c = 0; c < cluster.numCells; ++c)
+  {
+    if ((c & 4095) == 0)
+    {
+      tick(numTris + c);
+    }
+    if (index.Get(c) != kNoCell)
+    {
+      index.Set(c, numOut++);
+    }
+  }
+  return numOut;
+}
 
 // A vertex record as the owners send it: xyz, normals, texture coordinates, scalars (floats),
 // then RGBA.
@@ -539,45 +589,18 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
   const std::uint64_t numTris = cluster.triangles.Size();
   auto& order = cluster.triangles.Order();
   auto kept = [dist](std::uint64_t t) { return !dist || dist->keep.Get(t) != 0; };
-  // Number the cells used by output triangles, in cell order.
-  Array<std::uint32_t> outIndex(cluster.dml, std::max<std::uint64_t>(cluster.numCells, 1));
-  {
-    const std::uint32_t unused = kNoCell;
-    cluster.dml.Fill(outIndex.Id(), &unused);
-  }
   // Progress: 4 steps over cells + triangles (mark, number, vertices, triangles).
   const double total = 2.0 * double(cluster.numCells) + 2.0 * double(numTris) + 1.0;
-  std::uint64_t outTris = 0;
-  order.ForEachChunk(0, numTris, storage::Access::Read,
-    [&](TriSlot* d, std::uint64_t f, std::uint64_t n) {
-      for (std::uint64_t j = 0; j < n; ++j)
-      {
-        if (((f + j) & 4095) == 0)
-        {
-          cluster.progress.Tick(double(f + j) / total);
-        }
-        if (kept(f + j))
-        {
-          ++outTris;
-          for (int k = 0; k < 3; ++k)
-          {
-            outIndex.Set(d[j].v[k], 0);
-          }
-        }
-      }
-    });
-  std::uint32_t numOut = 0;
-  for (std::uint32_t c = 0; c < cluster.numCells; ++c)
-  {
-    if ((c & 4095) == 0)
-    {
-      cluster.progress.Tick(double(numTris + c) / total);
-    }
-    if (outIndex.Get(c) != kNoCell)
-    {
-      outIndex.Set(c, numOut++);
-    }
-  }
+  // The output numbers of the cells used by output triangles (a distributed run numbered them
+  // before fetching their vertices).
+  Array<std::uint32_t> ownIndex;
+  std::uint64_t outTris = dist ? dist->outTris : 0;
+  const std::uint32_t numOut = dist ? dist->numOut
+                                    : NumberUsedCells(cluster, nullptr, ownIndex, outTris,
+                                        [&](std::uint64_t step) {
+                                          cluster.progress.Tick(double(step) / total);
+                                        });
+  const Array<std::uint32_t>& outIndex = dist ? dist->index : ownIndex;
   if (!dist)
   {
     cluster.dml.Reconfigure(); // the input-sized blocks are gone: in core from here if it fits

@@ -9,6 +9,7 @@
 
 #include <gtest/gtest.h>
 
+#include <functional>
 #include <map>
 #include <mutex>
 
@@ -110,6 +111,30 @@ Distributed RunDistributed(const Mesh& m, int ranks, Cut cut, const ClusterOptio
     d.stats[r] = Cluster(MemorySource(pieces[r]), d.outputs[r], o, progress);
   });
   return d;
+}
+
+// Clusters the pieces on their ranks with options o (rank r's progress from
+// progressOf(r)) and returns how many ranks failed.
+int FailedRanks(const std::vector<Mesh>& pieces, ClusterOptions o,
+  const std::function<Progress&(int rank)>& progressOf)
+{
+  std::mutex mutex;
+  int failed = 0;
+  RunRanks(int(pieces.size()), [&](Communicator& comm) {
+    ClusterOptions mine = o;
+    mine.communicator = &comm;
+    Collect out;
+    try
+    {
+      Cluster(MemorySource(pieces[std::size_t(comm.Rank())]), out, mine, progressOf(comm.Rank()));
+    }
+    catch (const std::exception&)
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      ++failed;
+    }
+  });
+  return failed;
 }
 
 // A mesh with a scalar that varies over it: a bumpy sphere far from the origin.
@@ -295,25 +320,12 @@ TEST(ClusterDistributed, AnAbortDuringTheExchangesReachesEveryRank)
     Piece(m, 3, 2, Cut::Slabs) };
   for (int limit : { 0, 3, 20, 60, 1000000 })
   {
-    std::mutex mutex;
-    int failed = 0;
-    RunRanks(3, [&](Communicator& comm) {
-      ClusterOptions o;
-      o.communicator = &comm;
-      o.maximumGridDimension = 12;
-      NullProgress quiet;
-      AbortLater aborting(limit);
-      Progress& progress = comm.Rank() == 1 ? static_cast<Progress&>(aborting) : quiet;
-      Collect out;
-      try
-      {
-        Cluster(MemorySource(pieces[std::size_t(comm.Rank())]), out, o, progress);
-      }
-      catch (const std::exception&)
-      {
-        std::lock_guard<std::mutex> lock(mutex);
-        ++failed;
-      }
+    ClusterOptions o;
+    o.maximumGridDimension = 12;
+    NullProgress quiet0, quiet2;
+    AbortLater aborting(limit);
+    const int failed = FailedRanks(pieces, o, [&](int rank) -> Progress& {
+      return rank == 1 ? static_cast<Progress&>(aborting) : rank == 0 ? quiet0 : quiet2;
     });
     EXPECT_TRUE(failed == 0 || failed == 3) << "abort after " << limit << " polls: " << failed;
     EXPECT_EQ(failed, limit == 0 ? 3 : limit == 1000000 ? 0 : failed) << limit;
@@ -329,22 +341,8 @@ TEST(ClusterDistributed, AFailureOnOneRankReachesEveryRank)
   pieces[1].t.push_back(std::uint32_t(pieces[1].p.size() / 3 + 5));
   pieces[1].t.push_back(0);
   pieces[1].t.push_back(1);
-  std::mutex mutex;
-  int failed = 0;
-  RunRanks(2, [&](Communicator& comm) {
-    ClusterOptions o;
-    o.communicator = &comm;
-    NullProgress progress;
-    Collect out;
-    try
-    {
-      Cluster(MemorySource(pieces[std::size_t(comm.Rank())]), out, o, progress);
-    }
-    catch (const std::exception&)
-    {
-      std::lock_guard<std::mutex> lock(mutex);
-      ++failed;
-    }
-  });
-  EXPECT_EQ(failed, 2);
+  NullProgress progress0, progress1;
+  EXPECT_EQ(FailedRanks(pieces, ClusterOptions{},
+              [&](int rank) -> Progress& { return rank == 0 ? progress0 : progress1; }),
+    2);
 }

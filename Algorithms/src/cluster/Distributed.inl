@@ -427,34 +427,13 @@ void FetchVertices(ClusterState& cluster, const Array<std::uint64_t>& keys,
   const Array<std::uint8_t>& keep, OwnedCells& owned, DistributedOutput& out, Rounds& rounds)
 {
   DML& dml = cluster.dml;
-  auto& order = cluster.triangles.Order();
-  const std::uint64_t numTris = cluster.triangles.Size();
   out.recordSize = VertexRecordSize(cluster.layout);
-  // The cells used here, numbered in cell order (as Emit numbers them).
-  Array<std::uint32_t> index(dml, std::max<std::uint64_t>(cluster.numCells, 1));
+  // The cells used here, numbered as Emit writes them.
+  Array<std::uint32_t>& index = out.index;
   rounds.Local([&] {
-    const std::uint32_t unused = kNoCell;
-    dml.Fill(index.Id(), &unused);
-    for (std::uint64_t t = 0; t < numTris; ++t)
-    {
-      if (keep.Get(t))
-      {
-        const TriSlot s = order.Get(t);
-        for (int k = 0; k < 3; ++k)
-        {
-          index.Set(s.v[k], 0);
-        }
-      }
-    }
-    std::uint32_t numOut = 0;
-    for (std::uint32_t c = 0; c < cluster.numCells; ++c)
-    {
-      if (index.Get(c) != kNoCell)
-      {
-        index.Set(c, numOut++);
-      }
-    }
-    out.vertices = dml.OpenBlock(out.recordSize, std::max<std::uint32_t>(numOut, 1));
+    out.numOut = NumberUsedCells(
+      cluster, &keep, index, out.outTris, [&cluster](std::uint64_t) { cluster.progress.Poll(); });
+    out.vertices = dml.OpenBlock(out.recordSize, std::max<std::uint32_t>(out.numOut, 1));
   });
   const int ranks = int(rounds.send.size());
   const std::size_t maxAsked =
