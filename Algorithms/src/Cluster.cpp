@@ -14,6 +14,7 @@
 // structures and bounds pass are in cluster/Structures.inl (part of this translation unit).
 #include "sipmss/algorithms/Cluster.h"
 
+#include "Distributed.h"
 #include "StoredMesh.h"
 
 #include "sipmss/algorithms/Prefetch.h"

@@ -4,6 +4,14 @@
 // (a pipeline of the passes) and the entry points.
 #include "decimate/Passes.h"
 
+#include "Distributed.h"
+#include "StageProgress.h"
+#include "sipmss/storage/Sort.h"
+
+#include <optional>
+#include <tuple>
+#include <unordered_map>
+
 // The passes (one translation unit with this file: decimate/Passes.h says why).
 #include "decimate/Read.inl"
 #include "decimate/Rings.inl"
@@ -37,7 +45,9 @@ std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0)
     }
     else
     {
-      double x = double(F0) * std::pow(double(target) / double(F0), double(i + 1) / double(K));
+      // (spaced from the whole input's count in a distributed run's second pass)
+      const double from = double(ctx.opt.levelsFrom ? ctx.opt.levelsFrom : F0);
+      double x = from * std::pow(double(target) / from, double(i + 1) / double(K));
       levels[i] = std::max<std::uint64_t>(target, std::uint64_t(std::llround(x)));
     }
   }
@@ -265,11 +275,23 @@ RunStats DecimateReordered(const MeshSource& input, io::MeshSink& output,
 }
 } // namespace
 
+} // namespace sipmss::algorithms
+
+// The run across ranks (one translation unit with this file: it runs the passes above).
+#include "decimate/Distributed.inl"
+
+namespace sipmss::algorithms
+{
+
 RunStats Decimate(const MeshSource& input, io::MeshSink& output, const DecimateOptions& options,
   Progress& progress,
   const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
 {
   return TranslateOutOfMemory(progress, options.storage, [&] {
+    if (options.communicator && options.communicator->Size() > 1)
+    {
+      return DecimateDistributed(input, output, options, progress, onLevel);
+    }
     if (!options.dml && options.layout == LayoutPolicy::Reorder)
     {
       return DecimateReordered(input, output, options, progress, onLevel);

@@ -226,6 +226,70 @@ void StoredMesh::Begin(const io::MeshHeader& h)
   this->layout_.Start(h.vertexCount);
 }
 
+void PackPointData(const io::VertexChunk& c, const io::VertexLayout& L, std::size_t stride,
+  std::uint32_t* words)
+{
+  const std::size_t ns = L.scalars.size();
+  for (std::size_t i = 0; i < c.count; ++i)
+  {
+    std::uint32_t* r = words + stride * i;
+    std::size_t k = 0;
+    auto put = [&](const float* src, std::size_t n) {
+      std::memcpy(r + k, src, 4 * n);
+      k += n;
+    };
+    if (c.normals)
+      put(c.normals + 3 * i, 3);
+    if (c.rgba)
+    {
+      std::memcpy(r + k, c.rgba + 4 * i, 4);
+      ++k;
+    }
+    if (c.texcoords)
+      put(c.texcoords + 2 * i, 2);
+    if (c.scalars)
+      put(c.scalars + ns * i, ns);
+  }
+}
+
+void PointDataBuffers::Unpack(const std::uint32_t* words, std::size_t n,
+  const io::VertexLayout& L, std::size_t stride, io::VertexChunk& c)
+{
+  const std::size_t ns = L.scalars.size();
+  this->normals.resize(L.normals ? 3 * n : 0);
+  this->rgba.resize(L.colors ? 4 * n : 0);
+  this->tex.resize(L.texcoords ? 2 * n : 0);
+  this->scalars.resize(ns * n);
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    const std::uint32_t* r = words + stride * i;
+    std::size_t k = 0;
+    if (L.normals)
+    {
+      std::memcpy(&this->normals[3 * i], r + k, 12);
+      k += 3;
+    }
+    if (L.colors)
+    {
+      std::memcpy(&this->rgba[4 * i], r + k, 4);
+      ++k;
+    }
+    if (L.texcoords)
+    {
+      std::memcpy(&this->tex[2 * i], r + k, 8);
+      k += 2;
+    }
+    if (ns)
+    {
+      std::memcpy(&this->scalars[ns * i], r + k, 4 * ns);
+    }
+  }
+  c.normals = L.normals ? this->normals.data() : nullptr;
+  c.rgba = L.colors ? this->rgba.data() : nullptr;
+  c.texcoords = L.texcoords ? this->tex.data() : nullptr;
+  c.scalars = ns ? this->scalars.data() : nullptr;
+}
+
 void StoredMesh::Vertices(const io::VertexChunk& c)
 {
   if (c.first + c.count > this->points_.Size())
@@ -241,31 +305,38 @@ void StoredMesh::Vertices(const io::VertexChunk& c)
   ExtendBounds(this->bounds_, c.xyz, c.count);
   if (this->stride_)
   {
-    const std::size_t ns = this->header_.layout.scalars.size();
     std::vector<std::uint32_t> rec(this->stride_ * c.count);
-    for (std::size_t i = 0; i < c.count; ++i)
-    {
-      std::uint32_t* r = &rec[this->stride_ * i];
-      std::size_t k = 0;
-      auto put = [&](const float* src, std::size_t n) {
-        std::memcpy(r + k, src, 4 * n);
-        k += n;
-      };
-      if (c.normals)
-        put(c.normals + 3 * i, 3);
-      if (c.rgba)
-      {
-        std::memcpy(r + k, c.rgba + 4 * i, 4);
-        ++k;
-      }
-      if (c.texcoords)
-        put(c.texcoords + 2 * i, 2);
-      if (c.scalars)
-        put(c.scalars + ns * i, ns);
-    }
+    PackPointData(c, this->header_.layout, this->stride_, rec.data());
     this->dml_.WriteRange(this->attrs_, c.first, c.count, rec.data());
   }
   this->header_.vertexCount = std::max<std::uint64_t>(this->header_.vertexCount, c.first + c.count);
+}
+
+void StoredMesh::TrianglesAt(std::uint64_t first, const std::uint32_t* idx, std::size_t count)
+{
+  if (first + count > this->triangles_.Size())
+  {
+    this->triangles_.Resize(std::max<std::uint64_t>(first + count, 2 * this->triangles_.Size()));
+  }
+  this->triangles_.Write(first, count, reinterpret_cast<const Triangle*>(idx));
+  this->triangleCount_ = std::max<std::uint64_t>(this->triangleCount_, first + count);
+}
+
+void StoredMesh::ReadTriangles(std::uint64_t first, std::size_t count, std::uint32_t* idx)
+{
+  this->triangles_.Read(first, count, reinterpret_cast<Triangle*>(idx));
+}
+
+void StoredMesh::ReadVertices(std::uint64_t first, std::size_t n, std::vector<float>& xyz,
+  std::vector<std::uint32_t>& words)
+{
+  xyz.resize(3 * n);
+  this->points_.Read(first, n, reinterpret_cast<Float3*>(xyz.data()));
+  words.resize(this->stride_ * n);
+  if (this->stride_)
+  {
+    this->dml_.ReadRange(this->attrs_, first, n, words.data());
+  }
 }
 
 void StoredMesh::Triangles(const std::uint32_t* idx, std::size_t count)
@@ -603,55 +674,21 @@ io::ReadStats StoredMesh::Replay(io::MeshSink& sink, const io::ReadOptions& opti
     12 + (L.normals ? 12 : 0) + (L.texcoords ? 8 : 0) + 8 * ns + (L.colors ? 8 : 0);
   const std::size_t chunk = std::clamp<std::size_t>((std::size_t(1) << 20) / perVertex, 1,
     options.chunkElements ? options.chunkElements : 16384);
-  std::vector<float> xyz, normals, tex, scalars;
-  std::vector<std::uint8_t> rgba;
+  std::vector<float> xyz;
   std::vector<std::uint32_t> rec;
+  PointDataBuffers buffers;
   for (std::uint64_t first = 0; first < this->header_.vertexCount; first += chunk)
   {
     const std::size_t n =
       std::size_t(std::min<std::uint64_t>(chunk, this->header_.vertexCount - first));
-    xyz.resize(3 * n);
-    this->points_.Read(first, n, reinterpret_cast<Float3*>(xyz.data()));
+    this->ReadVertices(first, n, xyz, rec);
     io::VertexChunk c;
     c.first = first;
     c.count = n;
     c.xyz = xyz.data();
     if (this->stride_)
     {
-      rec.resize(this->stride_ * n);
-      this->dml_.ReadRange(this->attrs_, first, n, rec.data());
-      normals.resize(L.normals ? 3 * n : 0);
-      rgba.resize(L.colors ? 4 * n : 0);
-      tex.resize(L.texcoords ? 2 * n : 0);
-      scalars.resize(ns * n);
-      for (std::size_t i = 0; i < n; ++i)
-      {
-        const std::uint32_t* r = &rec[this->stride_ * i];
-        std::size_t k = 0;
-        if (L.normals)
-        {
-          std::memcpy(&normals[3 * i], r + k, 12);
-          k += 3;
-        }
-        if (L.colors)
-        {
-          std::memcpy(&rgba[4 * i], r + k, 4);
-          ++k;
-        }
-        if (L.texcoords)
-        {
-          std::memcpy(&tex[2 * i], r + k, 8);
-          k += 2;
-        }
-        if (ns)
-        {
-          std::memcpy(&scalars[ns * i], r + k, 4 * ns);
-        }
-      }
-      c.normals = L.normals ? normals.data() : nullptr;
-      c.rgba = L.colors ? rgba.data() : nullptr;
-      c.texcoords = L.texcoords ? tex.data() : nullptr;
-      c.scalars = ns ? scalars.data() : nullptr;
+      buffers.Unpack(rec.data(), n, L, this->stride_, c);
     }
     sink.Vertices(c);
     if (sink.AbortRequested())

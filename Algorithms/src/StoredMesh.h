@@ -11,6 +11,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <vector>
 
 namespace sipmss::algorithms::detail
 {
@@ -116,6 +117,19 @@ void AddLayoutStructures(
 
 class StoredMesh;
 
+// Point data as StoredMesh keeps it: `stride` 4-byte words per vertex (normals, colour, texture
+// coordinates, scalars, as the layout has them).
+void PackPointData(const io::VertexChunk& c, const io::VertexLayout& layout, std::size_t stride,
+  std::uint32_t* words);
+// ... and back into a chunk's arrays (held here).
+struct PointDataBuffers
+{
+  std::vector<float> normals, tex, scalars;
+  std::vector<std::uint8_t> rgba;
+  void Unpack(const std::uint32_t* words, std::size_t n, const io::VertexLayout& layout,
+    std::size_t stride, io::VertexChunk& c);
+};
+
 // The layout step of a core's run: reads `input` into `mesh`, configuring `dml` when the header
 // gives the sizes (the layout step's structures and, from addStructures, the core's), and
 // reorders it; the phases "layout read" and "layout reorder" go into `stats`, their progress
@@ -173,6 +187,15 @@ public:
   };
   // threads: for the sorts in core (1: the calling thread only; 0: all cores).
   Renumbering Reorder(Progress& progress, int threads = 0);
+
+  // Random access, for a mesh put together from parts (the distributed decimation's gather):
+  // triangles written at a position (the count grows to cover them), and ranges read back
+  // (positions, and the point data as PackPointData's words).
+  void TrianglesAt(std::uint64_t first, const std::uint32_t* idx, std::size_t count);
+  void ReadTriangles(std::uint64_t first, std::size_t count, std::uint32_t* idx);
+  void ReadVertices(std::uint64_t first, std::size_t count, std::vector<float>& xyz,
+    std::vector<std::uint32_t>& words);
+  const io::VertexLayout& PointLayout() const { return this->header_.layout; }
 
   // Streams the stored mesh (the same chunk protocol as the readers).
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options);

@@ -16,77 +16,13 @@
 using namespace sipmss;
 using namespace sipmss::algorithms;
 using sipmss::testing::Collect;
+using sipmss::testing::Cut;
+using sipmss::testing::Piece;
 using sipmss::testing::MemorySource;
 using sipmss::testing::Mesh;
 
 namespace
 {
-enum class Cut
-{
-  Blocks,      // contiguous runs of faces (a file split by byte ranges)
-  Slabs,       // by the face's centroid along x (a spatial partition, as RedistributeDataSet)
-  Interleaved, // face f to rank f % N (seams everywhere)
-  LastEmpty    // blocks over N - 1 ranks; the last rank's piece is empty
-};
-
-// Rank r's piece: its faces and the vertices they use, renumbered in order of first use (a vertex
-// on a seam is in several pieces, as the pieces of a distributed vtkPolyData are).
-Mesh Piece(const Mesh& m, int ranks, int r, Cut cut)
-{
-  const std::size_t nf = m.t.size() / 3;
-  const std::size_t ns = m.p.empty() ? 0 : m.scalar.size() / (m.p.size() / 3);
-  float lo = 1e30f, hi = -1e30f;
-  for (std::size_t i = 0; i < m.p.size(); i += 3)
-  {
-    lo = std::min(lo, m.p[i]);
-    hi = std::max(hi, m.p[i]);
-  }
-  auto rankOf = [&](std::size_t f) {
-    switch (cut)
-    {
-      case Cut::Blocks:
-        return int(f * std::size_t(ranks) / nf);
-      case Cut::LastEmpty:
-        return ranks == 1 ? 0 : int(f * std::size_t(ranks - 1) / nf);
-      case Cut::Interleaved:
-        return int(f % std::size_t(ranks));
-      default:
-      {
-        float x = 0;
-        for (int k = 0; k < 3; ++k)
-        {
-          x += m.p[3 * m.t[3 * f + k]] / 3;
-        }
-        return std::min(ranks - 1, int((x - lo) / (hi - lo) * float(ranks)));
-      }
-    }
-  };
-  Mesh piece;
-  piece.names = m.names;
-  std::map<std::uint32_t, std::uint32_t> renumber;
-  for (std::size_t f = 0; f < nf; ++f)
-  {
-    if (rankOf(f) != r)
-    {
-      continue;
-    }
-    for (int k = 0; k < 3; ++k)
-    {
-      const std::uint32_t v = m.t[3 * f + k];
-      auto it = renumber.find(v);
-      if (it == renumber.end())
-      {
-        it = renumber.emplace(v, std::uint32_t(renumber.size())).first;
-        piece.p.insert(piece.p.end(), m.p.begin() + 3 * v, m.p.begin() + 3 * v + 3);
-        piece.scalar.insert(
-          piece.scalar.end(), m.scalar.begin() + ns * v, m.scalar.begin() + ns * (v + 1));
-      }
-      piece.t.push_back(it->second);
-    }
-  }
-  return piece;
-}
-
 struct Distributed
 {
   std::vector<Collect> outputs;

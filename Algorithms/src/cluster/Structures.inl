@@ -233,15 +233,7 @@ void AddClusterStructures(storage::Profile& profile, std::uint64_t V, std::uint6
 
 using storage::PinWindow;
 
-inline std::uint64_t Mix(std::uint64_t k)
-{
-  k ^= k >> 33;
-  k *= 0xff51afd7ed558ccdULL;
-  k ^= k >> 33;
-  k *= 0xc4ceb9fe1a85ec53ULL;
-  k ^= k >> 33;
-  return k;
-}
+using detail::Mix; // (Distributed.h)
 
 constexpr std::uint32_t kNoCell = std::numeric_limits<std::uint32_t>::max();
 

@@ -393,6 +393,16 @@ void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink)
       vc.rgba = mesh.layout.colors ? rgba.data() : nullptr;
     }
     sink.Vertices(vc);
+    if (ctx.opt.finalQuadric)
+    {
+      const double o[3] = { mesh.origin.x, mesh.origin.y, mesh.origin.z };
+      for (std::size_t i = 0; i < n; ++i)
+      {
+        // (local to input coordinates: E(x - origin))
+        const Quadric q = Translated(mesh.views.Q.Get(first + i), o);
+        ctx.opt.finalQuadric(first + i, q.q);
+      }
+    }
   }
   std::vector<Tri> tris(chunk);
   for (std::uint64_t first = 0; first < mesh.nf; first += chunk)

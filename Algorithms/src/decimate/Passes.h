@@ -629,6 +629,15 @@ struct MeshState
     : ownDml(options.dml ? nullptr : new DML())
     , dml(options.dml ? *options.dml : *ownDml)
   {
+    if (options.origin)
+    {
+      this->origin = { (*options.origin)[0], (*options.origin)[1], (*options.origin)[2] };
+      this->haveOrigin = true;
+      // (the bounds start empty: the origin need not be a vertex)
+      constexpr double inf = std::numeric_limits<double>::infinity();
+      this->lo = { inf, inf, inf };
+      this->hi = { -inf, -inf, -inf };
+    }
   }
   // The DML: the caller's (options.dml) or our own; declared before every block so that the
   // blocks close first.

@@ -681,6 +681,13 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
         AddPlane(Q, nn, -Dot(nn, a), 0.5 * len);
       }
     }
+    // (a caller's quadric replaces the face planes: set aside, added back if it has none)
+    const bool replaceable = ctx.opt.initialQuadricReplacesFaces && ctx.opt.initialQuadric;
+    Quadric faceQ = Q;
+    if (replaceable)
+    {
+      Q = Quadric{ { 0, 0, 0, 0, 0, 0, 0, 0, 0, 0 } };
+    }
     const std::size_t n = tris.size();
     const bool useTally = n > LinkTally::kMinEntries;
     if (useTally)
@@ -790,7 +797,12 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
     if (ctx.opt.initialQuadric)
     {
       double iq[10] = { 0 };
-      if (ctx.opt.initialQuadric(u, iq))
+      const bool given = ctx.opt.initialQuadric(u, iq);
+      if (replaceable && !given)
+      {
+        AddTo(Q, faceQ);
+      }
+      if (given)
       {
         // World to local coordinates: x = y + o.
         const Vec3 o = mesh.origin;

@@ -4,7 +4,9 @@
 #include "sipmss/algorithms/Attributes.h"
 #include "sipmss/algorithms/Common.h"
 
+#include <array>
 #include <functional>
+#include <optional>
 #include <limits>
 #include <memory>
 #include <string>
@@ -58,6 +60,26 @@ struct DecimateOptions
   // Called for each input vertex index; return false to use the face quadrics only. Layout:
   // that of Quadric.h (a00 a01 a02 b0 a11 a12 b1 a22 b2 c), in input coordinates.
   std::function<bool(std::uint64_t vertex, double quadric[10])> initialQuadric;
+  // With initialQuadric: a vertex for which it returns true takes that quadric instead of its
+  // faces' planes (its boundary planes are still added). The distributed run's second pass: the
+  // quadrics its first pass accumulated already hold those faces' planes.
+  bool initialQuadricReplacesFaces = false;
+  // Called for each output vertex (of the final mesh, as it is written) with its accumulated
+  // quadric, in the layout and coordinates of initialQuadric.
+  std::function<void(std::uint64_t vertex, const double quadric[10])> finalQuadric;
+  // The point the run's coordinates are taken about (in double precision; an input coordinate
+  // far below its distance from this point rounds). Empty: the first input vertex. The
+  // distributed run gives every rank's first pass the same one, so that the borders the pieces
+  // share come out at the same coordinates on every rank.
+  std::optional<std::array<double, 3>> origin;
+  // > 0: the triangle count that the levels of detail are spaced from (the distributed run's
+  // second pass: the whole input's); 0: this run's input's.
+  std::uint64_t levelsFrom = 0;
+  // Where the run happens: with more than one rank, each rank decimates its own piece with the
+  // piece's border locked, and rank 0 gathers the results (the borders joined again by their
+  // positions) and decimates them to the target (decimate/Distributed.inl): the output is on
+  // rank 0, the other ranks' outputs are empty. Null or one rank: here, as always.
+  Communicator* communicator = nullptr;
   // Called once the source and initialQuadric are no longer needed (before the collapse
   // passes): a caller that keeps the input in the same DML frees it there, so that the run can
   // move in core sooner.
