@@ -103,8 +103,9 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->CommunicationSeconds = 0;
   this->SetRankStatistics("");
 
-  // Under MPI (a controller of several processes): vtkSIPMSSCluster runs across the ranks on the
-  // pipeline's pieces; a file is read by rank 0 alone (not yet by byte ranges on every rank).
+  // Under MPI (a controller of several processes): vtkSIPMSSCluster and vtkSIPMSSDecimate run
+  // across the ranks on the pipeline's pieces; a file is read by rank 0 alone (not yet by byte
+  // ranges on every rank).
   vtkMultiProcessController* controller = this->Controller;
   const int ranks = controller ? controller->GetNumberOfProcesses() : 1;
   const int rank = controller ? controller->GetLocalProcessId() : 0;

@@ -166,8 +166,10 @@ public:
    * The processes the filter runs on (default: the global controller, ParaView's MPI controller
    * under pvbatch and pvserver). With more than one, vtkSIPMSSCluster clusters the ranks' pieces
    * together on one grid (each rank's output is its piece of the serial result); a FileName run
-   * is made by rank 0 alone (the others' outputs are empty). vtkSIPMSSDecimate simplifies each
-   * rank's piece on its own.
+   * is made by rank 0 alone (the others' outputs are empty). vtkSIPMSSDecimate decimates the
+   * ranks' pieces together: each piece with its border locked, then the joined results on rank
+   * 0, whose output is the whole mesh without seams (the others' outputs are empty); with a
+   * PreClusterGridDimension (two-stage) each rank's piece is simplified on its own.
    */
   virtual void SetController(vtkMultiProcessController*);
   vtkGetObjectMacro(Controller, vtkMultiProcessController);
@@ -197,7 +199,8 @@ protected:
   vtkPointData* InputPointData = nullptr;
 #endif
 
-  // Whether this filter's runs are distributed (vtkSIPMSSCluster: yes).
+  // Whether this filter's runs are distributed (vtkSIPMSSCluster: yes; vtkSIPMSSDecimate: yes
+  // but two-stage).
   virtual bool Distributes() const { return false; }
 
   vtkMultiProcessController* Controller = nullptr;

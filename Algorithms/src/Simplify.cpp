@@ -238,6 +238,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   o.threads = r.threads;
   if (r.algorithm == Algorithm::Decimate)
   {
+    o.communicator = r.communicator;
     return Decimate(input, output, o, progress, onLevel);
   }
   TwoStageOptions t;

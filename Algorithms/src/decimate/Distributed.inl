@@ -50,6 +50,10 @@ public:
   }
   void Vertices(const io::VertexChunk& c) override
   {
+    if (c.first == 0 && c.count > 0)
+    {
+      this->first = { double(c.xyz[0]), double(c.xyz[1]), double(c.xyz[2]) };
+    }
     this->vertices = std::max<std::uint64_t>(this->vertices, c.first + c.count);
     detail::ExtendBounds(this->bounds, c.xyz, c.count);
     this->progress_.Poll();
@@ -66,6 +70,7 @@ public:
   std::vector<std::string> faceScalars;
   std::uint64_t vertices = 0, triangles = 0;
   std::array<double, 6> bounds = { kInf, -kInf, kInf, -kInf, kInf, -kInf };
+  std::array<double, 3> first = { 0, 0, 0 }; // the first vertex
 
 private:
   static constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -185,9 +190,24 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     ? std::sqrt((hi[0] - lo[0]) * (hi[0] - lo[0]) + (hi[1] - lo[1]) * (hi[1] - lo[1]) +
         (hi[2] - lo[2]) * (hi[2] - lo[2]))
     : 0.0;
-  // (one origin for every piece: the whole input's lowest corner, float coordinates)
-  const std::array<double, 3> origin = { lo[0] <= hi[0] ? lo[0] : 0.0, lo[1] <= hi[1] ? lo[1] : 0.0,
-    lo[2] <= hi[2] ? lo[2] : 0.0 };
+  // One origin for both passes on every rank: rank 0's first vertex, as a serial run on the
+  // pieces one after the other has it (the lowest corner when rank 0's piece is empty). A
+  // coordinate far smaller than its distance from the origin rounds (DecimateOptions::origin):
+  // the same origin rounds it the same way everywhere.
+  std::array<double, 3> origin;
+  {
+    constexpr double inf = std::numeric_limits<double>::infinity();
+    double o[4] = { -inf, -inf, -inf, -inf };
+    if (rank == 0 && count.vertices > 0)
+    {
+      o[0] = 1;
+      std::copy(count.first.begin(), count.first.end(), o + 1);
+    }
+    rounds.Max(o, 4);
+    origin = o[0] > 0 ? std::array<double, 3>{ o[1], o[2], o[3] }
+      : std::array<double, 3>{ lo[0] <= hi[0] ? lo[0] : 0.0, lo[1] <= hi[1] ? lo[1] : 0.0,
+          lo[2] <= hi[2] ? lo[2] : 0.0 };
+  }
   if (options.errorDiagonal <= 0)
   {
     options.errorDiagonal = diagonal;
@@ -485,6 +505,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     o.communicator = nullptr;
     o.dml = &dml;
     o.layout = LayoutPolicy::Keep;
+    o.origin = origin;
     o.targetTriangles = boundOnly ? 0 : target;
     o.levelsFrom = F;
     o.initialQuadric = [&gatheredQuadrics](std::uint64_t v, double q[10]) {
