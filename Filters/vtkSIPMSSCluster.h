@@ -60,7 +60,6 @@ protected:
 #ifndef __VTK_WRAP__
   void FillRequest(sipmss::algorithms::SimplifyRequest& request) override;
 #endif
-  bool Distributes() const override { return true; }
 
   int MaximumGridDimension = 50;
   double BoundaryWeight = 0.0;

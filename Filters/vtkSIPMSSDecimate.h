@@ -134,9 +134,6 @@ protected:
   void FillRequest(sipmss::algorithms::SimplifyRequest& request) override;
   const char* PropertyName(sipmss::algorithms::Parameter parameter) override;
 #endif
-  // Under MPI the decimation runs across the ranks (the output on rank 0); two-stage runs each
-  // rank's piece on its own.
-  bool Distributes() const override { return this->PreClusterGridDimension <= 0; }
 
   vtkIdType TargetNumberOfTriangles = 0;
   double TargetReduction = 0.9;

@@ -115,7 +115,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     output->Initialize();
     return 1;
   }
-  const bool distributed = this->Distributes() && ranks > 1 && !fileRun;
+  const bool distributed = ranks > 1 && !fileRun;
   std::optional<vtkSIPMSSCommunicator> communicator;
 
   // The request, and the same rules as the CLI's: NaN, infinities and meaningless values are

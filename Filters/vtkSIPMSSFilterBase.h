@@ -199,10 +199,6 @@ protected:
   vtkPointData* InputPointData = nullptr;
 #endif
 
-  // Whether this filter's runs are distributed (vtkSIPMSSCluster: yes; vtkSIPMSSDecimate: yes
-  // but two-stage).
-  virtual bool Distributes() const { return false; }
-
   vtkMultiProcessController* Controller = nullptr;
   char* FileName = nullptr;
   char* Attributes = nullptr;

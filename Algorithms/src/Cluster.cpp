@@ -1552,10 +1552,10 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
   return TranslateOutOfMemory(progress, options.storage, [&] {
     if (options.communicator)
     {
-      if (options.exportQuadric || options.dml || !options.exactSums)
+      if (options.exportQuadric || !options.exactSums)
       {
-        throw std::invalid_argument("the distributed clustering runs on a DML of its own, with "
-                                    "exact sums, and exports no quadrics");
+        throw std::invalid_argument("the distributed clustering runs with exact sums and "
+                                    "exports no quadrics");
       }
       return ClusterDistributed(source, output, options, progress);
     }

@@ -236,9 +236,9 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   ParseValidAttributes(r.attributes, o.attributes);
   o.storage = profile;
   o.threads = r.threads;
+  o.communicator = r.communicator;
   if (r.algorithm == Algorithm::Decimate)
   {
-    o.communicator = r.communicator;
     return Decimate(input, output, o, progress, onLevel);
   }
   TwoStageOptions t;

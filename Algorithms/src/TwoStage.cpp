@@ -29,6 +29,88 @@ void Prefix(std::vector<PhaseStat>& phases, std::size_t from, const char* prefix
 
 namespace
 {
+// Two-stage across ranks (DecimateOptions::communicator with more than one rank): stage 1 is
+// the distributed clustering (each rank's piece of the exact serial clustering, its vertices
+// at the same positions on every rank that shares them), stage 2 the distributed decimation
+// of those pieces (borders locked, then joined and decimated on rank 0). Both stages use this
+// rank's one DML; the clustered piece is freed as soon as stage 2 has read it.
+RunStats TwoStageDistributed(const MeshSource& input, io::MeshSink& output,
+  const TwoStageOptions& options, Progress& progress,
+  const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
+{
+  if (options.carryQuadrics)
+  {
+    throw std::invalid_argument("two-stage carries no cell quadrics on more than one rank");
+  }
+  DML dml;
+  dml.Config(options.decimate.storage);
+  RunStats stats;
+  detail::StoredMesh handoff(dml);
+  RunStats s1;
+  {
+    ClusterOptions co;
+    co.maximumGridDimension = options.gridDimension;
+    co.storage = options.decimate.storage;
+    co.threads = options.threads;
+    co.attributes = options.decimate.attributes;
+    co.communicator = options.decimate.communicator;
+    co.dml = &dml; // (exact sums: the distributed clustering needs them)
+    DecimateOptions d2 = options.decimate;
+    StageProgress p1(progress, "stage 1: ", [co, d2](std::uint64_t V, std::uint64_t F) {
+      const double w1 = EstimateClusterWork(V, F, co);
+      const double faces = EstimateClusterFaces(V, F, co);
+      const double w2 =
+        EstimateDecimateWork(std::uint64_t(faces / 2), std::uint64_t(faces), d2);
+      return w1 + w2 > 0 ? w1 / (w1 + w2) : 0.5;
+    });
+    s1 = Cluster(input, handoff, co, p1);
+    stats.inputVertices = s1.inputVertices;
+    stats.inputTriangles = s1.inputTriangles;
+    stats.droppedInputFaces = s1.droppedInputFaces;
+    stats.phases = s1.phases;
+    Prefix(stats.phases, 0, "stage 1 ");
+  }
+  dml.Reconfigure();
+
+  DecimateOptions dopt = options.decimate;
+  dopt.dml = &dml;
+  dopt.errorDiagonal = s1.errorDiagonal; // (the whole input's box, agreed by the ranks)
+  if (std::isfinite(dopt.maximumError))
+  {
+    const double used =
+      std::max(0.0, s1.achievedError) * (dopt.absoluteError ? s1.errorDiagonal : 1.0);
+    dopt.maximumError = std::max(0.0, dopt.maximumError - used);
+  }
+  dopt.sourceConsumed = [&handoff]() { handoff.Release(); };
+  StageProgress p2(progress, "stage 2: ");
+  const std::size_t from = stats.phases.size();
+  RunStats s2 = Decimate(
+    [&handoff](io::MeshSink& sink, const io::ReadOptions& ro) { return handoff.Replay(sink, ro); },
+    output, dopt, p2, onLevel);
+  stats.phases.insert(stats.phases.end(), s2.phases.begin(), s2.phases.end());
+  Prefix(stats.phases, from, "stage 2 ");
+  stats.outputVertices = s2.outputVertices;
+  stats.outputTriangles = s2.outputTriangles;
+  stats.prunedComponents = s2.prunedComponents;
+  stats.prunedTriangles = s2.prunedTriangles;
+  stats.errorDiagonal = s1.errorDiagonal;
+  // (each stage's error is already the maximum over the ranks)
+  stats.achievedError = std::max(0.0, s1.achievedError) + std::max(0.0, s2.achievedError);
+  // This rank's traffic in both stages.
+  CommunicationStats& c = stats.communication;
+  c = s2.communication;
+  c.bytesSent += s1.communication.bytesSent;
+  c.bytesReceived += s1.communication.bytesReceived;
+  c.rounds += s1.communication.rounds;
+  c.seconds += s1.communication.seconds;
+  for (std::size_t i = 0; i < c.perRank.size() && i < s1.communication.perRank.size(); ++i)
+  {
+    c.perRank[i] += s1.communication.perRank[i];
+  }
+  stats.storage = dml.GetStats();
+  return stats;
+}
+
 RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoStageOptions& options,
   Progress& progress,
   const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
@@ -189,8 +271,12 @@ RunStats TwoStage(const MeshSource& input, io::MeshSink& output, const TwoStageO
   Progress& progress,
   const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
 {
-  return TranslateOutOfMemory(progress, options.decimate.storage,
-    [&] { return TwoStageRun(input, output, options, progress, onLevel); });
+  return TranslateOutOfMemory(progress, options.decimate.storage, [&] {
+    const Communicator* comm = options.decimate.communicator;
+    return comm && comm->Size() > 1
+      ? TwoStageDistributed(input, output, options, progress, onLevel)
+      : TwoStageRun(input, output, options, progress, onLevel);
+  });
 }
 
 } // namespace sipmss::algorithms

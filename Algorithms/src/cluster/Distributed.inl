@@ -409,8 +409,12 @@ RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
   ClusterOptions options = given; // (with the attribute list the ranks agree on)
   const int threads = storage::ResolveThreads(options.threads);
   const MeshSource input = threads > 1 ? Prefetched(source) : source;
-  DML dml;
-  dml.Config(options.storage);
+  std::optional<DML> own; // (or the caller's: two-stage's stage 1)
+  DML& dml = options.dml ? *options.dml : own.emplace();
+  if (own)
+  {
+    dml.Config(options.storage);
+  }
 
   // A vertices-only pass over the piece: its bounds, its size and its point data, which the
   // ranks agree on (a rank with an empty piece may have none). A failure on one rank reaches
@@ -453,7 +457,7 @@ RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
   }
   const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
 
-  ClusterState cluster(dml, grid, options, true, progress);
+  ClusterState cluster(dml, grid, options, own.has_value(), progress);
   ClusterSink clusterSink(cluster);
   LayoutSink sink(clusterSink, vertices ? nullptr : &layout);
   Array<std::uint64_t> keys;

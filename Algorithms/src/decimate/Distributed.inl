@@ -155,7 +155,8 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
   RunStats stats;
   Rounds rounds(comm, RoundBytes(given.storage), stats.communication);
   DecimateOptions options = given; // (with the attribute list the ranks agree on)
-  DML dml;
+  std::optional<DML> own; // (or the caller's: two-stage's stage 2, its input in it)
+  DML& dml = given.dml ? *given.dml : own.emplace();
 
   // 1. The piece's size, bounds and point data; the ranks agree on the point data and sum the
   // sizes. A failure on one rank reaches the others at the next agreement.
@@ -233,7 +234,10 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     p.structures.push_back({ "decimate", 1,
       std::uint64_t(DecimateBytes(count.vertices, count.triangles, 4 * options.attributes.size())),
       0.0 });
-    dml.Config(p);
+    if (own)
+    {
+      dml.Config(p);
+    }
   }
 
   // 2. The piece alone, its border locked, into `mine` with its quadrics.

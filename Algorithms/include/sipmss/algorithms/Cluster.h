@@ -63,7 +63,8 @@ struct ClusterOptions
   // mesh and `output` receiving this rank's piece of the result (docs/architecture.md,
   // "Distributed clustering"): the union of the pieces is the serial result. Every rank calls
   // Cluster with the same options. Not with boundary planes on more than one rank, nor with
-  // exportQuadric; the input is not reordered (LayoutPolicy is ignored).
+  // exportQuadric; the input is not reordered (LayoutPolicy is ignored). `dml` may be given
+  // (two-stage's stage 1 across ranks).
   Communicator* communicator = nullptr;
 };
 

@@ -74,9 +74,9 @@ struct SimplifyRequest
   std::vector<std::string> temporaryDirectories;  // empty: $TMPDIR or /tmp
   storage::ModePolicy mode = storage::ModePolicy::Automatic;
   int threads = 0; // 0: all cores; the output does not depend on it
-  // Not a parameter but where the run happens: the clustering and the decimation run across
-  // this communicator's ranks (ClusterOptions::communicator, DecimateOptions::communicator; the
-  // filters pass ParaView's MPI controller); two-stage does not. Null: here.
+  // Not a parameter but where the run happens: every algorithm runs across this communicator's
+  // ranks (ClusterOptions::communicator, DecimateOptions::communicator, two-stage through the
+  // latter; the filters pass ParaView's MPI controller). Null: here.
   Communicator* communicator = nullptr;
 
   int EffectiveGrid() const;

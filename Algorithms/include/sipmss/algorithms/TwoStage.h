@@ -1,7 +1,9 @@
 // The two-stage method (Garland-Shaffer multiphase, the paper's "Algorithm Two-Stage"):
 // Algorithm II (grid clustering) then Algorithm I (edge collapse) on one DML. The clustered mesh
 // stays in DML blocks between the stages (no vtkPolyData, no file), optionally with the cell
-// quadrics carried into stage 2 as the initial vertex quadrics.
+// quadrics carried into stage 2 as the initial vertex quadrics. With decimate.communicator of
+// more than one rank, both stages run across the ranks: the distributed clustering, then the
+// distributed decimation of its pieces (the output on rank 0; carryQuadrics is refused).
 #pragma once
 
 #include "sipmss/algorithms/Cluster.h"
