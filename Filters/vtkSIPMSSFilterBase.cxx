@@ -12,8 +12,11 @@
 #include "vtkPolyData.h"
 #include "vtkSmartPointer.h"
 
+#include "sipmss/algorithms/FilePiece.h"
 #include "sipmss/algorithms/Simplify.h"
 
+#include <algorithm>
+#include <memory>
 #include <optional>
 #include <sstream>
 #include <string>
@@ -92,6 +95,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->LayoutFarFraction = -1;
   this->Reordered = false;
   this->BytesRead = this->BytesWritten = this->Reconfigurations = 0;
+  this->InputBytesRead = 0;
   this->ElapsedSeconds = 0;
   this->InputTriangles = this->OutputTriangles = 0;
   this->AchievedReduction = 0;
@@ -103,19 +107,14 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->CommunicationSeconds = 0;
   this->SetRankStatistics("");
 
-  // Under MPI (a controller of several processes): vtkSIPMSSCluster and vtkSIPMSSDecimate run
-  // across the ranks on the pipeline's pieces; a file is read by rank 0 alone (not yet by byte
-  // ranges on every rank).
+  // Under MPI (a controller of several processes): the filters run across the ranks on the
+  // pipeline's pieces, or on the pieces of a file each rank reads by byte ranges (FilePiece); a
+  // file that cannot be read so is read and simplified by rank 0 alone.
   vtkMultiProcessController* controller = this->Controller;
   const int ranks = controller ? controller->GetNumberOfProcesses() : 1;
   const int rank = controller ? controller->GetLocalProcessId() : 0;
   const bool fileRun = this->FileName && *this->FileName;
-  if (fileRun && ranks > 1 && rank != 0)
-  {
-    output->Initialize();
-    return 1;
-  }
-  const bool distributed = ranks > 1 && !fileRun;
+  bool distributed = ranks > 1 && !fileRun;
   std::optional<vtkSIPMSSCommunicator> communicator;
 
   // The request, and the same rules as the CLI's: NaN, infinities and meaningless values are
@@ -158,10 +157,65 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   bool haveBounds = false;
   std::array<double, 6> bounds{};
   std::string what;
-  if (this->FileName && *this->FileName)
+  std::unique_ptr<sipmss::algorithms::FilePiece> piece;
+  std::uint64_t inputBytes = 0; // (a whole file's reads)
+  if (fileRun)
   {
-    source = sipmss::algorithms::FileSource(this->FileName);
     what = this->FileName;
+    if (ranks > 1)
+    {
+      // Every rank reads its piece, in a DML of its own with an eighth of the budget (the run
+      // gets the rest), or all ranks agree that the file cannot be read in pieces.
+      communicator.emplace(controller);
+      sipmss::storage::Profile pieceProfile = sipmss::algorithms::MakeProfile(request);
+      if (pieceProfile.memoryBudget)
+      {
+        pieceProfile.memoryBudget = std::max<std::uint64_t>(pieceProfile.memoryBudget / 8, 64u << 10);
+        request.reservedMemoryBytes = pieceProfile.memoryBudget;
+      }
+      bridge::AlgorithmProgress pieceProgress(this);
+      try
+      {
+        piece = std::make_unique<sipmss::algorithms::FilePiece>(
+          this->FileName, *communicator, pieceProfile, pieceProgress);
+      }
+      catch (const sipmss::algorithms::AbortedError&)
+      {
+        output->Initialize();
+        return 1;
+      }
+      catch (const std::exception& e)
+      {
+        vtkErrorMacro("Cannot simplify " << what << ": " << e.what());
+        output->Initialize();
+        return 0;
+      }
+      if (piece->Split())
+      {
+        distributed = true;
+        request.communicator = &*communicator;
+        source = piece->Source();
+      }
+      else
+      {
+        piece.reset();
+        request.reservedMemoryBytes = 0;
+        if (rank != 0)
+        {
+          output->Initialize();
+          return 1;
+        }
+      }
+    }
+    if (!piece)
+    {
+      source = [file = sipmss::algorithms::FileSource(this->FileName), &inputBytes](
+                 sipmss::io::MeshSink& sink, const sipmss::io::ReadOptions& options) {
+        const sipmss::io::ReadStats read = file(sink, options);
+        inputBytes += read.bytes;
+        return read;
+      };
+    }
   }
   else
   {
@@ -344,6 +398,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     this->BytesRead = stats.storage.bytesRead;
     this->BytesWritten = stats.storage.bytesWritten;
     this->Reconfigurations = stats.storage.reconfigurations;
+    this->InputBytesRead = piece ? piece->BytesRead() : inputBytes;
     if (distributed)
     {
       const auto& c = stats.communication;
@@ -351,7 +406,14 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       this->BytesSent = c.bytesSent;
       this->BytesReceived = c.bytesReceived;
       this->CommunicationSeconds = c.seconds;
-      // (every rank's figures, gathered by the run before its output)
+      // (every rank's figures, gathered by the run before its output; the file's pieces' bytes
+      // read here, on every rank: all of them have a piece)
+      std::vector<double> readBytes(std::size_t(ranks), 0.0);
+      if (piece)
+      {
+        double mine = double(this->InputBytesRead);
+        controller->AllGather(&mine, readBytes.data(), 1);
+      }
       std::ostringstream text;
       for (std::size_t r = 0; 4 * r + 3 < c.perRank.size(); ++r)
       {
@@ -359,6 +421,10 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
         text << (r ? "; " : "") << "rank " << r << ": " << std::uint64_t(f[0]) << " bytes sent, "
              << std::uint64_t(f[1]) << " received, " << f[2] << " s in communication, "
              << std::uint64_t(f[3]) << " exchanges";
+        if (piece && r < readBytes.size())
+        {
+          text << ", " << std::uint64_t(readBytes[r]) << " input bytes read";
+        }
       }
       this->SetRankStatistics(text.str().c_str());
     }

@@ -151,9 +151,12 @@ public:
   // Disconnected pieces the run removed (vtkSIPMSSDecimate's PruneSize) and their triangles.
   vtkGetMacro(PrunedComponents, vtkTypeUInt64);
   vtkGetMacro(PrunedTriangles, vtkTypeUInt64);
-  // A run across MPI ranks (vtkSIPMSSCluster with a controller of several processes): the ranks,
-  // this rank's bytes sent to and received from the others and its seconds in communication,
-  // and every rank's figures as text ("rank 0: ... ; rank 1: ..."; empty for a serial run).
+  // Bytes of the input file this rank read in the last run (all its passes; 0 for a pipeline
+  // input). Under MPI a FileName run reads by byte ranges: each rank about 1/N of the file.
+  vtkGetMacro(InputBytesRead, vtkTypeUInt64);
+  // A run across MPI ranks (a controller of several processes): the ranks, this rank's bytes
+  // sent to and received from the others and its seconds in communication, and every rank's
+  // figures as text ("rank 0: ... ; rank 1: ..."; empty for a serial run).
   vtkGetMacro(NumberOfRanks, int);
   vtkGetMacro(BytesSent, vtkTypeUInt64);
   vtkGetMacro(BytesReceived, vtkTypeUInt64);
@@ -165,11 +168,13 @@ public:
   /**
    * The processes the filter runs on (default: the global controller, ParaView's MPI controller
    * under pvbatch and pvserver). With more than one, vtkSIPMSSCluster clusters the ranks' pieces
-   * together on one grid (each rank's output is its piece of the serial result); a FileName run
-   * is made by rank 0 alone (the others' outputs are empty). vtkSIPMSSDecimate decimates the
-   * ranks' pieces together: each piece with its border locked, then the joined results on rank
-   * 0, whose output is the whole mesh without seams (the others' outputs are empty); with a
-   * PreClusterGridDimension (two-stage) each rank's piece is simplified on its own.
+   * together on one grid (each rank's output is its piece of the serial result).
+   * vtkSIPMSSDecimate decimates the ranks' pieces together: each piece with its border locked,
+   * then the joined results on rank 0, whose output is the whole mesh without seams (the others'
+   * outputs are empty); with a PreClusterGridDimension (two-stage) the clustering runs across
+   * the ranks first. A FileName run of a binary PLY or binary STL reads the file by byte ranges,
+   * each rank its share of the faces and the vertices they use, and runs across the ranks as
+   * above; any other file is read and simplified by rank 0 alone (the others' outputs empty).
    */
   virtual void SetController(vtkMultiProcessController*);
   vtkGetObjectMacro(Controller, vtkMultiProcessController);
@@ -217,6 +222,7 @@ protected:
   vtkTypeUInt64 PageHits = 0;
   vtkTypeUInt64 PageMisses = 0;
   vtkTypeUInt64 BytesRead = 0;
+  vtkTypeUInt64 InputBytesRead = 0;
   vtkTypeUInt64 BytesWritten = 0;
   vtkTypeUInt64 Reconfigurations = 0;
   double ElapsedSeconds = 0.0;

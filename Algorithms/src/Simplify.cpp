@@ -183,6 +183,13 @@ storage::Profile MakeProfile(const SimplifyRequest& r)
 {
   storage::Profile p;
   ApplyMemoryBudget(r.memoryBudgetMB, p);
+  if (r.reservedMemoryBytes && p.memoryBudget)
+  {
+    p.memoryBudget =
+      std::max<std::uint64_t>(p.memoryBudget - std::min(p.memoryBudget, r.reservedMemoryBytes), 64u << 10);
+    p.budgetOrigin += (p.budgetOrigin.empty() ? "" : "; ") + std::to_string(r.reservedMemoryBytes) +
+      " bytes of it held for the file's piece";
+  }
   p.directories = r.temporaryDirectories;
   p.policy = r.mode;
   return p;

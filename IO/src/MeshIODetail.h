@@ -7,6 +7,7 @@
 
 #include "sipmss/io/MeshIO.h"
 #include "sipmss/io/MeshIOInternal.h"
+#include "sipmss/io/MeshPiece.h"
 
 #include <charconv>
 #include <cstdint>
@@ -432,6 +433,9 @@ ReadStats ReadStlBinary(Input& in, MeshSink& sink, const ReadOptions& options);
 ReadStats ReadObj(Input& in, MeshSink& sink, const ReadOptions& options);
 // PLY header only (counts announced, layout); in is left after end_header.
 MeshHeader ReadPlyHeader(Input& in);
+// The PLY header's part of ProbeSplit (MeshPiece.h): format, counts, the records' places and
+// sizes, or why the file cannot be read in pieces; `layout.fileBytes` is set by the caller.
+void DescribePlySplit(Input& in, SplitLayout& layout);
 
 // Format detection from the buffered start of the input (fills the buffer).
 Format DetectFromInput(Input& in);

@@ -1082,6 +1082,74 @@ ReadStats ReadPly(Input& in, MeshSink& sink, const ReadOptions& options)
   return r.Run();
 }
 
+void DescribePlySplit(Input& in, SplitLayout& s)
+{
+  Header h;
+  ParseHeader(in, h);
+  CheckSizes(in, h); // (the same errors as a read of the whole file)
+  s.format = h.format;
+  const Elem& ve = h.elems[std::size_t(h.vertexElem)];
+  s.vertexCount = ve.count;
+  s.faceCount = h.faceElem >= 0 ? h.elems[std::size_t(h.faceElem)].count : 0;
+  if (h.format == Format::PlyAscii)
+  {
+    s.whyNot = "it is ASCII PLY (lines of varying length)";
+    return;
+  }
+  if (h.faceElem < 0 || s.faceCount == 0)
+  {
+    s.whyNot = "it has no faces";
+    return;
+  }
+  s.bigEndian = h.format == Format::PlyBinaryBE;
+  std::uint64_t at = h.bodyOffset;
+  for (std::size_t i = 0; i < h.elems.size(); ++i)
+  {
+    const Elem& el = h.elems[i];
+    if (int(i) == h.faceElem)
+    {
+      const Prop& list = el.props[std::size_t(h.faceList)];
+      for (std::size_t k = 0; k < el.props.size(); ++k)
+      {
+        if (el.props[k].list && int(k) != h.faceList)
+        {
+          s.whyNot = "its faces have a list property besides " + list.name;
+          return;
+        }
+        if (int(k) < h.faceList)
+          s.countOffset += std::uint32_t(TypeSize(el.props[k].type));
+      }
+      s.countSize = std::uint32_t(TypeSize(list.countType));
+      s.indexSize = std::uint32_t(TypeSize(list.type));
+      s.indexSigned = list.type == PT::I8 || list.type == PT::I16 || list.type == PT::I32;
+      s.faceOffset = at;
+      s.faceStride = el.FixedSize() + s.countSize + 3 * s.indexSize;
+      at += el.count * s.faceStride; // (CheckSizes bounds each count by the file's size)
+      continue;
+    }
+    if (el.HasLists())
+    {
+      s.whyNot = "its element '" + el.name + "' has list properties";
+      return;
+    }
+    if (int(i) == h.vertexElem)
+    {
+      s.vertexOffset = at;
+      s.vertexStride = el.FixedSize();
+    }
+    at += el.count * el.FixedSize();
+  }
+  if (at != s.fileBytes)
+  {
+    s.whyNot = "its faces are not all triangles (the sizes do not add up to fixed records)";
+    return;
+  }
+  static const char* const kTypeNames[] = { "char", "uchar", "short", "ushort", "int", "uint",
+    "float", "double" };
+  for (const Prop& p : ve.props)
+    s.vertexProperties += std::string("property ") + kTypeNames[int(p.type)] + " " + p.name + "\n";
+}
+
 MeshHeader ReadPlyHeader(Input& in)
 {
   Header h;

@@ -1,9 +1,12 @@
 """mpirun -np N pvbatch: the SIPMSS filters on a mesh distributed over N ranks.
 
-- SIPMSS Cluster on the pieces (the source's, and RedistributeDataSet's) gives the serial result: the triangles
+- SIPMSS Cluster on the pieces (the source's, RedistributeDataSet's and D3's) gives the serial result: the triangles
   of all ranks together are the `sipmss` CLI's on the whole mesh, the same set at the same
   coordinates, none twice; every rank reports its traffic.
-- SIPMSS Cluster File under MPI is run by rank 0 alone: the file once, not N copies.
+- SIPMSS Cluster File / Decimate File under MPI read a binary PLY by byte ranges: each rank
+  reads about 1/N of the file's bytes (its faces once, and the vertex records they use at each
+  pass), and the results are those of the pipeline's pieces: the serial clustering, a seamless
+  decimation. An ASCII PLY is read by rank 0 alone, once.
 - SIPMSS Decimate on the pieces, also as two-stage (PreClusterGridDimension), has no seams: as
   many boundary edges as the CLI's serial run on the whole mesh, no face twice, the target within
   1% and the RMS distance within 1.1 times the serial run's.
@@ -71,6 +74,56 @@ def boundary_edges(tris):
     return sum(1 for n in uses.values() if n == 1)
 
 
+def ply_sections(path):
+    """(header bytes, vertex section bytes, face section bytes) of a binary PLY of triangles."""
+    with open(path, "rb") as f:
+        header = b""
+        while not header.endswith(b"end_header\n"):
+            header += f.readline()
+    size = os.path.getsize(path)
+    lines = header.decode().splitlines()
+    nf = int(next(l for l in lines if l.startswith("element face")).split()[2])
+    faces = nf * 13  # (uchar count, three 4-byte indices)
+    return len(header), size - len(header) - faces, faces
+
+
+def input_bytes_per_rank(proxy):
+    """Every rank's input bytes read, from RankStatistics."""
+    proxy.UpdatePropertyInformation()
+    stats = proxy.GetProperty("RankStatistics").GetData()
+    out = {}
+    for part in stats.split("; "):
+        rank = int(part.split(":")[0].split()[1])
+        out[rank] = int(part.split(", ")[-1].split()[0]) if "input bytes read" in part else None
+    return out
+
+
+def check_bytes_per_rank(name, proxy, path, vertex_passes):
+    """Each rank reads about 1/N of what one reader reads: the faces once, the vertices at each
+    of the run's passes (their share; a piece's faces use a few vertices of the next piece)."""
+    header, vertex_bytes, face_bytes = ply_sections(path)
+    whole = vertex_passes * vertex_bytes + face_bytes
+    if ranks == 1:
+        # (one reader: the whole file at least once; the clustering's first pass also reads the
+        # first faces, to measure the layout, here all of them)
+        proxy.UpdatePropertyInformation()
+        got = proxy.GetProperty("InputBytesRead").GetData()
+        size = os.path.getsize(path)
+        assert size <= got <= 2 * size + 4096, (name, got, size)
+        print("%s: 1 rank read %d bytes" % (name, got))
+        return
+    per_rank = input_bytes_per_rank(proxy)
+    assert sorted(per_rank) == list(range(ranks)), per_rank
+    for r, got in per_rank.items():
+        assert got is not None and 0 < got <= 1.25 * whole / ranks + 4096, (
+            "%s: rank %d read %s bytes, 1/%d of %d is %d" % (name, r, got, ranks, whole,
+                                                              whole // ranks))
+    total = sum(per_rank.values())
+    assert 0.95 * whole <= total <= 1.25 * whole, (name, total, whole)
+    print("%s: %d ranks read %s bytes (one reader: %d)" % (
+        name, ranks, sorted(per_rank.values()), whole))
+
+
 def rms_of(reference, candidate):
     out = subprocess.run([os.environ["SIPMSS_CLI"], "compare", reference, candidate],
                          check=True, capture_output=True, text=True).stdout
@@ -93,37 +146,70 @@ def triangles_of(poly):
 
 
 sphere = Sphere(ThetaResolution=160, PhiResolution=120)
-# The pieces: the sphere source's own (it makes piece r of N on rank r), and RedistributeDataSet's
+# The pieces: the sphere source's own (it makes piece r of N on rank r), RedistributeDataSet's
 # partition of them when it works here (its exchange goes through VTK's XML readers, which fail
-# with this machine's libexpat: then its pieces lose cells and that input is skipped).
+# with this machine's libexpat, 2.5.0 with reparse deferral: then its pieces lose cells and that
+# input is skipped), and D3's.
 surface = ExtractSurface(Input=sphere)
 inputs = [("the source's pieces", surface)]
 if "RedistributeDataSet" in globals() and ranks > 1:
     redistributed = ExtractSurface(Input=RedistributeDataSet(Input=sphere))
     inputs.append(("RedistributeDataSet's pieces", redistributed))
+# D3 (vtkPDistributedDataFilter) redistributes through VTK's legacy format, which this machine
+# reads back: a spatial partition of the sphere, its ghost layer removed.
+if "D3" in globals() and ranks > 1:
+    d3 = RemoveGhostInformation(Input=ExtractSurface(Input=D3(Input=sphere)))
+    inputs.append(("D3's pieces", d3))
 
-# The serial reference: the whole mesh as a PLY file through the CLI.
+def write_ply(poly, path, binary=True):
+    writer = vtkPLYWriter()
+    writer.SetInputData(poly)
+    writer.SetFileName(path)
+    if binary:
+        writer.SetFileTypeToBinary()
+    else:
+        writer.SetFileTypeToASCII()
+    assert writer.Write() == 1
+    return path
+
+
+def cli(*args):
+    subprocess.run([os.environ["SIPMSS_CLI"]] + list(args) + ["--quiet"], check=True)
+
+
+def merged_ply(poly, path):
+    """The mesh with the points its pieces share merged (appended pieces repeat them, which a
+    serial run would take for cuts), for the serial decimation."""
+    clean = vtkCleanPolyData()
+    clean.SetInputData(poly)
+    clean.Update()
+    return write_ply(clean.GetOutput(), path)
+
+
 whole = servermanager.Fetch(sphere)
 tmp = tempfile.mkdtemp(prefix="sipmss-mpi-")
 try:
-    mesh = os.path.join(tmp, "sphere.ply")
-    writer = vtkPLYWriter()
-    writer.SetInputData(whole)
-    writer.SetFileName(mesh)
-    writer.SetFileTypeToBinary()
-    assert writer.Write() == 1
-    serial_out = os.path.join(tmp, "serial.ply")
-    subprocess.run([os.environ["SIPMSS_CLI"], "simplify", mesh, serial_out, "--algorithm",
-                    "cluster", "--grid", str(GRID), "--quiet"], check=True)
-    serial = read_ply(serial_out)
-    assert len(serial) > 500, len(serial)
-
-    whole_triangles = triangles_of(whole)
+    # Each input's serial reference is the CLI's run on the union of its pieces (D3 moves the
+    # source's slit, two sides 1e-16 apart, to other coordinates). An input that lost cells on
+    # the way (RedistributeDataSet here) is skipped, saying so.
+    unions = {}
     for name, pieces in inputs:
-        if triangles_of(servermanager.Fetch(pieces)) != whole_triangles:
-            print("skipped: %s are not the whole sphere on this machine" % name)
+        union = servermanager.Fetch(pieces)
+        if union.GetNumberOfPolys() != whole.GetNumberOfPolys():
+            print("skipped: %s are %d of the sphere's %d triangles on this machine" % (
+                name, union.GetNumberOfPolys(), whole.GetNumberOfPolys()))
             continue
-        # Cluster on the distributed pieces.
+        unions[name] = union
+    inputs = [(name, pieces) for name, pieces in inputs if name in unions]
+
+    mesh = write_ply(whole, os.path.join(tmp, "sphere.ply"))
+    for name, pieces in inputs:
+        # Cluster on the distributed pieces, against the serial clustering of their union.
+        union_ply = write_ply(unions[name], os.path.join(tmp, "union.ply"))
+        cli("simplify", union_ply, os.path.join(tmp, "serial.ply"), "--algorithm", "cluster",
+            "--grid", str(GRID))
+        serial = read_ply(os.path.join(tmp, "serial.ply"))
+        assert len(serial) > 500, len(serial)
         cluster = SIPMSSCluster(Input=pieces)
         cluster.MaximumGridDimension = GRID
         cluster.NumberOfThreads = 1  # (the ranks share the cores)
@@ -148,44 +234,49 @@ try:
         print("%s: the union of %d ranks' outputs is the serial result (%d triangles)" % (
             name, ranks, len(serial)))
 
-    # The File source: one copy of the result, whatever the number of ranks.
+    # The File source: each rank reads its piece of the binary PLY by byte ranges (two passes of
+    # the vertices: the bounds, then the clustering); the union is the serial result.
+    cli("simplify", mesh, os.path.join(tmp, "serial.ply"), "--algorithm", "cluster",
+        "--grid", str(GRID))
+    serial = read_ply(os.path.join(tmp, "serial.ply"))
     cluster_file = SIPMSSClusterFile(FileName=mesh)
     cluster_file.MaximumGridDimension = GRID
+    cluster_file.NumberOfThreads = 1
     cluster_file.UpdatePipeline()
     from_file = triangles_of(servermanager.Fetch(cluster_file))
     assert from_file == serial, (len(from_file), len(serial))
+    check_bytes_per_rank("SIPMSS Cluster File", cluster_file, mesh, 2)
+    # An ASCII PLY cannot be read in pieces: rank 0 reads it, once.
+    ascii_mesh = write_ply(whole, os.path.join(tmp, "sphere-ascii.ply"), binary=False)
+    cluster_ascii = SIPMSSClusterFile(FileName=ascii_mesh)
+    cluster_ascii.MaximumGridDimension = GRID
+    cluster_ascii.UpdatePipeline()
+    assert triangles_of(servermanager.Fetch(cluster_ascii)) == serial
+    cluster_ascii.UpdatePropertyInformation()
+    assert cluster_ascii.GetProperty("NumberOfRanks").GetData() == 1
+    assert cluster_ascii.GetProperty("InputBytesRead").GetData() >= os.path.getsize(ascii_mesh)
 
     # Decimate on the distributed pieces: each rank's piece with its border locked, then the
-    # joined results on rank 0. Against the CLI's serial run: no seam (as many boundary edges),
-    # no face twice, the target within 1%, the RMS distance within 1.1x.
-    # (the serial input is the whole sphere with the points the pieces share merged: the
-    # appended pieces repeat them, which a serial run would take for cuts. The source's pieces
-    # leave a slit along one meridian, its two sides 1e-16 apart: both runs lock the boundary,
-    # so that the boundary edges are the input's in both, and a seam left open would add some.)
+    # joined results on rank 0. Against the CLI's serial run on the merged union: no seam (as
+    # many boundary edges), no face twice, the target within 1%, the RMS distance within 1.1x.
+    # (The source's slit: both runs lock the boundary, so that the boundary edges are the
+    # input's in both, and a seam left open would add some.) Two-stage: the distributed
+    # clustering at PRE_GRID, then the distributed decimation.
     TARGET = 2000
-    clean = vtkCleanPolyData()
-    clean.SetInputData(whole)
-    clean.Update()
-    merged = os.path.join(tmp, "merged.ply")
-    writer = vtkPLYWriter()
-    writer.SetInputData(clean.GetOutput())
-    writer.SetFileName(merged)
-    writer.SetFileTypeToBinary()
-    assert writer.Write() == 1
-    # Two-stage: the distributed clustering at PRE_GRID, then the distributed decimation.
     PRE_GRID = 60
+    runs = [(name, pieces, unions[name]) for name, pieces in inputs]
+    runs.append(("the file's pieces", None, whole))
     for algorithm, grid_args in (("decimate", []), ("two-stage", ["--grid", str(PRE_GRID)])):
-        serial_dec = os.path.join(tmp, "serial-%s.ply" % algorithm)
-        subprocess.run([os.environ["SIPMSS_CLI"], "simplify", merged, serial_dec, "--algorithm",
-                        algorithm, "--target", str(TARGET), "--lock-boundary", "--quiet"]
-                       + grid_args, check=True)
-        serial_tris = read_ply(serial_dec)
-        serial_rms = rms_of(merged, serial_dec)
-        for name, pieces in inputs:
-            if triangles_of(servermanager.Fetch(pieces)) != whole_triangles:
-                continue  # (said above)
+        for name, pieces, union in runs:
+            merged = merged_ply(union, os.path.join(tmp, "merged.ply"))
+            serial_dec = os.path.join(tmp, "serial-%s.ply" % algorithm)
+            cli("simplify", merged, serial_dec, "--algorithm", algorithm, "--target", str(TARGET),
+                "--lock-boundary", *grid_args)
+            serial_tris = read_ply(serial_dec)
+            serial_rms = rms_of(merged, serial_dec)
             name = "%s, %s" % (algorithm, name)
-            decimate = SIPMSSDecimate(Input=pieces)
+            decimate = (SIPMSSDecimate(Input=pieces) if pieces is not None
+                        else SIPMSSDecimateFile(FileName=merged))
             decimate.TargetNumberOfTriangles = TARGET
             decimate.LockBoundary = 1
             decimate.NumberOfThreads = 1
@@ -199,18 +290,17 @@ try:
             assert boundary_edges(tris) == boundary_edges(serial_tris), (
                 "%s, %d ranks: %d boundary edges, serial %d" % (
                     name, ranks, boundary_edges(tris), boundary_edges(serial_tris)))
-            out = os.path.join(tmp, "distributed-decimate.ply")
-            writer = vtkPLYWriter()
-            writer.SetInputData(result)
-            writer.SetFileName(out)
-            writer.SetFileTypeToBinary()
-            assert writer.Write() == 1
+            out = write_ply(result, os.path.join(tmp, "distributed-decimate.ply"))
             rms = rms_of(merged, out)
             assert rms <= 1.1 * serial_rms, (name, ranks, rms, serial_rms)
             decimate.UpdatePropertyInformation()
             assert decimate.GetProperty("NumberOfRanks").GetData() == ranks
             if ranks > 1:
                 assert decimate.GetProperty("BytesSent").GetData() > 0
+            if pieces is None:
+                # (the count pass, then the pieces' runs: two passes of the vertices; two-stage
+                # as many: the clustering's bounds pass and its clustering pass)
+                check_bytes_per_rank(name, decimate, merged, 2)
             print("%s, %d ranks: %d triangles (serial %d), %d boundary edges, RMS %.4g "
                   "(serial %.4g, ratio %.3f)" % (name, ranks, len(tris), len(serial_tris),
                                                   boundary_edges(tris), rms, serial_rms,

@@ -78,6 +78,9 @@ struct SimplifyRequest
   // ranks (ClusterOptions::communicator, DecimateOptions::communicator, two-stage through the
   // latter; the filters pass ParaView's MPI controller). Null: here.
   Communicator* communicator = nullptr;
+  // Bytes of the budget the caller holds for itself (the filters' file piece under MPI,
+  // FilePiece): the run's budget is the rest (at least 64 KiB). Not with an unbounded budget.
+  std::uint64_t reservedMemoryBytes = 0;
 
   int EffectiveGrid() const;
   double EffectiveBoundaryWeight() const;

@@ -1,0 +1,45 @@
+// This rank's piece of a file read by byte ranges (io/MeshPiece.h), for the distributed runs:
+// rank r of N reads faces [F r / N, F (r + 1) / N) and the vertex records they use, never the
+// whole file (docs/architecture.md, "Reading a file in pieces").
+#pragma once
+
+#include "sipmss/algorithms/Common.h"
+#include "sipmss/algorithms/Communicator.h"
+#include "sipmss/storage/DML.h"
+
+#include <memory>
+#include <string>
+
+namespace sipmss::algorithms
+{
+
+class FilePiece
+{
+public:
+  // Collective: every rank of `comm` constructs it with the same path. Binary PLY: reads this
+  // rank's faces, then sorts the vertex numbers they use and renumbers the faces, in a DML of
+  // its own configured with `profile` (16 bytes a face at most). Binary STL: reads nothing yet.
+  // A file that cannot be read in pieces (ASCII, OBJ, gzip, faces that are not all triangles)
+  // gives Split() false on every rank; a failure on any rank (a bad index, an abort, a full
+  // disk) throws on every rank: the failing rank its own error, the others one that names it.
+  FilePiece(const std::string& path, Communicator& comm, const storage::Profile& profile,
+    Progress& progress);
+  ~FilePiece();
+  FilePiece(const FilePiece&) = delete;
+  FilePiece& operator=(const FilePiece&) = delete;
+
+  bool Split() const;
+  const std::string& WhyNot() const; // (Split() false)
+  // Replays this rank's piece as a mesh of its own (valid while this object lives).
+  MeshSource Source();
+  // Bytes of the file this rank has read: the faces once, the vertex records at every replay.
+  std::uint64_t BytesRead() const;
+  std::uint64_t FileBytes() const;
+  std::uint64_t Faces() const; // the file's faces (facets) this piece holds
+
+private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+} // namespace sipmss::algorithms
