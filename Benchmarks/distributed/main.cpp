@@ -1,20 +1,23 @@
-// sipmss-bench-distributed: the distributed runs' work and traffic per rank.
+// sipmss-bench-distributed: the distributed runs' work, reads and traffic per rank.
 //
-//   sipmss-bench-distributed INPUT [--algorithm cluster|decimate] [--ranks 1,2,4] [--grid 300]
-//                            [--target 10000] [--memory-mb M] [--write PREFIX]
+//   sipmss-bench-distributed INPUT [--algorithm cluster|decimate|two-stage] [--ranks 1,2,4]
+//                            [--grid 300] [--target 10000] [--memory-mb M] [--write PREFIX]
 //
-// Reads INPUT into memory, cuts it into N pieces of consecutive faces (what reading a file by
-// byte ranges gives each rank; each piece has the vertices its faces use), and clusters or
-// decimates them on N ranks that are threads of this process (ThreadCommunicator: the
-// collectives MPI would make). On a machine with fewer cores than ranks the wall time says
-// little; each rank's CPU time (its thread's), its bytes sent and received and its rounds are
-// the work per rank. Checks that the ranks' output triangles add up to the serial run's
-// (clustering) or that rank 0's output is within 1% of the target (decimation). --write saves
-// the serial output as PREFIX-serial.ply and rank 0's (decimation) or all ranks' (clustering)
-// as PREFIX-N.ply, for `sipmss compare`.
+// Runs the algorithm on INPUT (a binary PLY or STL) once serially from the file, then on N ranks
+// that are threads of this process (ThreadCommunicator: the collectives MPI would make), each
+// rank reading its piece of the file by byte ranges (FilePiece, with an eighth of the budget as
+// the filters give it) as the File sources do under MPI. On a machine with fewer cores than
+// ranks the wall time says little; each rank's CPU time (its thread's: reading its piece, its
+// work, its share of the exchanges), its bytes read, sent and received and its rounds are the
+// work per rank. Checks that the ranks' output triangles add up to the serial run's
+// (clustering) or that rank 0's output is within 1% of the target (decimation, two-stage).
+// --write saves the serial output as PREFIX-serial.ply and rank 0's (decimation) or all ranks'
+// (clustering) as PREFIX-N.ply, for `sipmss compare`.
 #include "sipmss/algorithms/Cluster.h"
 #include "sipmss/algorithms/Decimate.h"
+#include "sipmss/algorithms/FilePiece.h"
 #include "sipmss/algorithms/ThreadCommunicator.h"
+#include "sipmss/algorithms/TwoStage.h"
 
 #include <chrono>
 #include <cstdio>
@@ -35,29 +38,6 @@ struct Mesh
 {
   std::vector<float> p;
   std::vector<std::uint32_t> t;
-};
-
-struct Load final : io::MeshSink
-{
-  Mesh& m;
-  explicit Load(Mesh& mesh)
-    : m(mesh)
-  {
-  }
-  void Begin(const io::MeshHeader& h) override
-  {
-    this->m.p.reserve(3 * h.vertexCount);
-    this->m.t.reserve(3 * h.faceCount);
-  }
-  void Vertices(const io::VertexChunk& c) override
-  {
-    this->m.p.insert(this->m.p.end(), c.xyz, c.xyz + 3 * c.count);
-  }
-  void Triangles(const std::uint32_t* i, std::size_t n) override
-  {
-    this->m.t.insert(this->m.t.end(), i, i + 3 * n);
-  }
-  void End(const io::ReadStats&) override {}
 };
 
 // Counts an output, and keeps it when asked (--write).
@@ -121,58 +101,6 @@ void Write(const std::string& path, const std::vector<const Mesh*>& meshes)
   w->End();
 }
 
-MeshSource Source(const Mesh& m)
-{
-  return [&m](io::MeshSink& sink, const io::ReadOptions& options) {
-    io::MeshHeader h;
-    h.vertexCount = m.p.size() / 3;
-    h.faceCount = m.t.size() / 3;
-    sink.Begin(h);
-    constexpr std::size_t kChunk = 1 << 16;
-    for (std::size_t v = 0; v < h.vertexCount; v += kChunk)
-    {
-      io::VertexChunk c;
-      c.first = v;
-      c.count = std::min<std::size_t>(kChunk, h.vertexCount - v);
-      c.xyz = m.p.data() + 3 * v;
-      sink.Vertices(c);
-    }
-    io::ReadStats s;
-    s.vertices = h.vertexCount;
-    if (!options.verticesOnly)
-    {
-      for (std::size_t f = 0; f < h.faceCount; f += kChunk)
-      {
-        sink.Triangles(m.t.data() + 3 * f, std::min<std::size_t>(kChunk, h.faceCount - f));
-      }
-      s.triangles = h.faceCount;
-      sink.End(s);
-    }
-    return s;
-  };
-}
-
-// Rank r's consecutive faces and their vertices, renumbered in order of first use.
-Mesh Piece(const Mesh& m, int ranks, int r)
-{
-  const std::size_t nf = m.t.size() / 3;
-  const std::size_t begin = nf * std::size_t(r) / std::size_t(ranks),
-                    end = nf * std::size_t(r + 1) / std::size_t(ranks);
-  Mesh piece;
-  std::vector<std::uint32_t> renumber(m.p.size() / 3, ~0u);
-  for (std::size_t i = 3 * begin; i < 3 * end; ++i)
-  {
-    std::uint32_t& n = renumber[m.t[i]];
-    if (n == ~0u)
-    {
-      n = std::uint32_t(piece.p.size() / 3);
-      piece.p.insert(piece.p.end(), m.p.begin() + 3 * m.t[i], m.p.begin() + 3 * m.t[i] + 3);
-    }
-    piece.t.push_back(n);
-  }
-  return piece;
-}
-
 double ThreadSeconds()
 {
   timespec ts{};
@@ -186,7 +114,7 @@ int main(int argc, char** argv)
   if (argc < 2)
   {
     std::fprintf(stderr,
-      "usage: %s INPUT [--algorithm cluster|decimate] [--ranks 1,2,4] [--grid 300] "
+      "usage: %s INPUT [--algorithm cluster|decimate|two-stage] [--ranks 1,2,4] [--grid 300] "
       "[--target 10000] [--memory-mb M] [--write PREFIX]\n",
       argv[0]);
     return 2;
@@ -195,7 +123,7 @@ int main(int argc, char** argv)
   int grid = 300;
   double memoryMB = 0;
   std::uint64_t target = 10000;
-  bool decimate = false;
+  std::string algorithm = "cluster";
   std::string prefix;
   for (int i = 2; i + 1 < argc; i += 2)
   {
@@ -218,9 +146,10 @@ int main(int argc, char** argv)
       target = std::strtoull(argv[i + 1], nullptr, 10);
     }
     else if (!std::strcmp(argv[i], "--algorithm") &&
-      (!std::strcmp(argv[i + 1], "cluster") || !std::strcmp(argv[i + 1], "decimate")))
+      (!std::strcmp(argv[i + 1], "cluster") || !std::strcmp(argv[i + 1], "decimate") ||
+        !std::strcmp(argv[i + 1], "two-stage")))
     {
-      decimate = !std::strcmp(argv[i + 1], "decimate");
+      algorithm = argv[i + 1];
     }
     else if (!std::strcmp(argv[i], "--memory-mb"))
     {
@@ -236,11 +165,7 @@ int main(int argc, char** argv)
       return 2;
     }
   }
-  Mesh mesh;
-  {
-    Load load(mesh);
-    FileSource(argv[1])(load, io::ReadOptions{});
-  }
+  const bool decimate = algorithm != "cluster";
   storage::Profile storage;
   if (memoryMB > 0)
   {
@@ -249,6 +174,17 @@ int main(int argc, char** argv)
   // One run of the chosen algorithm (comm: null for the serial run).
   auto run = [&](const MeshSource& source, Count& out, Communicator* comm) {
     NullProgress p;
+    if (algorithm == "two-stage")
+    {
+      TwoStageOptions o;
+      o.gridDimension = grid;
+      o.threads = 1;
+      o.decimate.targetTriangles = target;
+      o.decimate.threads = 1;
+      o.decimate.storage = storage;
+      o.decimate.communicator = comm;
+      return TwoStage(source, out, o, p);
+    }
     if (decimate)
     {
       DecimateOptions o;
@@ -269,30 +205,41 @@ int main(int argc, char** argv)
   serial.keep = !prefix.empty();
   const auto start = std::chrono::steady_clock::now();
   const double cpu0 = ThreadSeconds();
-  run(Source(mesh), serial, nullptr);
+  std::uint64_t serialBytes = 0;
+  const MeshSource file = FileSource(argv[1]);
+  const RunStats serialStats = run(
+    [&file, &serialBytes](io::MeshSink& sink, const io::ReadOptions& ro) {
+      const io::ReadStats read = file(sink, ro);
+      serialBytes += read.bytes;
+      return read;
+    },
+    serial, nullptr);
   const double serialCpu = ThreadSeconds() - cpu0;
-  std::printf("%s: %zu triangles, %s, budget %s\n", argv[1], mesh.t.size() / 3,
-    decimate ? ("decimate to " + std::to_string(target)).c_str()
-             : ("cluster at grid " + std::to_string(grid)).c_str(),
+  std::printf("%s: %llu triangles, %s, budget %s\n", argv[1],
+    (unsigned long long)serialStats.inputTriangles,
+    (algorithm == "cluster" ? "cluster at grid " + std::to_string(grid)
+        : algorithm + " to " + std::to_string(target) +
+          (algorithm == "two-stage" ? " (grid " + std::to_string(grid) + ")" : ""))
+      .c_str(),
     memoryMB > 0 ? (std::to_string(memoryMB) + " MB").c_str() : "unbounded");
-  std::printf("serial: %.2f s CPU, %.2f s wall, %llu output triangles\n", serialCpu,
-    std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(),
-    (unsigned long long)serial.triangles);
+  std::printf("serial: %.2f s CPU, %.2f s wall, %.1f MB read, %llu output triangles, peak DML "
+              "%.1f MB\n",
+    serialCpu, std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(),
+    double(serialBytes) / 1048576.0, (unsigned long long)serial.triangles,
+    double(serialStats.storage.peakBytes) / 1048576.0);
   if (!prefix.empty())
   {
     Write(prefix + "-serial.ply", { &serial.m });
   }
   std::printf("| ranks | rank | input triangles | output triangles | CPU s | communication s | "
-              "MB sent | MB received | rounds | peak DML MB |\n|---|---|---|---|---|---|---|---|---|---|\n");
+              "MB read | MB sent | MB received | rounds | peak DML MB |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|\n");
   int status = 0;
   for (int n : rankCounts)
   {
-    std::vector<Mesh> pieces;
-    for (int r = 0; r < n; ++r)
-    {
-      pieces.push_back(Piece(mesh, n, r));
-    }
     std::vector<RunStats> stats(static_cast<std::size_t>(n));
+    std::vector<std::uint64_t> bytesRead(static_cast<std::size_t>(n)),
+      pieceFaces(static_cast<std::size_t>(n));
     std::vector<Count> outputs(static_cast<std::size_t>(n));
     std::vector<double> cpu(static_cast<std::size_t>(n));
     for (Count& o : outputs)
@@ -302,8 +249,21 @@ int main(int argc, char** argv)
     RunRanks(n, [&](Communicator& comm) {
       const std::size_t r = std::size_t(comm.Rank());
       const double c0 = ThreadSeconds();
-      stats[r] = run(Source(pieces[r]), outputs[r], &comm);
+      storage::Profile pieceProfile = storage;
+      if (storage.memoryBudget)
+      {
+        pieceProfile.memoryBudget = std::max<std::uint64_t>(storage.memoryBudget / 8, 64u << 10);
+      }
+      NullProgress p;
+      FilePiece piece(argv[1], comm, pieceProfile, p);
+      if (!piece.Split())
+      {
+        throw std::runtime_error(std::string(argv[1]) + " cannot be read in pieces: " + piece.WhyNot());
+      }
+      stats[r] = run(piece.Source(), outputs[r], &comm);
       cpu[r] = ThreadSeconds() - c0;
+      bytesRead[r] = piece.BytesRead();
+      pieceFaces[r] = piece.Faces();
     });
     std::uint64_t total = 0;
     std::vector<const Mesh*> written;
@@ -312,9 +272,11 @@ int main(int argc, char** argv)
       const RunStats& s = stats[std::size_t(r)];
       total += outputs[std::size_t(r)].triangles;
       written.push_back(&outputs[std::size_t(r)].m);
-      std::printf("| %d | %d | %zu | %llu | %.2f | %.2f | %.1f | %.1f | %llu | %.1f |\n", n, r,
-        pieces[std::size_t(r)].t.size() / 3, (unsigned long long)outputs[std::size_t(r)].triangles,
-        cpu[std::size_t(r)], s.communication.seconds, double(s.communication.bytesSent) / 1048576.0,
+      std::printf("| %d | %d | %llu | %llu | %.2f | %.2f | %.1f | %.1f | %.1f | %llu | %.1f |\n", n,
+        r, (unsigned long long)pieceFaces[std::size_t(r)],
+        (unsigned long long)outputs[std::size_t(r)].triangles, cpu[std::size_t(r)],
+        s.communication.seconds, double(bytesRead[std::size_t(r)]) / 1048576.0,
+        double(s.communication.bytesSent) / 1048576.0,
         double(s.communication.bytesReceived) / 1048576.0,
         (unsigned long long)s.communication.rounds, double(s.storage.peakBytes) / 1048576.0);
     }
