@@ -149,10 +149,11 @@ FilePiece::FilePiece(
   const int rank = comm.Rank(), size = comm.Size();
   I.name = path + " (rank " + std::to_string(rank) + "'s piece)";
   std::exception_ptr failure;
-  bool notTriangles = false;
+  bool notTriangles = false, probed = false;
   try
   {
     I.layout = io::ProbeSplit(path);
+    probed = true;
     I.whyNot = I.layout.whyNot;
     if (I.whyNot.empty())
     {
@@ -178,25 +179,30 @@ FilePiece::FilePiece(
   // which). A face that is not a triangle wins over failures: the ranks after it read their
   // records at the wrong places, and whatever they found there means nothing. (The rank whose
   // faces hold the file's first such face reads up to it at the right places, so it is found.)
-  std::uint64_t flags[2] = { failure ? 1u : 0u, notTriangles || !I.whyNot.empty() ? 1u : 0u };
+  // A rank other than 0 that cannot even open the file (not on a file system every rank
+  // shares) leaves it to rank 0, as for a file that cannot be split.
+  std::uint64_t flags[4] = { failure ? 1u : 0u, notTriangles || !I.whyNot.empty() ? 1u : 0u,
+    rank != 0 && !probed ? 1u : 0u, rank == 0 && !probed ? 1u : 0u };
   double failing = failure ? double(rank) : -1.0;
-  comm.AllReduceSum(flags, 2);
+  comm.AllReduceSum(flags, 4);
   comm.AllReduceMax(&failing, 1);
-  if (failure && !flags[1])
+  const bool leaveToRankZero = flags[1] || (flags[2] && !flags[3]);
+  if (failure && !leaveToRankZero)
   {
     std::rethrow_exception(failure);
   }
-  if (flags[0] && !flags[1])
+  if (flags[0] && !leaveToRankZero)
   {
     throw std::runtime_error(path + ": rank " + std::to_string(int(failing)) +
       " could not read its piece of the file (its error is in its own output)");
   }
-  I.split = flags[1] == 0;
+  I.split = !leaveToRankZero;
   if (!I.split)
   {
     if (I.whyNot.empty())
     {
-      I.whyNot = "another rank found a face that is not a triangle";
+      I.whyNot = flags[1] ? "another rank found a face that is not a triangle"
+                          : "not every rank can open it (is it on a file system they share?)";
     }
     I.faces.Close();
     I.vertices.Close();

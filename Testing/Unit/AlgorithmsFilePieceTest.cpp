@@ -332,6 +332,22 @@ TEST(FilePiece, ABadFileFailsEveryRank)
   {
     EXPECT_NE(e.find("cannot be opened"), std::string::npos) << e;
   }
+  // A file that only rank 0 can open (on a disk of its own node): rank 0 reads it whole.
+  const std::string good = dir.File("good.ply");
+  Write(sipmss::testing::BumpyUVSphere(10), good);
+  std::vector<bool> split(3, true);
+  std::vector<std::string> why(3);
+  RunRanks(3, [&](Communicator& comm) {
+    NullProgress progress;
+    FilePiece piece(comm.Rank() == 0 ? good : dir.File("elsewhere.ply"), comm, {}, progress);
+    split[std::size_t(comm.Rank())] = piece.Split();
+    why[std::size_t(comm.Rank())] = piece.WhyNot();
+  });
+  for (int r = 0; r < 3; ++r)
+  {
+    EXPECT_FALSE(split[std::size_t(r)]);
+    EXPECT_NE(why[std::size_t(r)].find("not every rank can open it"), std::string::npos) << why[std::size_t(r)];
+  }
 }
 
 TEST(FilePiece, TheClusteringOfAFilesPiecesIsTheSerialClustering)

@@ -19,9 +19,10 @@ public:
   // Collective: every rank of `comm` constructs it with the same path. Binary PLY: reads this
   // rank's faces, then sorts the vertex numbers they use and renumbers the faces, in a DML of
   // its own configured with `profile` (16 bytes a face at most). Binary STL: reads nothing yet.
-  // A file that cannot be read in pieces (ASCII, OBJ, gzip, faces that are not all triangles)
-  // gives Split() false on every rank; a failure on any rank (a bad index, an abort, a full
-  // disk) throws on every rank: the failing rank its own error, the others one that names it.
+  // A file that cannot be read in pieces (ASCII, OBJ, gzip, faces that are not all triangles, or
+  // one that a rank other than 0 cannot open) gives Split() false on every rank: rank 0 reads it
+  // whole. Any other failure on any rank (rank 0 cannot open it, a bad index, an abort) throws
+  // on every rank: the failing rank its own error, the others one that names it.
   FilePiece(const std::string& path, Communicator& comm, const storage::Profile& profile,
     Progress& progress);
   ~FilePiece();
