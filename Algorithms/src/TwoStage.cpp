@@ -29,6 +29,61 @@ void Prefix(std::vector<PhaseStat>& phases, std::size_t from, const char* prefix
 
 namespace
 {
+using OnLevel = std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>;
+
+// Stage 1's share of the run: its work against stage 2's on the estimated clustered mesh (about
+// half as many vertices as faces).
+std::function<double(std::uint64_t, std::uint64_t)> StageOneShare(
+  const ClusterOptions& co, const DecimateOptions& d2)
+{
+  return [co, d2](std::uint64_t V, std::uint64_t F) {
+    const double w1 = EstimateClusterWork(V, F, co);
+    const double faces = EstimateClusterFaces(V, F, co);
+    const double w2 = EstimateDecimateWork(std::uint64_t(faces / 2), std::uint64_t(faces), d2);
+    return w1 + w2 > 0 ? w1 / (w1 + w2) : 0.5;
+  };
+}
+
+// Stage 2's options: on the run's DML, the errors relative to the input's box, and what the
+// grid left of a bound (nothing but exact collapses when the grid alone exceeds it: the two
+// stages' errors add up).
+DecimateOptions StageTwoOptions(const TwoStageOptions& options, const RunStats& s1, DML& dml)
+{
+  DecimateOptions dopt = options.decimate;
+  dopt.dml = &dml;
+  dopt.errorDiagonal = s1.errorDiagonal;
+  if (std::isfinite(dopt.maximumError))
+  {
+    const double used =
+      std::max(0.0, s1.achievedError) * (dopt.absoluteError ? s1.errorDiagonal : 1.0);
+    dopt.maximumError = std::max(0.0, dopt.maximumError - used);
+  }
+  return dopt;
+}
+
+// Stage 2 on the clustered mesh, its statistics added to the run's. Stage 2 measures its
+// collapses against the clustered mesh's planes (with the cell quadrics carried, against those
+// and the cells' input planes together): the two stages' errors add up (a bound of the distance
+// to the input's planes, not a measure of it).
+RunStats RunStageTwo(detail::StoredMesh& handoff, io::MeshSink& output, const DecimateOptions& dopt,
+  Progress& progress, const OnLevel& onLevel, const RunStats& s1, RunStats& stats)
+{
+  StageProgress p2(progress, "stage 2: ");
+  const std::size_t from = stats.phases.size();
+  RunStats s2 = Decimate(
+    [&handoff](io::MeshSink& sink, const io::ReadOptions& ro) { return handoff.Replay(sink, ro); },
+    output, dopt, p2, onLevel);
+  stats.phases.insert(stats.phases.end(), s2.phases.begin(), s2.phases.end());
+  Prefix(stats.phases, from, "stage 2 ");
+  stats.outputVertices = s2.outputVertices;
+  stats.outputTriangles = s2.outputTriangles;
+  stats.prunedComponents = s2.prunedComponents; // (pieces of the clustered mesh)
+  stats.prunedTriangles = s2.prunedTriangles;
+  stats.errorDiagonal = s1.errorDiagonal;
+  stats.achievedError = std::max(0.0, s1.achievedError) + std::max(0.0, s2.achievedError);
+  return s2;
+}
+
 // Two-stage across ranks (DecimateOptions::communicator with more than one rank): stage 1 is
 // the distributed clustering (each rank's piece of the exact serial clustering, its vertices
 // at the same positions on every rank that shares them), stage 2 the distributed decimation
@@ -55,14 +110,7 @@ RunStats TwoStageDistributed(const MeshSource& input, io::MeshSink& output,
     co.attributes = options.decimate.attributes;
     co.communicator = options.decimate.communicator;
     co.dml = &dml; // (exact sums: the distributed clustering needs them)
-    DecimateOptions d2 = options.decimate;
-    StageProgress p1(progress, "stage 1: ", [co, d2](std::uint64_t V, std::uint64_t F) {
-      const double w1 = EstimateClusterWork(V, F, co);
-      const double faces = EstimateClusterFaces(V, F, co);
-      const double w2 =
-        EstimateDecimateWork(std::uint64_t(faces / 2), std::uint64_t(faces), d2);
-      return w1 + w2 > 0 ? w1 / (w1 + w2) : 0.5;
-    });
+    StageProgress p1(progress, "stage 1: ", StageOneShare(co, options.decimate));
     s1 = Cluster(input, handoff, co, p1);
     stats.inputVertices = s1.inputVertices;
     stats.inputTriangles = s1.inputTriangles;
@@ -72,30 +120,11 @@ RunStats TwoStageDistributed(const MeshSource& input, io::MeshSink& output,
   }
   dml.Reconfigure();
 
-  DecimateOptions dopt = options.decimate;
-  dopt.dml = &dml;
-  dopt.errorDiagonal = s1.errorDiagonal; // (the whole input's box, agreed by the ranks)
-  if (std::isfinite(dopt.maximumError))
-  {
-    const double used =
-      std::max(0.0, s1.achievedError) * (dopt.absoluteError ? s1.errorDiagonal : 1.0);
-    dopt.maximumError = std::max(0.0, dopt.maximumError - used);
-  }
+  // (the whole input's box, agreed by the ranks; each stage's error is already the maximum over
+  // the ranks)
+  DecimateOptions dopt = StageTwoOptions(options, s1, dml);
   dopt.sourceConsumed = [&handoff]() { handoff.Release(); };
-  StageProgress p2(progress, "stage 2: ");
-  const std::size_t from = stats.phases.size();
-  RunStats s2 = Decimate(
-    [&handoff](io::MeshSink& sink, const io::ReadOptions& ro) { return handoff.Replay(sink, ro); },
-    output, dopt, p2, onLevel);
-  stats.phases.insert(stats.phases.end(), s2.phases.begin(), s2.phases.end());
-  Prefix(stats.phases, from, "stage 2 ");
-  stats.outputVertices = s2.outputVertices;
-  stats.outputTriangles = s2.outputTriangles;
-  stats.prunedComponents = s2.prunedComponents;
-  stats.prunedTriangles = s2.prunedTriangles;
-  stats.errorDiagonal = s1.errorDiagonal;
-  // (each stage's error is already the maximum over the ranks)
-  stats.achievedError = std::max(0.0, s1.achievedError) + std::max(0.0, s2.achievedError);
+  const RunStats s2 = RunStageTwo(handoff, output, dopt, progress, onLevel, s1, stats);
   // This rank's traffic in both stages.
   CommunicationStats& c = stats.communication;
   c = s2.communication;
@@ -183,16 +212,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
         quadrics.Set(v, r);
       };
     }
-    // Stage 1's share of the run: its work against stage 2's on the estimated clustered mesh
-    // (about half as many vertices as faces).
-    DecimateOptions d2 = options.decimate;
-    StageProgress p1(progress, "stage 1: ", [co, d2](std::uint64_t V, std::uint64_t F) {
-      const double w1 = EstimateClusterWork(V, F, co);
-      const double faces = EstimateClusterFaces(V, F, co);
-      const double w2 =
-        EstimateDecimateWork(std::uint64_t(faces / 2), std::uint64_t(faces), d2);
-      return w1 + w2 > 0 ? w1 / (w1 + w2) : 0.5;
-    });
+    StageProgress p1(progress, "stage 1: ", StageOneShare(co, options.decimate));
     if (probed && !reordered && probe.verticesSeen > 0)
     {
       co.useBounds = true;
@@ -216,17 +236,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   dml.Reconfigure(); // stage 1's input-sized blocks are gone
 
   // Stage 2: edge collapse on the DML-resident clustered mesh.
-  DecimateOptions dopt = options.decimate;
-  dopt.dml = &dml;
-  dopt.errorDiagonal = s1.errorDiagonal; // (the bound and the errors refer to the input's box)
-  if (std::isfinite(dopt.maximumError))
-  {
-    // The two stages' errors add up (see below): the collapses get what the grid left of the
-    // bound (nothing but exact collapses when the grid alone exceeds it).
-    const double used =
-      std::max(0.0, s1.achievedError) * (dopt.absoluteError ? s1.errorDiagonal : 1.0);
-    dopt.maximumError = std::max(0.0, dopt.maximumError - used);
-  }
+  DecimateOptions dopt = StageTwoOptions(options, s1, dml);
   if (options.carryQuadrics)
   {
     dopt.initialQuadric = [&quadrics](std::uint64_t v, double q[10]) {
@@ -246,22 +256,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     handoff.Release();
     quadrics.Close();
   };
-  StageProgress p2(progress, "stage 2: ");
-  const std::size_t from = stats.phases.size();
-  RunStats s2 = Decimate(
-    [&handoff](io::MeshSink& sink, const io::ReadOptions& ro) { return handoff.Replay(sink, ro); },
-    output, dopt, p2, onLevel);
-  stats.phases.insert(stats.phases.end(), s2.phases.begin(), s2.phases.end());
-  Prefix(stats.phases, from, "stage 2 ");
-  stats.outputVertices = s2.outputVertices;
-  stats.outputTriangles = s2.outputTriangles;
-  stats.prunedComponents = s2.prunedComponents; // (pieces of the clustered mesh)
-  stats.prunedTriangles = s2.prunedTriangles;
-  // Stage 2 measures its collapses against the clustered mesh's planes (with the cell quadrics
-  // carried, against those and the cells' input planes together): the two stages' errors add up
-  // (a bound of the distance to the input's planes, not a measure of it).
-  stats.errorDiagonal = s1.errorDiagonal;
-  stats.achievedError = std::max(0.0, s1.achievedError) + std::max(0.0, s2.achievedError);
+  RunStageTwo(handoff, output, dopt, progress, onLevel, s1, stats);
   stats.storage = dml.GetStats();
   return stats;
 }
