@@ -28,7 +28,7 @@ namespace
 
 std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0)
 {
-  std::uint64_t target = ctx.opt.targetTriangles;
+  std::uint64_t target = ctx.opt.targetTriangles ? ctx.opt.targetTriangles + ctx.extraTarget : 0;
   if (target == 0 && !std::isfinite(ctx.opt.maximumError))
   {
     // (with a bound and no target the bound is the only stop)
@@ -149,6 +149,15 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
     Prune(ctx, mesh);
   }
   BuildQuadrics(ctx, mesh);
+  if (ctx.opt.trianglesPerFixedVertex > 0 && ctx.opt.targetTriangles > 0)
+  {
+    std::uint64_t fixed = 0;
+    for (std::uint64_t v = 0; v < mesh.nv; ++v)
+    {
+      fixed += (mesh.views.S.Get(v) & kFixed) != 0;
+    }
+    ctx.extraTarget = std::uint64_t(std::llround(ctx.opt.trianglesPerFixedVertex * double(fixed)));
+  }
   if (ctx.opt.sourceConsumed)
   {
     ctx.opt.sourceConsumed();

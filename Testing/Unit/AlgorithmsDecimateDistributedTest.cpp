@@ -190,6 +190,22 @@ TEST(DecimateDistributed, NoSeamsNoDuplicatesOnAClosedSurface)
   }
 }
 
+TEST(DecimateDistributed, LongBordersDoNotTakeThePiecesShare)
+{
+  // Fine pieces with a small target: each cut has as many vertices as the pieces' share of the
+  // target has triangles. The pieces keep their share beside their locked borders (else the
+  // rest of a piece goes far below it, and the RMS is many times the serial run's).
+  const Mesh m = sipmss::testing::BumpyUVSphere(120); // 57,600 triangles, rings of 240 vertices
+  DecimateOptions o;
+  o.targetTriangles = 600;
+  o.threads = 1;
+  for (int ranks : { 2, 4 })
+  {
+    SCOPED_TRACE(std::to_string(ranks) + " ranks");
+    ExpectSeamless(m, DecimateRun(o), o.targetTriangles, ranks, Cut::Blocks);
+  }
+}
+
 TEST(DecimateDistributed, AnOpenSheetKeepsItsBoundaryWhenLocked)
 {
   const Mesh m = Sheet(60); // 7,200 triangles, 240 boundary edges

@@ -34,6 +34,11 @@ using detail::StoredMesh;
 // Each piece stops at this multiple of its share of the target; the gathered pass makes the
 // last choices over the whole mesh (docs/benchmarks.md: RMS against the serial run).
 constexpr double kPieceSlack = 2.0;
+// ... plus this many triangles for each vertex of its locked border: a long border (a cut across
+// a 25M-triangle scan has thousands of vertices) would otherwise take the piece's share, and the
+// rest of the piece would be decimated far below it, which the gathered pass cannot undo
+// (docs/benchmarks.md: Lucy-size on 4 ranks).
+constexpr double kTrianglesPerBorderVertex = 2.0;
 
 // Step 1: a piece's size, bounds and point data.
 class CountSink final : public io::MeshSink
@@ -260,6 +265,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
       o.boundaryWeight = 0;
       o.pruneSize = 0;
       o.levelsOfDetail = 1;
+      o.trianglesPerFixedVertex = kTrianglesPerBorderVertex;
       o.targetTriangles = boundOnly ? 0
                                     : std::max<std::uint64_t>(1,
                                         std::uint64_t(std::ceil(kPieceSlack * firstLevel *

@@ -607,6 +607,8 @@ struct RunContext
   double cosThreshold;
   int threads;
   bool emitsLevels = false; // onLevel given: each level is emitted during the passes
+  // Triangles added to the target for the fixed vertices (opt.trianglesPerFixedVertex).
+  std::uint64_t extraTarget = 0;
   // The error bound as a quadric cost per unit of trace (a squared distance; set once the input
   // is read: SetErrorBound), and the largest such cost of the collapses made (Compact).
   double maxErr2 = std::numeric_limits<double>::infinity();

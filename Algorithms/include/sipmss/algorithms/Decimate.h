@@ -75,6 +75,11 @@ struct DecimateOptions
   // > 0: the triangle count that the levels of detail are spaced from (the distributed run's
   // second pass: the whole input's); 0: this run's input's.
   std::uint64_t levelsFrom = 0;
+  // > 0 (with a target): the target grows by this many triangles for each vertex the run keeps
+  // fixed (lockBoundary, locks, selections), counted once the rings are built. The distributed
+  // run's pieces: their locked borders would otherwise take their share of the target, and the
+  // rest of the piece would be decimated far below it.
+  double trianglesPerFixedVertex = 0;
   // Where the run happens: with more than one rank, each rank decimates its own piece with the
   // piece's border locked, and rank 0 gathers the results (the borders joined again by their
   // positions) and decimates them to the target (decimate/Distributed.inl): the output is on
