@@ -4,7 +4,7 @@
 //    data and sum the counts, so that every rank knows the whole input's size and diagonal.
 // 2. Each rank decimates its piece alone with the piece's boundary locked (lockBoundary) and no
 //    boundary planes, to kPieceSlack times its share of the target (its share of the first
-//    level's). A piece's border is where it meets the others: those vertices stay where they are
+//    level's) plus kTrianglesPerBorderVertex per locked vertex. A piece's border is where it meets the others: those vertices stay where they are
 //    and their border edges stay as they are, on both sides. The run keeps each output vertex's
 //    accumulated quadric (finalQuadric).
 // 3. Rank 0 gathers the pieces' outputs with their quadrics, in rounds of a bounded size, into a
@@ -19,7 +19,7 @@
 //    output is on rank 0; the other ranks' outputs are empty.
 // The result has no seams (no border edge is left open: the joined mesh is the input's surface)
 // and no face twice. It is not the serial result: the first pass's choices are local. Rank 0
-// holds the gathered mesh: about kPieceSlack times the target plus the pieces' borders.
+// holds the gathered mesh: about kPieceSlack times the target plus the pieces' border strips.
 // (Part of Decimate.cpp's translation unit.)
 namespace sipmss::algorithms
 {
