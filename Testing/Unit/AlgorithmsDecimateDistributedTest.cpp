@@ -18,6 +18,7 @@
 
 using namespace sipmss;
 using namespace sipmss::algorithms;
+using sipmss::testing::AbortLater;
 using sipmss::testing::Collect;
 using sipmss::testing::Cut;
 using sipmss::testing::MemorySource;
@@ -261,17 +262,6 @@ TEST(DecimateDistributed, AFailureOnOneRankReachesEveryRank)
 {
   // Rank 1's progress aborts at some point of the run, or its piece has a face that names a
   // vertex it does not have: every rank fails, none waits.
-  struct AbortLater final : Progress
-  {
-    int polls = 0;
-    int limit;
-    explicit AbortLater(int n)
-      : limit(n)
-    {
-    }
-    void Report(double, const char*) override {}
-    bool Aborted() override { return ++this->polls > this->limit; }
-  };
   const Mesh m = sipmss::testing::BumpyUVSphere(30);
   for (int limit : { 0, 5, 40, 200, 1000000 })
   {

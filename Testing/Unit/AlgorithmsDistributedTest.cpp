@@ -15,6 +15,7 @@
 
 using namespace sipmss;
 using namespace sipmss::algorithms;
+using sipmss::testing::AbortLater;
 using sipmss::testing::Collect;
 using sipmss::testing::Cut;
 using sipmss::testing::Piece;
@@ -240,17 +241,6 @@ TEST(ClusterDistributed, AttributesAcrossRanks)
 TEST(ClusterDistributed, AnAbortDuringTheExchangesReachesEveryRank)
 {
   // Rank 1 is aborted after a few polls (inside the exchanges): every rank stops, none waits.
-  struct AbortLater final : Progress
-  {
-    int polls = 0;
-    int limit;
-    explicit AbortLater(int n)
-      : limit(n)
-    {
-    }
-    void Report(double, const char*) override {}
-    bool Aborted() override { return ++this->polls > this->limit; }
-  };
   const Mesh m = Input();
   const std::vector<Mesh> pieces = { Piece(m, 3, 0, Cut::Slabs), Piece(m, 3, 1, Cut::Slabs),
     Piece(m, 3, 2, Cut::Slabs) };

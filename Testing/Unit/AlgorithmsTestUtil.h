@@ -232,6 +232,19 @@ inline algorithms::MeshSource MemorySource(const Mesh& m)
   };
 }
 
+// A progress that reports an abort after `limit` polls (0: at once).
+struct AbortLater final : algorithms::Progress
+{
+  int polls = 0;
+  int limit;
+  explicit AbortLater(int n)
+    : limit(n)
+  {
+  }
+  void Report(double, const char*) override {}
+  bool Aborted() override { return ++this->polls > this->limit; }
+};
+
 struct Collect final : io::MeshSink
 {
   Mesh m;
