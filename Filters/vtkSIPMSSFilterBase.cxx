@@ -167,12 +167,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       // Every rank reads its piece, in a DML of its own with an eighth of the budget (the run
       // gets the rest), or all ranks agree that the file cannot be read in pieces.
       communicator.emplace(controller);
-      sipmss::storage::Profile pieceProfile = sipmss::algorithms::MakeProfile(request);
-      if (pieceProfile.memoryBudget)
-      {
-        pieceProfile.memoryBudget = std::max<std::uint64_t>(pieceProfile.memoryBudget / 8, 64u << 10);
-        request.reservedMemoryBytes = pieceProfile.memoryBudget;
-      }
+      const sipmss::storage::Profile pieceProfile = sipmss::algorithms::ReservePieceBudget(request);
       bridge::AlgorithmProgress pieceProgress(this);
       try
       {

@@ -141,6 +141,17 @@ struct FilePiece::Impl
   }
 };
 
+storage::Profile ReservePieceBudget(SimplifyRequest& request)
+{
+  storage::Profile profile = MakeProfile(request);
+  if (profile.memoryBudget)
+  {
+    profile.memoryBudget = std::max<std::uint64_t>(profile.memoryBudget / 8, 64u << 10);
+    request.reservedMemoryBytes = profile.memoryBudget;
+  }
+  return profile;
+}
+
 FilePiece::FilePiece(
   const std::string& path, Communicator& comm, const storage::Profile& profile, Progress& progress)
   : impl_(std::make_unique<Impl>())

@@ -90,8 +90,7 @@ RunStats RunStageTwo(detail::StoredMesh& handoff, io::MeshSink& output, const De
 // of those pieces (borders locked, then joined and decimated on rank 0). Both stages use this
 // rank's one DML; the clustered piece is freed as soon as stage 2 has read it.
 RunStats TwoStageDistributed(const MeshSource& input, io::MeshSink& output,
-  const TwoStageOptions& options, Progress& progress,
-  const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
+  const TwoStageOptions& options, Progress& progress, const OnLevel& onLevel)
 {
   if (options.carryQuadrics)
   {

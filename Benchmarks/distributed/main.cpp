@@ -13,11 +13,9 @@
 // (clustering) or that rank 0's output is within 1% of the target (decimation, two-stage).
 // --write saves the serial output as PREFIX-serial.ply and rank 0's (decimation) or all ranks'
 // (clustering) as PREFIX-N.ply, for `sipmss compare`.
-#include "sipmss/algorithms/Cluster.h"
-#include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/FilePiece.h"
+#include "sipmss/algorithms/Simplify.h"
 #include "sipmss/algorithms/ThreadCommunicator.h"
-#include "sipmss/algorithms/TwoStage.h"
 
 #include <chrono>
 #include <cstdio>
@@ -166,40 +164,21 @@ int main(int argc, char** argv)
     }
   }
   const bool decimate = algorithm != "cluster";
-  storage::Profile storage;
-  if (memoryMB > 0)
-  {
-    storage.memoryBudget = std::uint64_t(memoryMB * 1048576.0);
-  }
-  // One run of the chosen algorithm (comm: null for the serial run).
-  auto run = [&](const MeshSource& source, Count& out, Communicator* comm) {
+  // The request the filters would make (one thread per rank; a budget or unbounded).
+  SimplifyRequest request;
+  request.algorithm = algorithm == "two-stage" ? Algorithm::TwoStage
+    : decimate                                 ? Algorithm::Decimate
+                                               : Algorithm::Cluster;
+  request.targetTriangles = target;
+  request.grid = grid;
+  request.threads = 1;
+  request.memoryBudgetMB = memoryMB > 0 ? memoryMB : kUnboundedMemoryBudget;
+  // One run (comm: null for the serial run).
+  auto run = [](const SimplifyRequest& r, const MeshSource& source, Count& out, Communicator* comm) {
+    SimplifyRequest on = r;
+    on.communicator = comm;
     NullProgress p;
-    if (algorithm == "two-stage")
-    {
-      TwoStageOptions o;
-      o.gridDimension = grid;
-      o.threads = 1;
-      o.decimate.targetTriangles = target;
-      o.decimate.threads = 1;
-      o.decimate.storage = storage;
-      o.decimate.communicator = comm;
-      return TwoStage(source, out, o, p);
-    }
-    if (decimate)
-    {
-      DecimateOptions o;
-      o.targetTriangles = target;
-      o.threads = 1;
-      o.storage = storage;
-      o.communicator = comm;
-      return Decimate(source, out, o, p);
-    }
-    ClusterOptions o;
-    o.maximumGridDimension = grid;
-    o.threads = 1;
-    o.storage = storage;
-    o.communicator = comm;
-    return Cluster(source, out, o, p);
+    return Simplify(on, source, out, p);
   };
   Count serial;
   serial.keep = !prefix.empty();
@@ -207,7 +186,7 @@ int main(int argc, char** argv)
   const double cpu0 = ThreadSeconds();
   std::uint64_t serialBytes = 0;
   const MeshSource file = FileSource(argv[1]);
-  const RunStats serialStats = run(
+  const RunStats serialStats = run(request,
     [&file, &serialBytes](io::MeshSink& sink, const io::ReadOptions& ro) {
       const io::ReadStats read = file(sink, ro);
       serialBytes += read.bytes;
@@ -249,18 +228,15 @@ int main(int argc, char** argv)
     RunRanks(n, [&](Communicator& comm) {
       const std::size_t r = std::size_t(comm.Rank());
       const double c0 = ThreadSeconds();
-      storage::Profile pieceProfile = storage;
-      if (storage.memoryBudget)
-      {
-        pieceProfile.memoryBudget = std::max<std::uint64_t>(storage.memoryBudget / 8, 64u << 10);
-      }
+      SimplifyRequest mine = request;
+      const storage::Profile pieceProfile = ReservePieceBudget(mine);
       NullProgress p;
       FilePiece piece(argv[1], comm, pieceProfile, p);
       if (!piece.Split())
       {
         throw std::runtime_error(std::string(argv[1]) + " cannot be read in pieces: " + piece.WhyNot());
       }
-      stats[r] = run(piece.Source(), outputs[r], &comm);
+      stats[r] = run(mine, piece.Source(), outputs[r], &comm);
       cpu[r] = ThreadSeconds() - c0;
       bytesRead[r] = piece.BytesRead();
       pieceFaces[r] = piece.Faces();

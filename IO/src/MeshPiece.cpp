@@ -213,7 +213,7 @@ ReadStats ReadPlyPiece(const SplitLayout& s, std::uint64_t vertexCount,
   const IndexSource& nextVertices, std::uint64_t faceCount, const IndexSource& nextFaces,
   MeshSink& sink, const ReadOptions& options, std::uint64_t& bytes, const std::string& name)
 {
-  auto file = std::make_shared<File>(s.path);
+  File file(s.path);
   const std::string header = std::string("ply\nformat ") +
     (s.bigEndian ? "binary_big_endian" : "binary_little_endian") + " 1.0\nelement vertex " +
     std::to_string(vertexCount) + "\n" + s.vertexProperties + "element face " +
@@ -244,7 +244,7 @@ ReadStats ReadPlyPiece(const SplitLayout& s, std::uint64_t vertexCount,
         std::size_t k = j + 1;
         while (k < n && ids[k] == ids[k - 1] + 1)
           ++k;
-        file->ReadAt(out.data() + j * s.vertexStride, (k - j) * s.vertexStride,
+        file.ReadAt(out.data() + j * s.vertexStride, (k - j) * s.vertexStride,
           s.vertexOffset + std::uint64_t(ids[j]) * s.vertexStride, bytes);
         j = k;
       }

@@ -4,9 +4,9 @@
 //    data and sum the counts, so that every rank knows the whole input's size and diagonal.
 // 2. Each rank decimates its piece alone with the piece's boundary locked (lockBoundary) and no
 //    boundary planes, to kPieceSlack times its share of the target (its share of the first
-//    level's) plus kTrianglesPerBorderVertex per locked vertex. A piece's border is where it meets the others: those vertices stay where they are
-//    and their border edges stay as they are, on both sides. The run keeps each output vertex's
-//    accumulated quadric (finalQuadric).
+//    level's) plus kTrianglesPerBorderVertex per locked vertex. A piece's border is where it
+//    meets the others: those vertices stay where they are and their border edges stay as they
+//    are, on both sides. The run keeps each output vertex's accumulated quadric (finalQuadric).
 // 3. Rank 0 gathers the pieces' outputs with their quadrics, in rounds of a bounded size, into a
 //    mesh in its DML, numbered piece after piece (the same numbers whatever the round size).
 // 4. The borders are joined: the gathered vertices are sorted by position (storage::Sort, within
@@ -234,15 +234,13 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     firstLevel = std::max(double(target),
       std::round(double(F) * std::pow(double(target) / double(F), 1.0 / double(K))));
   }
+  if (own)
   {
     storage::Profile p = options.storage;
     p.structures.push_back({ "decimate", 1,
       std::uint64_t(DecimateBytes(count.vertices, count.triangles, 4 * options.attributes.size())),
       0.0 });
-    if (own)
-    {
-      dml.Config(p);
-    }
+    dml.Config(p);
   }
 
   // 2. The piece alone, its border locked, into `mine` with its quadrics.

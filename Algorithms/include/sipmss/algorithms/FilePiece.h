@@ -5,6 +5,7 @@
 
 #include "sipmss/algorithms/Common.h"
 #include "sipmss/algorithms/Communicator.h"
+#include "sipmss/algorithms/Simplify.h"
 #include "sipmss/storage/DML.h"
 
 #include <memory>
@@ -12,6 +13,11 @@
 
 namespace sipmss::algorithms
 {
+
+// The profile of the piece's DML for a run of `request`: an eighth of its budget (at least
+// 64 KiB; unbounded stays unbounded), set aside in request.reservedMemoryBytes so that the run
+// gets the rest.
+storage::Profile ReservePieceBudget(SimplifyRequest& request);
 
 class FilePiece
 {
