@@ -108,8 +108,8 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->SetRankStatistics("");
 
   // Under MPI (a controller of several processes): the filters run across the ranks on the
-  // pipeline's pieces, or on the pieces of a file each rank reads by byte ranges (FilePiece); a
-  // file that cannot be read so is read and simplified by rank 0 alone.
+  // pipeline's pieces, or on the pieces of a file (FilePiece): each rank reads its own by byte
+  // ranges, or rank 0 reads a file that cannot be read so and sends every rank its piece.
   vtkMultiProcessController* controller = this->Controller;
   const int ranks = controller ? controller->GetNumberOfProcesses() : 1;
   const int rank = controller ? controller->GetLocalProcessId() : 0;
@@ -185,22 +185,10 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
         output->Initialize();
         return 0;
       }
-      if (piece->Split())
-      {
-        distributed = true;
-        request.communicator = &*communicator;
-        source = piece->Source();
-      }
-      else
-      {
-        piece.reset();
-        request.reservedMemoryBytes = 0;
-        if (rank != 0)
-        {
-          output->Initialize();
-          return 1;
-        }
-      }
+      // (read by byte ranges, or read by rank 0 and scattered: every rank has its piece)
+      distributed = true;
+      request.communicator = &*communicator;
+      source = piece->Source();
     }
     if (!piece)
     {
@@ -396,29 +384,37 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     this->InputBytesRead = piece ? piece->BytesRead() : inputBytes;
     if (distributed)
     {
-      const auto& c = stats.communication;
-      this->NumberOfRanks = c.ranks;
-      this->BytesSent = c.bytesSent;
-      this->BytesReceived = c.bytesReceived;
-      this->CommunicationSeconds = c.seconds;
-      // (every rank's figures, gathered by the run before its output; the file's pieces' bytes
-      // read here, on every rank: all of them have a piece)
-      std::vector<double> readBytes(std::size_t(ranks), 0.0);
+      // The run's exchanges, and a scattered file's (FilePiece::Traffic).
+      sipmss::algorithms::CommunicationStats c = stats.communication;
+      sipmss::algorithms::CommunicationStats scatter;
       if (piece)
       {
-        double mine = double(this->InputBytesRead);
-        controller->AllGather(&mine, readBytes.data(), 1);
+        scatter = piece->Traffic();
+      }
+      this->NumberOfRanks = c.ranks;
+      this->BytesSent = c.bytesSent + scatter.bytesSent;
+      this->BytesReceived = c.bytesReceived + scatter.bytesReceived;
+      this->CommunicationSeconds = c.seconds + scatter.seconds;
+      // (every rank's figures, gathered by the run before its output; the file's pieces' bytes
+      // read and the scatter's here, on every rank: all of them have a piece)
+      std::vector<double> fileFigures(5 * std::size_t(ranks), 0.0);
+      if (piece)
+      {
+        double mine[5] = { double(this->InputBytesRead), double(scatter.bytesSent),
+          double(scatter.bytesReceived), scatter.seconds, double(scatter.rounds) };
+        controller->AllGather(mine, fileFigures.data(), 5);
       }
       std::ostringstream text;
       for (std::size_t r = 0; 4 * r + 3 < c.perRank.size(); ++r)
       {
         const double* f = c.perRank.data() + 4 * r;
-        text << (r ? "; " : "") << "rank " << r << ": " << std::uint64_t(f[0]) << " bytes sent, "
-             << std::uint64_t(f[1]) << " received, " << f[2] << " s in communication, "
-             << std::uint64_t(f[3]) << " exchanges";
-        if (piece && r < readBytes.size())
+        const double* g = fileFigures.data() + 5 * std::min(r, std::size_t(ranks - 1));
+        text << (r ? "; " : "") << "rank " << r << ": " << std::uint64_t(f[0] + g[1])
+             << " bytes sent, " << std::uint64_t(f[1] + g[2]) << " received, " << f[2] + g[3]
+             << " s in communication, " << std::uint64_t(f[3] + g[4]) << " exchanges";
+        if (piece)
         {
-          text << ", " << std::uint64_t(readBytes[r]) << " input bytes read";
+          text << ", " << std::uint64_t(g[0]) << " input bytes read";
         }
       }
       this->SetRankStatistics(text.str().c_str());

@@ -114,6 +114,29 @@ if (SIPMSS_FRONTEND STREQUAL "paraview")
     INSTALL_HEADERS   OFF # SIPMSSPlugins.h serves only static plugins linked into an application
     ADD_INSTALL_RPATHS ON)
   set(SIPMSS_PLUGIN_DIR "${CMAKE_BINARY_DIR}/${CMAKE_INSTALL_LIBDIR}/paraview-plugins/SIPMSS")
+
+  # ParaView 5.11's XML readers (.vtp files, RedistributeDataSet's exchange of pieces) lose data
+  # on a libexpat that defers reparsing (2.6; Debian bookworm's 2.5.0 since its CVE-2023-52425
+  # fix): a preload library that turns the deferral off (ParaViewPlugin/expat_compat.c). Built
+  # when expat has the switch (paraview-dev depends on libexpat1-dev).
+  find_package(EXPAT QUIET)
+  if (EXPAT_FOUND)
+    include(CheckSymbolExists)
+    set(CMAKE_REQUIRED_INCLUDES ${EXPAT_INCLUDE_DIRS})
+    set(CMAKE_REQUIRED_LIBRARIES ${EXPAT_LIBRARIES})
+    check_symbol_exists(XML_SetReparseDeferralEnabled expat.h SIPMSS_EXPAT_REPARSE_DEFERRAL)
+    unset(CMAKE_REQUIRED_INCLUDES)
+    unset(CMAKE_REQUIRED_LIBRARIES)
+  endif ()
+  if (SIPMSS_EXPAT_REPARSE_DEFERRAL)
+    add_library(sipmss_expat_compat SHARED "${CMAKE_SOURCE_DIR}/ParaViewPlugin/expat_compat.c")
+    target_link_libraries(sipmss_expat_compat PRIVATE EXPAT::EXPAT ${CMAKE_DL_LIBS})
+    set_target_properties(sipmss_expat_compat PROPERTIES
+      OUTPUT_NAME "sipmss-expat-compat"
+      LIBRARY_OUTPUT_DIRECTORY "${CMAKE_BINARY_DIR}/${CMAKE_INSTALL_LIBDIR}")
+    install(TARGETS sipmss_expat_compat LIBRARY DESTINATION "${CMAKE_INSTALL_LIBDIR}")
+    set(SIPMSS_EXPAT_COMPAT "${CMAKE_BINARY_DIR}/${CMAKE_INSTALL_LIBDIR}/libsipmss-expat-compat.so")
+  endif ()
 endif ()
 
 # The environment tests (and users) need: our Python package and, for an unpacked VTK prefix,
@@ -136,6 +159,10 @@ endif ()
 if (SIPMSS_FRONTEND STREQUAL "paraview")
   list(APPEND SIPMSS_TEST_ENV "PV_PLUGIN_PATH=set:${SIPMSS_PLUGIN_DIR}")
   string(APPEND SIPMSS_ENV_SH "export PV_PLUGIN_PATH=\"${SIPMSS_PLUGIN_DIR}\"\n")
+  if (SIPMSS_EXPAT_COMPAT)
+    # (not preloaded here: `LD_PRELOAD=$SIPMSS_EXPAT_COMPAT pvbatch ...`, README "MPI")
+    string(APPEND SIPMSS_ENV_SH "export SIPMSS_EXPAT_COMPAT=\"${SIPMSS_EXPAT_COMPAT}\"\n")
+  endif ()
 endif ()
 # `. build/<preset>/sipmss-env.sh` sets up a shell to use this build from Python or ParaView.
 file(WRITE "${CMAKE_BINARY_DIR}/sipmss-env.sh"

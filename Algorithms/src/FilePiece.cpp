@@ -1,11 +1,15 @@
 #include "sipmss/algorithms/FilePiece.h"
 
+#include "Distributed.h"
+#include "StoredMesh.h"
 #include "sipmss/io/MeshPiece.h"
 #include "sipmss/storage/Access.h"
 
 #include <algorithm>
+#include <cstring>
 #include <exception>
 #include <limits>
+#include <optional>
 #include <stdexcept>
 
 namespace sipmss::algorithms
@@ -14,6 +18,7 @@ namespace
 {
 using storage::Array;
 using storage::View;
+using detail::Rounds;
 
 struct Tri
 {
@@ -21,6 +26,228 @@ struct Tri
 };
 
 constexpr std::size_t kChunk = std::size_t(1) << 16;
+
+// The scatter's records, rank 0 to each rank (its own piece included): a header, vertex chunks,
+// triangle chunks, the end.
+enum Record : std::uint8_t
+{
+  kHeader = 'H',
+  kVertices = 'V',
+  kTriangles = 'T',
+  kEnd = 'E'
+};
+
+std::size_t Stride(const io::VertexLayout& l)
+{
+  return (l.normals ? 3 : 0) + (l.colors ? 1 : 0) + (l.texcoords ? 2 : 0) + l.scalars.size();
+}
+
+// Rank 0's side of the scatter of a file that cannot be read by byte ranges: the file read
+// whole, once, into a mesh in a DML of its own; then, rank after rank, the faces of its share
+// and the vertices they use (a dense map over the range of numbers they use, as a piece read by
+// byte ranges has), renumbered in the file's order.
+class ScatterSender
+{
+public:
+  ScatterSender(const storage::Profile& profile, int ranks)
+    : profile_(profile)
+    , ranks_(ranks)
+  {
+  }
+
+  void Read(const std::string& path, Progress& progress)
+  {
+    this->mesh_.SetProgress(&progress);
+    this->mesh_.OnHeader([this](std::uint64_t v, std::uint64_t f) {
+      // (the counts of a PLY header; 0 for OBJ, STL and gzip, whose blocks grow as they come)
+      storage::Profile p = this->profile_;
+      p.structures.push_back({ "file scatter: points", 12, std::max<std::uint64_t>(v, 1), 0.0 });
+      p.structures.push_back({ "file scatter: triangles", 12, std::max<std::uint64_t>(f, 1), 0.0 });
+      p.structures.push_back({ "file scatter: vertex map", 4, std::max<std::uint64_t>(v, 1), 0.0 });
+      this->dml_.Config(p);
+    });
+    this->read_ = FileSource(path)(this->mesh_, io::ReadOptions{});
+    const std::uint64_t V = this->mesh_.VertexCount();
+    this->stride_ = Stride(this->mesh_.PointLayout());
+    this->map_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(V, 1));
+    const std::uint32_t zero = 0;
+    this->dml_.Fill(this->map_.Id(), &zero);
+    this->window_ = std::size_t(1) << 14;
+  }
+
+  const io::ReadStats& ReadStats() const { return this->read_; }
+
+  // Appends the next records to send[r] until about `limit` bytes are pending in all; false
+  // once every rank's piece has gone.
+  bool Fill(std::vector<std::vector<std::uint8_t>>& send, std::size_t limit)
+  {
+    const io::VertexLayout& L = this->mesh_.PointLayout();
+    // (a record at most half the round's bytes, whatever the point data)
+    const std::size_t window = std::clamp<std::size_t>(
+      limit / (2 * (12 + 4 * this->stride_)), 1, this->window_);
+    std::size_t pending = 0;
+    for (const auto& b : send)
+    {
+      pending += b.size();
+    }
+    while (this->rank_ < this->ranks_ && pending < limit)
+    {
+      std::vector<std::uint8_t>& out = send[std::size_t(this->rank_)];
+      const std::size_t before = out.size();
+      if (this->phase_ == Phase::Start)
+      {
+        this->Start();
+        Rounds::Put(out, std::uint8_t(kHeader));
+        Rounds::Put(out, this->pieceVertices_);
+        Rounds::Put(out, this->count_);
+        // (the file's repairs are reported once, with rank 0's piece)
+        Rounds::Put(out, this->rank_ == 0 ? this->read_.droppedFaces : std::uint64_t(0));
+        Rounds::Put(out, std::uint8_t(this->mesh_.Format()));
+        Rounds::Put(out, std::uint8_t(L.normals));
+        Rounds::Put(out, std::uint8_t(L.colors));
+        Rounds::Put(out, std::uint8_t(L.texcoords));
+        Rounds::Put(out, std::uint64_t(L.scalars.size()));
+        for (const std::string& n : L.scalars)
+        {
+          Rounds::Put(out, std::uint64_t(n.size()));
+          out.insert(out.end(), n.begin(), n.end());
+        }
+        this->phase_ = Phase::Vertices;
+        this->at_ = this->lo_;
+      }
+      else if (this->phase_ == Phase::Vertices)
+      {
+        if (this->pieceVertices_ == 0 || this->at_ > this->hi_)
+        {
+          this->phase_ = Phase::Triangles;
+          this->at_ = 0;
+          continue;
+        }
+        const std::size_t n = std::size_t(std::min<std::uint64_t>(window, this->hi_ + 1 - this->at_));
+        this->mesh_.ReadVertices(this->at_, n, this->xyz_, this->words_);
+        View<std::uint32_t> map(this->dml_, this->map_);
+        std::size_t picked = 0;
+        for (std::size_t i = 0; i < n; ++i)
+        {
+          if (map.Get(this->at_ + i))
+          {
+            std::copy_n(&this->xyz_[3 * i], 3, &this->xyz_[3 * picked]);
+            std::copy_n(&this->words_[this->stride_ * i], this->stride_, &this->words_[this->stride_ * picked]);
+            ++picked;
+          }
+        }
+        this->at_ += n;
+        if (picked)
+        {
+          Rounds::Put(out, std::uint8_t(kVertices));
+          Rounds::Put(out, std::uint64_t(picked));
+          const auto* x = reinterpret_cast<const std::uint8_t*>(this->xyz_.data());
+          out.insert(out.end(), x, x + 12 * picked);
+          const auto* w = reinterpret_cast<const std::uint8_t*>(this->words_.data());
+          out.insert(out.end(), w, w + 4 * this->stride_ * picked);
+        }
+      }
+      else
+      {
+        if (this->at_ == this->count_)
+        {
+          Rounds::Put(out, std::uint8_t(kEnd));
+          this->Clear();
+          this->phase_ = Phase::Start;
+          ++this->rank_;
+          pending += out.size() - before;
+          continue;
+        }
+        const std::size_t n = std::size_t(std::min<std::uint64_t>(window, this->count_ - this->at_));
+        this->tris_.resize(3 * n);
+        this->mesh_.ReadTriangles(this->first_ + this->at_, n, this->tris_.data());
+        View<std::uint32_t> map(this->dml_, this->map_);
+        for (std::uint32_t& v : this->tris_)
+        {
+          v = map.Get(v) - 1;
+        }
+        this->at_ += n;
+        Rounds::Put(out, std::uint8_t(kTriangles));
+        Rounds::Put(out, std::uint64_t(n));
+        const auto* t = reinterpret_cast<const std::uint8_t*>(this->tris_.data());
+        out.insert(out.end(), t, t + 12 * n);
+      }
+      pending += out.size() - before;
+    }
+    return this->rank_ < this->ranks_;
+  }
+
+private:
+  enum class Phase
+  {
+    Start,
+    Vertices,
+    Triangles
+  };
+  // Rank rank_'s faces: marks the vertices they use in the map, then numbers them in the
+  // file's order (the map holds the piece's number plus one).
+  void Start()
+  {
+    const std::uint64_t F = this->mesh_.TriangleCount();
+    this->first_ = F * std::uint64_t(this->rank_) / std::uint64_t(this->ranks_);
+    this->count_ = F * std::uint64_t(this->rank_ + 1) / std::uint64_t(this->ranks_) - this->first_;
+    this->lo_ = std::numeric_limits<std::uint64_t>::max();
+    this->hi_ = 0;
+    this->pieceVertices_ = 0;
+    View<std::uint32_t> map(this->dml_, this->map_);
+    for (std::uint64_t f = 0; f < this->count_; f += this->window_)
+    {
+      const std::size_t n = std::size_t(std::min<std::uint64_t>(this->window_, this->count_ - f));
+      this->tris_.resize(3 * n);
+      this->mesh_.ReadTriangles(this->first_ + f, n, this->tris_.data());
+      for (std::uint32_t v : this->tris_)
+      {
+        map.Set(v, 1);
+        this->lo_ = std::min<std::uint64_t>(this->lo_, v);
+        this->hi_ = std::max<std::uint64_t>(this->hi_, v);
+      }
+    }
+    if (this->count_ == 0)
+    {
+      return;
+    }
+    std::uint32_t next = 0;
+    for (std::uint64_t i = this->lo_; i <= this->hi_; ++i)
+    {
+      if (map.Get(i))
+      {
+        map.Set(i, ++next);
+      }
+    }
+    this->pieceVertices_ = next;
+  }
+
+  void Clear()
+  {
+    if (this->pieceVertices_ == 0)
+    {
+      return;
+    }
+    View<std::uint32_t> map(this->dml_, this->map_);
+    for (std::uint64_t i = this->lo_; i <= this->hi_; ++i)
+    {
+      map.Set(i, 0);
+    }
+  }
+
+  storage::Profile profile_;
+  int ranks_;
+  storage::DML dml_;
+  detail::StoredMesh mesh_{ dml_ };
+  io::ReadStats read_;
+  std::size_t stride_ = 0, window_ = 1;
+  Array<std::uint32_t> map_;
+  int rank_ = 0;
+  Phase phase_ = Phase::Start;
+  std::uint64_t first_ = 0, count_ = 0, lo_ = 0, hi_ = 0, at_ = 0, pieceVertices_ = 0;
+  std::vector<float> xyz_;
+  std::vector<std::uint32_t> words_, tris_;
+};
 } // namespace
 
 struct FilePiece::Impl
@@ -35,6 +262,184 @@ struct FilePiece::Impl
   Array<Tri> faces;             // binary PLY: the piece's triangles, in the piece's numbers
   Array<std::uint32_t> vertices; // binary PLY: the file's numbers of the piece's vertices, ascending
   std::uint64_t vertexCount = 0;
+  // A file that cannot be read by byte ranges: rank 0 reads it and sends every rank its piece,
+  // kept here (the faces [F r / N, F (r + 1) / N) and the vertices they use).
+  bool scattered = false;
+  std::unique_ptr<detail::StoredMesh> stored;
+  std::uint64_t storedVertices = 0, dropped = 0;
+  bool ended = false;
+  CommunicationStats traffic;
+
+  void Scatter(const std::string& path, Communicator& comm, const storage::Profile& profile,
+    Progress& progress)
+  {
+    this->scattered = true;
+    Rounds rounds(comm, detail::RoundBytes(profile), this->traffic);
+    std::optional<ScatterSender> sender;
+    bool more = false;
+    if (comm.Rank() == 0)
+    {
+      rounds.Local([&] {
+        sender.emplace(profile, comm.Size());
+        sender->Read(path, progress);
+        this->bytes += sender->ReadStats().bytes;
+        more = true;
+      });
+    }
+    bool read = false; // (past the first agreement: rank 0 has read the file)
+    try
+    {
+      while (rounds.Continue(more) && (read = true))
+      {
+        rounds.Local([&] {
+          if (progress.Aborted())
+          {
+            throw AbortedError();
+          }
+          if (sender)
+          {
+            more = sender->Fill(rounds.send, rounds.Limit());
+          }
+        });
+        more = more && !rounds.Failed();
+        rounds.Exchange();
+        rounds.Local([&] { this->Take(rounds.received[0], profile); });
+      }
+    }
+    catch (const std::exception&)
+    {
+      if (rounds.Failed())
+      {
+        throw; // (this rank's own error)
+      }
+      throw std::runtime_error(path +
+        (read ? ": rank 0 could not send the ranks their pieces, or a rank could not keep its "
+                "piece (its error is in its own output)"
+              : ": rank 0 could not read the file (its error is in its own output)"));
+    }
+    if (!this->ended)
+    {
+      throw std::runtime_error(this->name + ": rank 0's messages ended before the piece did");
+    }
+    this->dml.Reconfigure();
+  }
+
+  // A message of the scatter: records from rank 0.
+  void Take(const std::vector<std::uint8_t>& message, const storage::Profile& profile)
+  {
+    const std::uint8_t* p = message.data();
+    const std::uint8_t* const end = p + message.size();
+    const auto need = [&](std::uint64_t n) {
+      if (std::uint64_t(end - p) < n)
+      {
+        throw std::runtime_error(this->name + ": a malformed message from rank 0");
+      }
+    };
+    std::vector<float> xyz;
+    std::vector<std::uint32_t> words;
+    detail::PointDataBuffers buffers;
+    while (p < end)
+    {
+      const auto kind = Rounds::Take<std::uint8_t>(p);
+      if (kind == kHeader && !this->stored)
+      {
+        need(3 * 8 + 4 + 8);
+        io::MeshHeader h;
+        h.vertexCount = Rounds::Take<std::uint64_t>(p);
+        h.faceCount = Rounds::Take<std::uint64_t>(p);
+        this->dropped = Rounds::Take<std::uint64_t>(p);
+        h.format = io::Format(Rounds::Take<std::uint8_t>(p));
+        h.layout.normals = Rounds::Take<std::uint8_t>(p) != 0;
+        h.layout.colors = Rounds::Take<std::uint8_t>(p) != 0;
+        h.layout.texcoords = Rounds::Take<std::uint8_t>(p) != 0;
+        const auto k = Rounds::Take<std::uint64_t>(p);
+        for (std::uint64_t i = 0; i < k; ++i)
+        {
+          need(8);
+          const auto len = Rounds::Take<std::uint64_t>(p);
+          need(len);
+          h.layout.scalars.emplace_back(reinterpret_cast<const char*>(p), std::size_t(len));
+          p += len;
+        }
+        this->count = h.faceCount;
+        this->vertexCount = h.vertexCount;
+        storage::Profile pp = profile;
+        const std::uint64_t V = std::max<std::uint64_t>(h.vertexCount, 1);
+        pp.structures.push_back({ "file piece: points", 12, V, 0.0 });
+        if (const std::size_t stride = Stride(h.layout))
+        {
+          pp.structures.push_back({ "file piece: point data", 4 * stride, V, 0.0 });
+        }
+        pp.structures.push_back(
+          { "file piece: triangles", 12, std::max<std::uint64_t>(h.faceCount, 1), 0.0 });
+        this->dml.Config(pp);
+        this->stored = std::make_unique<detail::StoredMesh>(this->dml);
+        this->stored->Begin(h);
+      }
+      else if (kind == kVertices && this->stored && !this->ended)
+      {
+        need(8);
+        const auto n = Rounds::Take<std::uint64_t>(p);
+        const std::size_t stride = this->stored->Stride();
+        need(n * (12 + 4 * stride));
+        if (this->storedVertices + n > this->vertexCount)
+        {
+          throw std::runtime_error(this->name + ": more vertices from rank 0 than announced");
+        }
+        xyz.resize(3 * n);
+        std::memcpy(xyz.data(), p, 12 * n);
+        p += 12 * n;
+        io::VertexChunk c;
+        c.first = this->storedVertices;
+        c.count = std::size_t(n);
+        c.xyz = xyz.data();
+        if (stride)
+        {
+          words.resize(stride * n);
+          std::memcpy(words.data(), p, 4 * stride * n);
+          p += 4 * stride * n;
+          buffers.Unpack(words.data(), c.count, this->stored->PointLayout(), stride, c);
+        }
+        this->stored->Vertices(c);
+        this->storedVertices += n;
+      }
+      else if (kind == kTriangles && this->stored && !this->ended)
+      {
+        need(8);
+        const auto n = Rounds::Take<std::uint64_t>(p);
+        need(12 * n);
+        words.resize(3 * n);
+        std::memcpy(words.data(), p, 12 * n);
+        p += 12 * n;
+        for (std::uint32_t v : words)
+        {
+          if (v >= this->storedVertices)
+          {
+            throw std::runtime_error(this->name + ": a triangle from rank 0 before its vertices");
+          }
+        }
+        this->stored->Triangles(words.data(), std::size_t(n));
+      }
+      else if (kind == kEnd && this->stored && !this->ended)
+      {
+        if (this->storedVertices != this->vertexCount ||
+          this->stored->TriangleCount() != this->count)
+        {
+          throw std::runtime_error(this->name + ": rank 0 sent a piece of other sizes than announced");
+        }
+        io::ReadStats st;
+        st.vertices = this->vertexCount;
+        st.triangles = st.polygons = this->count;
+        st.droppedFaces = this->dropped;
+        this->stored->End(st);
+        this->ended = true;
+      }
+      else
+      {
+        throw std::runtime_error(this->name + ": a malformed message from rank 0");
+      }
+    }
+  }
 
   // Binary PLY: the piece's faces, and its vertices as the sorted set of the file's vertex
   // numbers they use; the faces renumbered into it. The numbers go through a dense map over the
@@ -118,6 +523,10 @@ struct FilePiece::Impl
 
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options)
   {
+    if (this->scattered)
+    {
+      return this->stored->Replay(sink, options);
+    }
     if (this->layout.format == io::Format::StlBinary)
     {
       return io::ReadStlPiece(this->layout, this->first, this->count, sink, options, this->bytes,
@@ -217,6 +626,7 @@ FilePiece::FilePiece(
     }
     I.faces.Close();
     I.vertices.Close();
+    I.Scatter(path, comm, profile, progress);
   }
 }
 
@@ -225,6 +635,16 @@ FilePiece::~FilePiece() = default;
 bool FilePiece::Split() const
 {
   return this->impl_->split;
+}
+
+bool FilePiece::Scattered() const
+{
+  return this->impl_->scattered;
+}
+
+const CommunicationStats& FilePiece::Traffic() const
+{
+  return this->impl_->traffic;
 }
 
 const std::string& FilePiece::WhyNot() const

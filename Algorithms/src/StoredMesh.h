@@ -196,6 +196,7 @@ public:
   void ReadVertices(std::uint64_t first, std::size_t count, std::vector<float>& xyz,
     std::vector<std::uint32_t>& words);
   const io::VertexLayout& PointLayout() const { return this->header_.layout; }
+  io::Format Format() const { return this->header_.format; }
 
   // Streams the stored mesh (the same chunk protocol as the readers).
   io::ReadStats Replay(io::MeshSink& sink, const io::ReadOptions& options);

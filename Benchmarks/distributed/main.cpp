@@ -3,10 +3,11 @@
 //   sipmss-bench-distributed INPUT [--algorithm cluster|decimate|two-stage] [--ranks 1,2,4]
 //                            [--grid 300] [--target 10000] [--memory-mb M] [--write PREFIX]
 //
-// Runs the algorithm on INPUT (a binary PLY or STL) once serially from the file, then on N ranks
-// that are threads of this process (ThreadCommunicator: the collectives MPI would make), each
-// rank reading its piece of the file by byte ranges (FilePiece, with an eighth of the budget as
-// the filters give it) as the File sources do under MPI. On a machine with fewer cores than
+// Runs the algorithm on INPUT once serially from the file, then on N ranks that are threads of
+// this process (ThreadCommunicator: the collectives MPI would make), each rank reading its piece
+// of the file by byte ranges (binary PLY or STL), or rank 0 reading any other file and sending
+// the ranks their pieces (FilePiece, with an eighth of the budget as the filters give it), as the
+// File sources do under MPI. On a machine with fewer cores than
 // ranks the wall time says little; each rank's CPU time (its thread's: reading its piece, its
 // work, its share of the exchanges), its bytes read, sent and received and its rounds are the
 // work per rank. Checks that the ranks' output triangles add up to the serial run's
@@ -232,11 +233,12 @@ int main(int argc, char** argv)
       const storage::Profile pieceProfile = ReservePieceBudget(mine);
       NullProgress p;
       FilePiece piece(argv[1], comm, pieceProfile, p);
-      if (!piece.Split())
-      {
-        throw std::runtime_error(std::string(argv[1]) + " cannot be read in pieces: " + piece.WhyNot());
-      }
       stats[r] = run(mine, piece.Source(), outputs[r], &comm);
+      // (a file that cannot be read by byte ranges is scattered by rank 0: its traffic counts)
+      stats[r].communication.bytesSent += piece.Traffic().bytesSent;
+      stats[r].communication.bytesReceived += piece.Traffic().bytesReceived;
+      stats[r].communication.seconds += piece.Traffic().seconds;
+      stats[r].communication.rounds += piece.Traffic().rounds;
       cpu[r] = ThreadSeconds() - c0;
       bytesRead[r] = piece.BytesRead();
       pieceFaces[r] = piece.Faces();

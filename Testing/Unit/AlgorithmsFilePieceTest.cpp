@@ -1,8 +1,9 @@
 // A file read in pieces by byte ranges (FilePiece, io/MeshPiece.h), on ranks that are threads:
 // the pieces together are the whole file (the same triangles at the same coordinates, with
 // their point data), each rank reads about 1/N of the file, files that cannot be split are read
-// whole by agreement of all ranks, a bad file fails every rank, and the distributed clustering
-// of a file's pieces is the serial clustering of the file.
+// whole by rank 0 by agreement of all ranks and scattered (the same pieces), a bad file fails
+// every rank, and the distributed clustering of a file's pieces is the serial clustering of the
+// file.
 #include "sipmss/algorithms/Cluster.h"
 #include "sipmss/algorithms/FilePiece.h"
 #include "sipmss/algorithms/ThreadCommunicator.h"
@@ -19,6 +20,7 @@ using namespace sipmss;
 using namespace sipmss::algorithms;
 using sipmss::io::test::PlyBuilder;
 using sipmss::io::test::TempDir;
+using sipmss::testing::AbortLater;
 using sipmss::testing::Collect;
 using sipmss::testing::Mesh;
 
@@ -47,9 +49,9 @@ std::vector<Tri> Triangles(const Mesh& m)
   return out;
 }
 
-void Write(const Mesh& m, const std::string& path)
+void Write(const Mesh& m, const std::string& path, bool ascii = false)
 {
-  auto w = io::MeshWriter::Create(path);
+  auto w = io::MeshWriter::Create(path, ascii);
   io::VertexLayout layout;
   layout.scalars = m.Names();
   w->Begin(m.p.size() / 3, m.t.size() / 3, layout);
@@ -72,9 +74,9 @@ Mesh ReadWhole(const std::string& path)
 struct PieceRun
 {
   std::vector<Mesh> pieces;
-  std::vector<bool> split;
+  std::vector<bool> split, scattered;
   std::vector<std::string> whyNot, errors;
-  std::vector<std::uint64_t> bytes, faces;
+  std::vector<std::uint64_t> bytes, faces, sent, received;
 };
 
 // Every rank builds its piece and replays it once (when split).
@@ -84,6 +86,9 @@ PieceRun ReadPieces(const std::string& path, int ranks, storage::Profile profile
   const std::size_t n = std::size_t(ranks);
   run.pieces.resize(n);
   run.split.resize(n);
+  run.scattered.resize(n);
+  run.sent.resize(n);
+  run.received.resize(n);
   run.whyNot.resize(n);
   run.errors.resize(n);
   run.bytes.resize(n);
@@ -95,8 +100,10 @@ PieceRun ReadPieces(const std::string& path, int ranks, storage::Profile profile
     {
       FilePiece piece(path, comm, profile, progress);
       run.split[r] = piece.Split();
+      run.scattered[r] = piece.Scattered();
       run.whyNot[r] = piece.WhyNot();
-      if (piece.Split())
+      run.sent[r] = piece.Traffic().bytesSent;
+      run.received[r] = piece.Traffic().bytesReceived;
       {
         Collect c;
         piece.Source()(c, io::ReadOptions{});
@@ -113,7 +120,9 @@ PieceRun ReadPieces(const std::string& path, int ranks, storage::Profile profile
   return run;
 }
 
-void ExpectPiecesAreTheWhole(const std::string& path, int ranks, storage::Profile profile = {})
+// The pieces, by byte ranges (or scattered by rank 0), hold the file's triangles once each.
+void ExpectPiecesAreTheWhole(
+  const std::string& path, int ranks, storage::Profile profile = {}, bool scattered = false)
 {
   const Mesh whole = ReadWhole(path);
   const PieceRun run = ReadPieces(path, ranks, profile);
@@ -124,7 +133,8 @@ void ExpectPiecesAreTheWhole(const std::string& path, int ranks, storage::Profil
   {
     const std::size_t k = std::size_t(r);
     ASSERT_TRUE(run.errors[k].empty()) << run.errors[k];
-    ASSERT_TRUE(run.split[k]) << run.whyNot[k];
+    ASSERT_EQ(run.split[k], !scattered) << run.whyNot[k];
+    ASSERT_EQ(run.scattered[k], scattered);
     const std::vector<Tri> t = Triangles(run.pieces[k]);
     all.insert(all.end(), t.begin(), t.end());
     faces += run.faces[k];
@@ -135,6 +145,23 @@ void ExpectPiecesAreTheWhole(const std::string& path, int ranks, storage::Profil
       used[v] = true;
     }
     EXPECT_EQ(std::count(used.begin(), used.end(), false), 0) << "rank " << r;
+    if (scattered)
+    {
+      // Rank 0 reads the file (uncompressed, once), the others at most what they read of their
+      // share before they found that it cannot be read in pieces; rank 0 sends each of them
+      // its piece.
+      if (r == 0)
+      {
+        EXPECT_GT(run.bytes[k], 0u);
+      }
+      else
+      {
+        EXPECT_LE(double(run.bytes[k]), 1.25 * double(fileBytes) / ranks + 2048) << "rank " << r;
+      }
+      EXPECT_EQ(run.received[k] > 0, r != 0) << "rank " << r; // (a header, at least)
+      EXPECT_EQ(run.sent[k] > 0, r == 0 && ranks > 1) << "rank " << r;
+      continue;
+    }
     // ... and a rank reads about 1/N of the file (its faces, and their vertices: a little more
     // than its share where its faces use vertices of the next piece's).
     EXPECT_LE(double(run.bytes[k]), 1.25 * double(fileBytes) / ranks + 2048)
@@ -242,9 +269,9 @@ TEST(FilePiece, BinaryStlPieces)
   }
 }
 
-TEST(FilePiece, FilesThatCannotBeSplitAreReadWhole)
+TEST(FilePiece, FilesThatCannotBeSplitAreScatteredByRankZero)
 {
-  // Every rank agrees, and says why.
+  // Every rank agrees, and says why; rank 0 reads the file and sends every rank its piece.
   TempDir dir;
   const Mesh m = sipmss::testing::BumpyUVSphere(8);
   Write(m, dir.File("a.obj"));
@@ -292,11 +319,44 @@ TEST(FilePiece, FilesThatCannotBeSplitAreReadWhole)
     {
       EXPECT_EQ(run.errors[std::size_t(r)], "");
       EXPECT_FALSE(run.split[std::size_t(r)]);
+      EXPECT_TRUE(run.scattered[std::size_t(r)]);
       EXPECT_FALSE(run.whyNot[std::size_t(r)].empty());
       named = named || run.whyNot[std::size_t(r)].find(c.second) != std::string::npos;
     }
     EXPECT_TRUE(named) << run.whyNot[0] << " | " << run.whyNot[1] << " | " << run.whyNot[2];
+    for (int ranks = 1; ranks <= 4; ++ranks)
+    {
+      SCOPED_TRACE(std::to_string(ranks) + " ranks");
+      ExpectPiecesAreTheWhole(dir.File(c.first), ranks, {}, true);
+    }
   }
+}
+
+TEST(FilePiece, ScatteredPiecesCarryThePointDataWithinABudget)
+{
+  // An ASCII PLY with a scalar, an OBJ: the pieces are the whole file with its point data, also
+  // when the whole mesh (rank 0) and the pieces are in block files, in rounds of 256 KiB.
+  TempDir dir;
+  const Mesh m = sipmss::testing::BumpyUVSphere(60, { 1, 2, 3 }); // 14,400 triangles, scalar s
+  Write(m, dir.File("sphere.ply"), true);
+  Write(m, dir.File("sphere.obj"));
+  storage::Profile tiny;
+  tiny.memoryBudget = 64u << 10;
+  tiny.policy = storage::ModePolicy::OutOfCore;
+  for (const char* name : { "sphere.ply", "sphere.obj" })
+  {
+    SCOPED_TRACE(name);
+    for (int ranks : { 2, 3 })
+    {
+      ExpectPiecesAreTheWhole(dir.File(name), ranks, {}, true);
+      ExpectPiecesAreTheWhole(dir.File(name), ranks, tiny, true);
+    }
+  }
+  // Several rounds: rank 0 sends more than a round's bytes (256 KiB at this budget).
+  Write(sipmss::testing::BumpyUVSphere(120, { 1, 2, 3 }), dir.File("big.ply"), true);
+  ExpectPiecesAreTheWhole(dir.File("big.ply"), 2, tiny, true);
+  const PieceRun run = ReadPieces(dir.File("big.ply"), 2, tiny);
+  EXPECT_GT(run.sent[0], std::uint64_t(256) << 10);
 }
 
 TEST(FilePiece, ABadFileFailsEveryRank)
@@ -332,21 +392,86 @@ TEST(FilePiece, ABadFileFailsEveryRank)
   {
     EXPECT_NE(e.find("cannot be opened"), std::string::npos) << e;
   }
-  // A file that only rank 0 can open (on a disk of its own node): rank 0 reads it whole.
+  // A file that only rank 0 can open (on a disk of its own node): rank 0 reads it whole and
+  // sends the pieces.
   const std::string good = dir.File("good.ply");
-  Write(sipmss::testing::BumpyUVSphere(10), good);
+  const Mesh goodMesh = sipmss::testing::BumpyUVSphere(10);
+  Write(goodMesh, good);
   std::vector<bool> split(3, true);
   std::vector<std::string> why(3);
+  std::vector<Mesh> pieces(3);
   RunRanks(3, [&](Communicator& comm) {
     NullProgress progress;
     FilePiece piece(comm.Rank() == 0 ? good : dir.File("elsewhere.ply"), comm, {}, progress);
     split[std::size_t(comm.Rank())] = piece.Split();
     why[std::size_t(comm.Rank())] = piece.WhyNot();
+    Collect c;
+    piece.Source()(c, io::ReadOptions{});
+    pieces[std::size_t(comm.Rank())] = c.m;
   });
+  std::vector<Tri> all;
   for (int r = 0; r < 3; ++r)
   {
     EXPECT_FALSE(split[std::size_t(r)]);
     EXPECT_NE(why[std::size_t(r)].find("not every rank can open it"), std::string::npos) << why[std::size_t(r)];
+    const std::vector<Tri> t = Triangles(pieces[std::size_t(r)]);
+    all.insert(all.end(), t.begin(), t.end());
+  }
+  std::sort(all.begin(), all.end());
+  EXPECT_EQ(all, Triangles(ReadWhole(good)));
+  // An ASCII file that rank 0 cannot read (an index out of range): rank 0 says where, the
+  // others name rank 0.
+  {
+    Mesh bad = sipmss::testing::BumpyUVSphere(6);
+    const std::string path = dir.File("bad-ascii.ply");
+    Write(bad, path, true);
+    std::string text = io::test::ReadFileBytes(path);
+    const std::string last = "3 " + std::to_string(bad.t[bad.t.size() - 3]) + " " +
+      std::to_string(bad.t[bad.t.size() - 2]) + " " + std::to_string(bad.t.back());
+    const std::size_t at = text.rfind(last);
+    ASSERT_NE(at, std::string::npos) << last;
+    text.replace(at, last.size(), "3 0 1 " + std::to_string(bad.p.size()));
+    io::test::WriteFile(path, text);
+    const PieceRun run = ReadPieces(path, 3);
+    EXPECT_NE(run.errors[0].find("bad-ascii.ply"), std::string::npos) << run.errors[0];
+    EXPECT_NE(run.errors[0].find("index"), std::string::npos) << run.errors[0];
+    for (int r : { 1, 2 })
+    {
+      EXPECT_NE(run.errors[std::size_t(r)].find("rank 0 could not read the file"), std::string::npos)
+        << run.errors[std::size_t(r)];
+    }
+  }
+}
+
+TEST(FilePiece, AnAbortDuringTheScatterStopsEveryRank)
+{
+  // Rank 2 aborts while rank 0 sends: rank 2 stops with AbortedError, the others with an error,
+  // and none waits.
+  TempDir dir;
+  const std::string path = dir.File("sphere.obj");
+  Write(sipmss::testing::BumpyUVSphere(40), path);
+  std::vector<std::string> outcome(3);
+  RunRanks(3, [&](Communicator& comm) {
+    AbortLater progress(comm.Rank() == 2 ? 0 : 1000000);
+    try
+    {
+      FilePiece piece(path, comm, {}, progress);
+      outcome[std::size_t(comm.Rank())] = "finished";
+    }
+    catch (const AbortedError&)
+    {
+      outcome[std::size_t(comm.Rank())] = "aborted";
+    }
+    catch (const std::exception& e)
+    {
+      outcome[std::size_t(comm.Rank())] = e.what();
+    }
+  });
+  EXPECT_EQ(outcome[2], "aborted");
+  for (int r : { 0, 1 })
+  {
+    EXPECT_NE(outcome[std::size_t(r)].find("could not keep its piece"), std::string::npos)
+      << outcome[std::size_t(r)];
   }
 }
 
