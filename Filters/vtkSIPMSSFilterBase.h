@@ -174,7 +174,7 @@ public:
    * outputs are empty); with a PreClusterGridDimension (two-stage) the clustering runs across
    * the ranks first. A FileName run of a binary PLY or binary STL reads the file by byte ranges,
    * each rank its share of the faces and the vertices they use, and runs across the ranks as
-   * above; any other file is read and simplified by rank 0 alone (the others' outputs empty).
+   * above; rank 0 reads any other file once and sends every rank such a piece (then the same).
    */
   virtual void SetController(vtkMultiProcessController*);
   vtkGetObjectMacro(Controller, vtkMultiProcessController);
