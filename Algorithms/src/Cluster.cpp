@@ -1377,7 +1377,8 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
   Progress& progress)
 {
   const int threads = storage::ResolveThreads(options.threads);
-  const MeshSource input = threads > 1 ? Prefetched(source) : source;
+  const MeshSource input =
+    threads > 1 ? Prefetched(source, PrefetchDepth(options.storage.memoryBudget)) : source;
   RunStats stats;
   std::optional<DML> own;
   DML& dml = options.dml ? *options.dml : own.emplace();

@@ -408,7 +408,8 @@ RunStats ClusterDistributed(const MeshSource& source, io::MeshSink& output,
   }
   ClusterOptions options = given; // (with the attribute list the ranks agree on)
   const int threads = storage::ResolveThreads(options.threads);
-  const MeshSource input = threads > 1 ? Prefetched(source) : source;
+  const MeshSource input =
+    threads > 1 ? Prefetched(source, PrefetchDepth(options.storage.memoryBudget)) : source;
   std::optional<DML> own; // (or the caller's: two-stage's stage 1)
   DML& dml = options.dml ? *options.dml : own.emplace();
   if (own)
