@@ -112,7 +112,6 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   // ranges, or rank 0 reads a file that cannot be read so and sends every rank its piece.
   vtkMultiProcessController* controller = this->Controller;
   const int ranks = controller ? controller->GetNumberOfProcesses() : 1;
-  const int rank = controller ? controller->GetLocalProcessId() : 0;
   const bool fileRun = this->FileName && *this->FileName;
   bool distributed = ranks > 1 && !fileRun;
   std::optional<vtkSIPMSSCommunicator> communicator;
