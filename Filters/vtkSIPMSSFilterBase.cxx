@@ -389,11 +389,12 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
       if (piece)
       {
         scatter = piece->Traffic();
+        c.Add(scatter); // (this rank's; every rank's scatter is gathered below)
       }
       this->NumberOfRanks = c.ranks;
-      this->BytesSent = c.bytesSent + scatter.bytesSent;
-      this->BytesReceived = c.bytesReceived + scatter.bytesReceived;
-      this->CommunicationSeconds = c.seconds + scatter.seconds;
+      this->BytesSent = c.bytesSent;
+      this->BytesReceived = c.bytesReceived;
+      this->CommunicationSeconds = c.seconds;
       // (every rank's figures, gathered by the run before its output; the file's pieces' bytes
       // read and the scatter's here, on every rank: all of them have a piece)
       std::vector<double> fileFigures(5 * std::size_t(ranks), 0.0);

@@ -37,11 +37,6 @@ enum Record : std::uint8_t
   kEnd = 'E'
 };
 
-std::size_t Stride(const io::VertexLayout& l)
-{
-  return (l.normals ? 3 : 0) + (l.colors ? 1 : 0) + (l.texcoords ? 2 : 0) + l.scalars.size();
-}
-
 // Rank 0's side of the scatter of a file that cannot be read by byte ranges: the file read
 // whole, once, into a mesh in a DML of its own; then, rank after rank, the faces of its share
 // and the vertices they use (a dense map over the range of numbers they use, as a piece read by
@@ -68,11 +63,9 @@ public:
     });
     this->read_ = FileSource(path)(this->mesh_, io::ReadOptions{});
     const std::uint64_t V = this->mesh_.VertexCount();
-    this->stride_ = Stride(this->mesh_.PointLayout());
     this->map_ = Array<std::uint32_t>(this->dml_, std::max<std::uint64_t>(V, 1));
     const std::uint32_t zero = 0;
     this->dml_.Fill(this->map_.Id(), &zero);
-    this->window_ = std::size_t(1) << 14;
   }
 
   const io::ReadStats& ReadStats() const { return this->read_; }
@@ -83,8 +76,9 @@ public:
   {
     const io::VertexLayout& L = this->mesh_.PointLayout();
     // (a record at most half the round's bytes, whatever the point data)
-    const std::size_t window = std::clamp<std::size_t>(
-      limit / (2 * (12 + 4 * this->stride_)), 1, this->window_);
+    const std::size_t stride = this->mesh_.Stride();
+    const std::size_t window =
+      std::clamp<std::size_t>(limit / (2 * (12 + 4 * stride)), 1, kWindow);
     std::size_t pending = 0;
     for (const auto& b : send)
     {
@@ -132,7 +126,7 @@ public:
           if (map.Get(this->at_ + i))
           {
             std::copy_n(&this->xyz_[3 * i], 3, &this->xyz_[3 * picked]);
-            std::copy_n(&this->words_[this->stride_ * i], this->stride_, &this->words_[this->stride_ * picked]);
+            std::copy_n(&this->words_[stride * i], stride, &this->words_[stride * picked]);
             ++picked;
           }
         }
@@ -144,7 +138,7 @@ public:
           const auto* x = reinterpret_cast<const std::uint8_t*>(this->xyz_.data());
           out.insert(out.end(), x, x + 12 * picked);
           const auto* w = reinterpret_cast<const std::uint8_t*>(this->words_.data());
-          out.insert(out.end(), w, w + 4 * this->stride_ * picked);
+          out.insert(out.end(), w, w + 4 * stride * picked);
         }
       }
       else
@@ -178,6 +172,7 @@ public:
   }
 
 private:
+  static constexpr std::size_t kWindow = std::size_t(1) << 14; // vertices or faces a record
   enum class Phase
   {
     Start,
@@ -195,9 +190,9 @@ private:
     this->hi_ = 0;
     this->pieceVertices_ = 0;
     View<std::uint32_t> map(this->dml_, this->map_);
-    for (std::uint64_t f = 0; f < this->count_; f += this->window_)
+    for (std::uint64_t f = 0; f < this->count_; f += kWindow)
     {
-      const std::size_t n = std::size_t(std::min<std::uint64_t>(this->window_, this->count_ - f));
+      const std::size_t n = std::size_t(std::min<std::uint64_t>(kWindow, this->count_ - f));
       this->tris_.resize(3 * n);
       this->mesh_.ReadTriangles(this->first_ + f, n, this->tris_.data());
       for (std::uint32_t v : this->tris_)
@@ -240,7 +235,6 @@ private:
   storage::DML dml_;
   detail::StoredMesh mesh_{ dml_ };
   io::ReadStats read_;
-  std::size_t stride_ = 0, window_ = 1;
   Array<std::uint32_t> map_;
   int rank_ = 0;
   Phase phase_ = Phase::Start;
@@ -366,7 +360,7 @@ struct FilePiece::Impl
         storage::Profile pp = profile;
         const std::uint64_t V = std::max<std::uint64_t>(h.vertexCount, 1);
         pp.structures.push_back({ "file piece: points", 12, V, 0.0 });
-        if (const std::size_t stride = Stride(h.layout))
+        if (const std::size_t stride = detail::PointDataWords(h.layout))
         {
           pp.structures.push_back({ "file piece: point data", 4 * stride, V, 0.0 });
         }

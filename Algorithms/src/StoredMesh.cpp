@@ -214,8 +214,7 @@ void StoredMesh::Begin(const io::MeshHeader& h)
     this->onHeader_(h.vertexCount, h.faceCount);
   }
   this->header_ = h;
-  this->stride_ = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 1 : 0) +
-    (h.layout.texcoords ? 2 : 0) + h.layout.scalars.size(); // in 4-byte words
+  this->stride_ = PointDataWords(h.layout);
   this->points_ = Array<Float3>(this->dml_, std::max<std::uint64_t>(h.vertexCount, 1));
   this->triangles_ = Array<Triangle>(this->dml_, std::max<std::uint64_t>(h.faceCount, 1));
   if (this->stride_)

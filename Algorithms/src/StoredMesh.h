@@ -119,6 +119,10 @@ class StoredMesh;
 
 // Point data as StoredMesh keeps it: `stride` 4-byte words per vertex (normals, colour, texture
 // coordinates, scalars, as the layout has them).
+inline std::size_t PointDataWords(const io::VertexLayout& l)
+{
+  return (l.normals ? 3 : 0) + (l.colors ? 1 : 0) + (l.texcoords ? 2 : 0) + l.scalars.size();
+}
 void PackPointData(const io::VertexChunk& c, const io::VertexLayout& layout, std::size_t stride,
   std::uint32_t* words);
 // ... and back into a chunk's arrays (held here).

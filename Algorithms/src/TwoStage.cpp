@@ -125,16 +125,8 @@ RunStats TwoStageDistributed(const MeshSource& input, io::MeshSink& output,
   dopt.sourceConsumed = [&handoff]() { handoff.Release(); };
   const RunStats s2 = RunStageTwo(handoff, output, dopt, progress, onLevel, s1, stats);
   // This rank's traffic in both stages.
-  CommunicationStats& c = stats.communication;
-  c = s2.communication;
-  c.bytesSent += s1.communication.bytesSent;
-  c.bytesReceived += s1.communication.bytesReceived;
-  c.rounds += s1.communication.rounds;
-  c.seconds += s1.communication.seconds;
-  for (std::size_t i = 0; i < c.perRank.size() && i < s1.communication.perRank.size(); ++i)
-  {
-    c.perRank[i] += s1.communication.perRank[i];
-  }
+  stats.communication = s2.communication;
+  stats.communication.Add(s1.communication);
   stats.storage = dml.GetStats();
   return stats;
 }

@@ -235,10 +235,7 @@ int main(int argc, char** argv)
       FilePiece piece(argv[1], comm, pieceProfile, p);
       stats[r] = run(mine, piece.Source(), outputs[r], &comm);
       // (a file that cannot be read by byte ranges is scattered by rank 0: its traffic counts)
-      stats[r].communication.bytesSent += piece.Traffic().bytesSent;
-      stats[r].communication.bytesReceived += piece.Traffic().bytesReceived;
-      stats[r].communication.seconds += piece.Traffic().seconds;
-      stats[r].communication.rounds += piece.Traffic().rounds;
+      stats[r].communication.Add(piece.Traffic());
       cpu[r] = ThreadSeconds() - c0;
       bytesRead[r] = piece.BytesRead();
       pieceFaces[r] = piece.Faces();

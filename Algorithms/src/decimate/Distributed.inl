@@ -312,8 +312,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
   std::optional<StoredMesh> gathered;
   Array<Quadric> gatheredQuadrics;
   Array<JoinKey> keys;
-  const std::size_t stride = (layout.normals ? 3 : 0) + (layout.colors ? 1 : 0) +
-    (layout.texcoords ? 2 : 0) + layout.scalars.size();
+  const std::size_t stride = detail::PointDataWords(layout);
   {
     rounds.Local([&] { progress.BeginPhase("gather", 1.0, 1.0); });
     PhaseTimer timer(stats, dml, "gather");

@@ -40,5 +40,19 @@ struct CommunicationStats
   // Every rank's bytes sent, bytes received, seconds and rounds (4 values a rank, by rank),
   // gathered before the output is written.
   std::vector<double> perRank;
+
+  // Adds another part of the same run's traffic (e.g. two-stage's first stage, a file's scatter);
+  // perRank element-wise where both have it.
+  void Add(const CommunicationStats& o)
+  {
+    this->bytesSent += o.bytesSent;
+    this->bytesReceived += o.bytesReceived;
+    this->rounds += o.rounds;
+    this->seconds += o.seconds;
+    for (std::size_t i = 0; i < this->perRank.size() && i < o.perRank.size(); ++i)
+    {
+      this->perRank[i] += o.perRank[i];
+    }
+  }
 };
 } // namespace sipmss::algorithms
