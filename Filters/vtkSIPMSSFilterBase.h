@@ -152,7 +152,8 @@ public:
   vtkGetMacro(PrunedComponents, vtkTypeUInt64);
   vtkGetMacro(PrunedTriangles, vtkTypeUInt64);
   // Bytes of the input file this rank read in the last run (all its passes; 0 for a pipeline
-  // input). Under MPI a FileName run reads by byte ranges: each rank about 1/N of the file.
+  // input). Under MPI a binary PLY or STL is read by byte ranges, each rank about 1/N of the
+  // file; any other file by rank 0 alone (the others' 0), which sends the ranks their pieces.
   vtkGetMacro(InputBytesRead, vtkTypeUInt64);
   // A run across MPI ranks (a controller of several processes): the ranks, this rank's bytes
   // sent to and received from the others and its seconds in communication, and every rank's
