@@ -60,7 +60,9 @@ public:
 
   ///@{
   /**
-   * Number of levels of detail on output port 1 (default 1: only the final mesh).
+   * Number of levels of detail on output port 1 (default 1: only the final mesh), finest
+   * first: spaced evenly in log(triangles) down to the target, or with a MaximumError and no
+   * TargetNumberOfTriangles each one stopping at half of the next one's bound.
    */
   vtkSetClampMacro(NumberOfLevelsOfDetail, int, 1, 64);
   vtkGetMacro(NumberOfLevelsOfDetail, int);

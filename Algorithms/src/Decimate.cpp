@@ -117,15 +117,31 @@ double RestWork(
 
 // The error bound in the units of the costs (a squared distance per unit of trace), once the
 // input's bounds are known.
-void SetErrorBound(RunContext& ctx, const MeshState& mesh)
+// (level: the level being made; its own bound when the bound alone spaces the levels)
+void SetErrorBound(RunContext& ctx, const MeshState& mesh, int level = 0)
 {
   const Vec3 d = mesh.hi - mesh.lo;
   ctx.diagonal =
     ctx.opt.errorDiagonal > 0 ? ctx.opt.errorDiagonal : std::sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
   if (std::isfinite(ctx.opt.maximumError))
   {
-    const double e = ctx.opt.maximumError * (ctx.opt.absoluteError ? 1.0 : ctx.diagonal);
+    const int K = std::max(1, ctx.opt.levelsOfDetail);
+    const double fraction = ctx.opt.targetTriangles == 0 ? LevelBoundFraction(level, K) : 1.0;
+    const double e = std::max(0.0, ctx.opt.maximumError * fraction - ctx.opt.spentError) *
+      (ctx.opt.absoluteError ? 1.0 : ctx.diagonal);
     ctx.maxErr2 = e * e;
+  }
+}
+
+// The next level's bound when the bound alone spaces the levels: every vertex's candidate is
+// looked for again (one whose collapses all exceeded the old bound has none).
+void RaiseErrorBound(RunContext& ctx, MeshState& mesh, int level)
+{
+  SetErrorBound(ctx, mesh, level);
+  mesh.BindViews();
+  for (std::uint64_t v = 0; v < mesh.nv; ++v)
+  {
+    mesh.views.S.Set(v, State(mesh.views.S.Get(v) | kRecompute));
   }
 }
 
@@ -197,12 +213,20 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
       if (!Pass(ctx, mesh, pass, goal, goal == levels[level],
             PassesWork(ctx, mesh, goal, std::size_t(level), levels)))
       {
-        // No legal collapse under maximumError remains: this is the final level.
+        // No legal collapse under the bound remains: the level is reached (the last one when
+        // the bound does not space the levels).
         if (!compacted)
         {
           Compact(ctx, mesh, pass);
+          compacted = true;
         }
         emitLevel(level);
+        if (std::isfinite(ctx.opt.maximumError) && ctx.opt.targetTriangles == 0 && level + 1 < K)
+        {
+          ++level;
+          RaiseErrorBound(ctx, mesh, level);
+          continue;
+        }
         break;
       }
       compacted = true;

@@ -125,13 +125,6 @@ std::vector<ParameterProblem> Problems(const SimplifyRequest& r)
       "must be a number of at least 0 (infinite: no bound), not " + Shown(r.maximumError));
   }
   check(Parameter::LevelsOfDetail, IntegerInRange(r.levelsOfDetail, 1, kMaximumLevelsOfDetail));
-  if (r.levelsOfDetail > 1 && r.targetTriangles == 0 && std::isfinite(r.maximumError) &&
-    r.algorithm != Algorithm::Cluster)
-  {
-    check(Parameter::LevelsOfDetail,
-      "needs a target triangle count when an error bound is the only stop (the levels are "
-      "spaced between the input's count and the target's)");
-  }
   check(Parameter::Grid, IntegerInRange(r.grid, 0, kMaximumGrid));
   if (r.bounds)
   {

@@ -56,7 +56,7 @@ DecimateOptions StageTwoOptions(const TwoStageOptions& options, const RunStats& 
   {
     const double used =
       std::max(0.0, s1.achievedError) * (dopt.absoluteError ? s1.errorDiagonal : 1.0);
-    dopt.maximumError = std::max(0.0, dopt.maximumError - used);
+    dopt.spentError += used;
   }
   return dopt;
 }

@@ -258,6 +258,50 @@ TEST(DecimateDistributed, AnErrorBoundIsKeptAcrossRanks)
   EXPECT_LT(double(outs[0].m.t.size()), 1.25 * double(serial.m.t.size()));
 }
 
+TEST(DecimateDistributed, LevelsOfDetailByTheBoundAlone)
+{
+  // Levels spaced by the bound (level i of K stops at maximumError / 2^(K-1-i)): the pieces stop
+  // at the first level's bound, rank 0 makes every level; each is coarser than the one before,
+  // seamless, and within its bound.
+  const Mesh m = sipmss::testing::BumpyUVSphere(50);
+  const int K = 3;
+  DecimateOptions o;
+  o.maximumError = 4e-3;
+  o.levelsOfDetail = K;
+  std::vector<std::vector<Mesh>> levels(3);
+  std::vector<Mesh> pieces;
+  for (int r = 0; r < 3; ++r)
+  {
+    pieces.push_back(Piece(m, 3, r, Cut::Slabs));
+  }
+  std::vector<RunStats> stats(3);
+  RunRanks(3, [&](Communicator& comm) {
+    const std::size_t r = std::size_t(comm.Rank());
+    DecimateOptions mine = o;
+    mine.communicator = &comm;
+    NullProgress progress;
+    Collect out;
+    stats[r] = Decimate(MemorySource(pieces[r]), out, mine, progress,
+      [&](int, const std::function<void(io::MeshSink&)>& emit) {
+        Collect level;
+        emit(level);
+        levels[r].push_back(std::move(level.m));
+      });
+  });
+  ASSERT_EQ(levels[0].size(), std::size_t(K));
+  std::size_t before = m.t.size();
+  for (int i = 0; i < K; ++i)
+  {
+    const Mesh& level = levels[0][std::size_t(i)];
+    EXPECT_LT(level.t.size(), before) << "level " << i;
+    before = level.t.size();
+    EXPECT_EQ(BoundaryEdges(level), 0u) << "level " << i;
+    EXPECT_EQ(DuplicateFaces(level), 0u) << "level " << i;
+    EXPECT_LE(Rms(m, level), o.maximumError * LevelBoundFraction(i, K)) << "level " << i;
+  }
+  EXPECT_LE(stats[0].achievedError, o.maximumError * (1 + 1e-6));
+}
+
 TEST(DecimateDistributed, AFailureOnOneRankReachesEveryRank)
 {
   // Rank 1's progress aborts at some point of the run, or its piece has a face that names a

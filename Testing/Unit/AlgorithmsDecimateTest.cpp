@@ -1158,6 +1158,52 @@ TEST(AlgorithmsDecimate, ErrorBoundIsRelativeToTheDiagonalAndReported)
   EXPECT_LT(free.stats.achievedError, loose.stats.achievedError);
 }
 
+// Levels of detail by the bound alone: level i of K stops where no collapse under
+// e / 2^(K-1-i) remains, so it measures within that bound as a single run would, and each level
+// is coarser than the one before.
+TEST(AlgorithmsDecimate, LevelsOfDetailByTheBoundAlone)
+{
+  const Mesh g = BumpySphere(4);
+  const double e = 1.6e-2;
+  const int K = 3;
+  alg::DecimateOptions o;
+  o.maximumError = e;
+  o.levelsOfDetail = K;
+  std::vector<Mesh> levels;
+  CollectSink sink;
+  alg::NullProgress progress;
+  const alg::RunStats stats = alg::Decimate(MemorySource(g), sink, o, progress,
+    [&](int level, const std::function<void(sipmss::io::MeshSink&)>& emit) {
+      EXPECT_EQ(std::size_t(level), levels.size());
+      CollectSink one;
+      emit(one);
+      levels.push_back(std::move(one.mesh));
+    });
+  ASSERT_EQ(levels.size(), std::size_t(K));
+  EXPECT_TRUE(levels.back().tris == sink.mesh.tris);
+  EXPECT_LE(stats.achievedError, e * (1 + 1e-6));
+  std::size_t before = g.Triangles();
+  for (int i = 0; i < K; ++i)
+  {
+    const double bound = e * alg::LevelBoundFraction(i, K);
+    EXPECT_LT(levels[std::size_t(i)].Triangles(), before) << "level " << i;
+    before = levels[std::size_t(i)].Triangles();
+    // As a single run with that bound: within it (the relation of "Error bound"), and as far.
+    const alg::CompareResult c =
+      alg::CompareMeshes(AsTriangleMesh(g), AsTriangleMesh(levels[std::size_t(i)]));
+    EXPECT_LE(c.rms, bound) << "level " << i;
+    EXPECT_LE(c.hausdorff, 4 * bound) << "level " << i;
+    alg::DecimateOptions single;
+    single.maximumError = bound;
+    const Outcome r = Simplify(MemorySource(g), single);
+    EXPECT_NEAR(double(levels[std::size_t(i)].Triangles()), double(r.out.Triangles()),
+      0.15 * double(r.out.Triangles()))
+      << "level " << i;
+  }
+  EXPECT_EQ(alg::LevelBoundFraction(0, 3), 0.25);
+  EXPECT_EQ(alg::LevelBoundFraction(2, 3), 1.0);
+}
+
 // Appends a copy of `piece` scaled by s and moved to (x, y, z), with `scalar` as the value of
 // every scalar array at its vertices.
 void AddPiece(Mesh& m, const Mesh& piece, double s, double x, double y, double z, float scalar = 0)

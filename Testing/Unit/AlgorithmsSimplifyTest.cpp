@@ -102,14 +102,6 @@ TEST(Simplify, TheRulesNameEachParameterAndItsValue)
       "must be a number of at least 0 (infinite: no bound), not -1" },
     { [](SimplifyRequest& r) { r.levelsOfDetail = 65; }, Parameter::LevelsOfDetail,
       "must be between 1 and 64, not 65" },
-    { [](SimplifyRequest& r) {
-       r.algorithm = Algorithm::Decimate;
-       r.maximumError = 0.01;
-       r.levelsOfDetail = 3;
-     },
-      Parameter::LevelsOfDetail,
-      "needs a target triangle count when an error bound is the only stop (the levels are spaced "
-      "between the input's count and the target's)" },
     { [](SimplifyRequest& r) { r.grid = 65536; }, Parameter::Grid,
       "must be between 0 and 65535, not 65536" },
     { [](SimplifyRequest& r) { r.bounds = std::array<double, 6>{ 0, 1, 0, std::nan(""), 0, 1 }; },

@@ -551,8 +551,7 @@ TEST_F(CLI, ErrorBoundAndAchievedError)
   EXPECT_GT(number(ReadAll(this->P("c.json")), "achieved_error"), 0.0);
   // Options that cannot mean anything are refused.
   for (const char* bad : { " --algorithm decimate --absolute-error",
-         " --algorithm decimate --max-error 0.01 --reduction 0.5",
-         " --algorithm decimate --max-error 0.01 --lods 3", " --absolute-error --max-error 1" })
+         " --algorithm decimate --max-error 0.01 --reduction 0.5", " --absolute-error --max-error 1" })
   {
     Result b = RunCli("simplify " + in + " " + this->P("b.ply") + bad);
     EXPECT_EQ(b.status, 2) << bad << "\n" << b.out;
@@ -561,6 +560,25 @@ TEST_F(CLI, ErrorBoundAndAchievedError)
   Result lods = RunCli("simplify " + in + " " + this->P("l.ply") +
     " --algorithm decimate --quiet --max-error 0.01 --target 100 --lods 3");
   EXPECT_EQ(lods.status, 0) << lods.out;
+  // Levels of detail by the bound alone: level K stops at half of level K + 1's bound, so each
+  // has fewer triangles than the one before; the last is OUTPUT.
+  for (const char* algorithm : { "decimate", "two-stage --grid 20" })
+  {
+    Result b = RunCli("simplify " + in + " " + this->P("e.ply") + " --quiet --algorithm " +
+      algorithm + " --max-error 0.004 --lods 3");
+    ASSERT_EQ(b.status, 0) << algorithm << "\n" << b.out;
+    double last = 2.0 * n * n + 1;
+    for (int level = 0; level < 3; ++level)
+    {
+      const std::string path = this->P("e_lod" + std::to_string(level) + ".ply");
+      Result info = RunCli("info " + path);
+      ASSERT_EQ(info.status, 0) << info.out;
+      const double triangles = number(info.out, "triangles");
+      EXPECT_LT(triangles, last) << algorithm << " level " << level;
+      last = triangles;
+    }
+    EXPECT_EQ(ReadAll(this->P("e.ply")), ReadAll(this->P("e_lod2.ply"))) << algorithm;
+  }
 }
 
 // --selection-array naming a face property: the same output from a gzip file whose face element

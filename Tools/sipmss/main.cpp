@@ -798,7 +798,9 @@ int main(int argc, char** argv)
   auto* absoluteError = targets->add_flag("--absolute-error", rq.absoluteError,
     "--max-error is a distance in the input's units, not a fraction of the diagonal");
   auto* lods = targets->add_option("--lods", rq.levelsOfDetail,
-    "levels of detail, written as OUTPUT_lodK (default 1)");
+    "levels of detail, written as OUTPUT_lodK, finest first (default 1); spaced evenly in log(triangles) "
+    "down to the target, or with --max-error and no --target each one stopping at half of the next "
+    "one's bound");
   CLI::Option_group* clustering = simplify->add_option_group("Clustering",
     "cluster and two-stage: the grid");
   auto* grid = clustering->add_option("--grid", rq.grid,

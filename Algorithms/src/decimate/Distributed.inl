@@ -263,6 +263,11 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
       o.boundaryWeight = 0;
       o.pruneSize = 0;
       o.levelsOfDetail = 1;
+      if (boundOnly)
+      {
+        // (the pieces stop at the first level's bound)
+        o.maximumError = options.maximumError * LevelBoundFraction(0, K);
+      }
       o.trianglesPerFixedVertex = kTrianglesPerBorderVertex;
       o.targetTriangles = boundOnly ? 0
                                     : std::max<std::uint64_t>(1,

@@ -4,7 +4,9 @@
 #include "sipmss/algorithms/Attributes.h"
 #include "sipmss/algorithms/Common.h"
 
+#include <algorithm>
 #include <array>
+#include <cmath>
 #include <functional>
 #include <optional>
 #include <limits>
@@ -22,12 +24,18 @@ struct DecimateOptions
   // exceeds maximumError times the input's bounding-box diagonal (times 1 when absoluteError).
   // Infinite: no bound. With targetTriangles 0, a finite bound is the only stop (targetReduction
   // is not used): the run goes as far as the bound allows.
+  // With levelsOfDetail K > 1 and no target the levels are spaced by the bound instead:
+  // level i (0 = the finest) stops where no collapse under maximumError / 2^(K-1-i) remains
+  // (LevelBoundFraction).
   double maximumError = std::numeric_limits<double>::infinity();
   bool absoluteError = false;
+  // The part of maximumError already spent on this input (two-stage's stage 2: the grid's
+  // error, in the same unit): every level's bound is reduced by it.
+  double spentError = 0;
   // > 0: the diagonal that relative errors refer to (two-stage: the original input's); 0: that
   // of this run's input.
   double errorDiagonal = 0;
-  int levelsOfDetail = 1;            // > 1: emit that many levels, evenly spaced in log(count)
+  int levelsOfDetail = 1;            // > 1: emit that many levels, evenly spaced in log(count) (or by maximumError)
   bool lockBoundary = false;         // boundary vertices never move
   // Locks and selections by a point-data scalar of the input (a name of its layout's scalars;
   // empty: none). lockArray: a vertex where it is not 0 stays in the output at its exact
@@ -114,6 +122,13 @@ struct DecimateOptions
   // new and old normal falls below this (0.2: about 78 degrees; flips are always rejected).
   double minNormalCosine = 0.2;
 };
+
+// The fraction of maximumError that level `level` of K stops at when the bound alone spaces
+// the levels: 2^-(K-1-level) (the last level takes the whole bound).
+inline double LevelBoundFraction(int level, int levels)
+{
+  return std::ldexp(1.0, -std::max(0, levels - 1 - level));
+}
 
 // Runs Algorithm I on `input` and streams the final mesh into `output`.
 // onLevel (optional) is called once per level with a callback that re-emits that level's mesh.
