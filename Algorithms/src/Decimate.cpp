@@ -29,7 +29,7 @@ namespace
 std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0)
 {
   std::uint64_t target = ctx.opt.targetTriangles ? ctx.opt.targetTriangles + ctx.extraTarget : 0;
-  if (target == 0 && !std::isfinite(ctx.opt.maximumError))
+  if (target == 0 && !BoundIsTheOnlyStop(ctx.opt))
   {
     // (with a bound and no target the bound is the only stop)
     double r = std::min(1.0, std::max(0.0, ctx.opt.targetReduction));
@@ -126,7 +126,7 @@ void SetErrorBound(RunContext& ctx, const MeshState& mesh, int level = 0)
   if (std::isfinite(ctx.opt.maximumError))
   {
     const int K = std::max(1, ctx.opt.levelsOfDetail);
-    const double fraction = ctx.opt.targetTriangles == 0 ? LevelBoundFraction(level, K) : 1.0;
+    const double fraction = BoundIsTheOnlyStop(ctx.opt) ? LevelBoundFraction(level, K) : 1.0;
     const double e = std::max(0.0, ctx.opt.maximumError * fraction - ctx.opt.spentError) *
       (ctx.opt.absoluteError ? 1.0 : ctx.diagonal);
     ctx.maxErr2 = e * e;
@@ -221,7 +221,7 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
           compacted = true;
         }
         emitLevel(level);
-        if (std::isfinite(ctx.opt.maximumError) && ctx.opt.targetTriangles == 0 && level + 1 < K)
+        if (BoundIsTheOnlyStop(ctx.opt) && level + 1 < K)
         {
           ++level;
           RaiseErrorBound(ctx, mesh, level);

@@ -269,25 +269,21 @@ TEST(DecimateDistributed, LevelsOfDetailByTheBoundAlone)
   o.maximumError = 4e-3;
   o.levelsOfDetail = K;
   std::vector<std::vector<Mesh>> levels(3);
-  std::vector<Mesh> pieces;
-  for (int r = 0; r < 3; ++r)
-  {
-    pieces.push_back(Piece(m, 3, r, Cut::Slabs));
-  }
-  std::vector<RunStats> stats(3);
-  RunRanks(3, [&](Communicator& comm) {
-    const std::size_t r = std::size_t(comm.Rank());
-    DecimateOptions mine = o;
-    mine.communicator = &comm;
-    NullProgress progress;
-    Collect out;
-    stats[r] = Decimate(MemorySource(pieces[r]), out, mine, progress,
-      [&](int, const std::function<void(io::MeshSink&)>& emit) {
-        Collect level;
-        emit(level);
-        levels[r].push_back(std::move(level.m));
-      });
-  });
+  std::vector<RunStats> stats;
+  RunDistributed(m, 3, Cut::Slabs,
+    [&](const MeshSource& source, io::MeshSink& out, Communicator* comm) {
+      DecimateOptions mine = o;
+      mine.communicator = comm;
+      NullProgress progress;
+      std::vector<Mesh>& mineLevels = levels[std::size_t(comm->Rank())];
+      return Decimate(source, out, mine, progress,
+        [&](int, const std::function<void(io::MeshSink&)>& emit) {
+          Collect level;
+          emit(level);
+          mineLevels.push_back(std::move(level.m));
+        });
+    },
+    &stats);
   ASSERT_EQ(levels[0].size(), std::size_t(K));
   std::size_t before = m.t.size();
   for (int i = 0; i < K; ++i)

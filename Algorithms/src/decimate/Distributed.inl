@@ -220,7 +220,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
   }
 
   // The target and the first level, on the whole input's count (as one run's Levels).
-  const bool boundOnly = options.targetTriangles == 0 && std::isfinite(options.maximumError);
+  const bool boundOnly = BoundIsTheOnlyStop(options);
   std::uint64_t target = options.targetTriangles;
   if (target == 0 && !boundOnly)
   {

@@ -123,6 +123,12 @@ struct DecimateOptions
   double minNormalCosine = 0.2;
 };
 
+// Whether the error bound is the only stop (no target count): then it also spaces the levels.
+inline bool BoundIsTheOnlyStop(const DecimateOptions& o)
+{
+  return o.targetTriangles == 0 && std::isfinite(o.maximumError);
+}
+
 // The fraction of maximumError that level `level` of K stops at when the bound alone spaces
 // the levels: 2^-(K-1-level) (the last level takes the whole bound).
 inline double LevelBoundFraction(int level, int levels)
