@@ -3,6 +3,7 @@
 #include "vtkSIPMSSPolyDataBridge.h"
 
 #include "sipmss/algorithms/Simplify.h"
+#include "sipmss/io/MeshIO.h"
 
 #include "vtkDataObject.h"
 #include "vtkInformation.h"
@@ -11,7 +12,9 @@
 #include "vtkNew.h"
 #include "vtkObjectFactory.h"
 #include "vtkPolyData.h"
+#include "vtkStringArray.h"
 
+#include <exception>
 #include <limits>
 #include <string>
 
@@ -20,6 +23,52 @@ vtkStandardNewMacro(vtkSIPMSSDecimate);
 vtkSIPMSSDecimate::vtkSIPMSSDecimate()
 {
   this->SetNumberOfOutputPorts(2);
+  this->FilePointArrays = vtkStringArray::New();
+  this->FileArrays = vtkStringArray::New();
+}
+
+void vtkSIPMSSDecimate::ReadFileArrayNames()
+{
+  this->FilePointArrays->Initialize();
+  this->FileArrays->Initialize();
+  if (!this->FileName || !*this->FileName)
+  {
+    return;
+  }
+  sipmss::io::MeshHeader header;
+  try
+  {
+    header = sipmss::io::ReadProperties(this->FileName);
+  }
+  catch (const std::exception&)
+  {
+    return; // (no choices: the run reports what is wrong with the file)
+  }
+  for (const std::string& name : header.layout.scalars)
+  {
+    this->FilePointArrays->InsertNextValue(name);
+    this->FileArrays->InsertNextValue(name);
+  }
+  for (const std::string& name : header.faceScalars)
+  {
+    // (a name both arrays have selects the point array: listed once)
+    if (this->FilePointArrays->LookupValue(name) < 0)
+    {
+      this->FileArrays->InsertNextValue(name);
+    }
+  }
+}
+
+vtkStringArray* vtkSIPMSSDecimate::GetFilePointArrayNames()
+{
+  this->ReadFileArrayNames();
+  return this->FilePointArrays;
+}
+
+vtkStringArray* vtkSIPMSSDecimate::GetFileArrayNames()
+{
+  this->ReadFileArrayNames();
+  return this->FileArrays;
 }
 
 int vtkSIPMSSDecimate::FillOutputPortInformation(int port, vtkInformation* info)
@@ -72,6 +121,8 @@ vtkSIPMSSDecimate::~vtkSIPMSSDecimate()
 {
   this->SetLockArray(nullptr);
   this->SetSelectionArray(nullptr);
+  this->FilePointArrays->Delete();
+  this->FileArrays->Delete();
 }
 
 const char* vtkSIPMSSDecimate::PropertyName(sipmss::algorithms::Parameter parameter)

@@ -18,6 +18,8 @@
 #include "sipmssFiltersModule.h" // for export macro
 #include "vtkSIPMSSFilterBase.h"
 
+class vtkStringArray;
+
 class SIPMSSFILTERS_EXPORT vtkSIPMSSDecimate : public vtkSIPMSSFilterBase
 {
 public:
@@ -126,6 +128,19 @@ public:
   vtkGetStringMacro(SelectionArray);
   ///@}
 
+  ///@{
+  /**
+   * The names LockArray and SelectionArray can take in a FileName run, from the file's header
+   * alone (io::ReadProperties: a PLY's vertex and face properties, also gzip-compressed; STL and
+   * OBJ name none): GetFilePointArrayNames() lists its point arrays (LockArray's choices),
+   * GetFileArrayNames() its point arrays, then its cell arrays (SelectionArray's). Read again at
+   * each call; empty without a FileName or when the header cannot be read (the run then says
+   * why). ParaView's File sources list them in their drop-downs.
+   */
+  vtkStringArray* GetFilePointArrayNames();
+  vtkStringArray* GetFileArrayNames();
+  ///@}
+
 protected:
   vtkSIPMSSDecimate();
   ~vtkSIPMSSDecimate() override;
@@ -151,6 +166,11 @@ protected:
   char* SelectionArray = nullptr;
 
 private:
+  // Fills FilePointArrays and FileArrays from FileName's header.
+  void ReadFileArrayNames();
+  vtkStringArray* FilePointArrays = nullptr;
+  vtkStringArray* FileArrays = nullptr;
+
   vtkSIPMSSDecimate(const vtkSIPMSSDecimate&) = delete;
   void operator=(const vtkSIPMSSDecimate&) = delete;
 };

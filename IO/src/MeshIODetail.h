@@ -431,8 +431,9 @@ ReadStats ReadPly(Input& in, MeshSink& sink, const ReadOptions& options);
 ReadStats ReadStlAscii(Input& in, MeshSink& sink, const ReadOptions& options);
 ReadStats ReadStlBinary(Input& in, MeshSink& sink, const ReadOptions& options);
 ReadStats ReadObj(Input& in, MeshSink& sink, const ReadOptions& options);
-// PLY header only (counts announced, layout); in is left after end_header.
-MeshHeader ReadPlyHeader(Input& in);
+// PLY header only (counts announced, layout); in is left after end_header. checkSizes: the
+// counts are checked against the file's size (an uncompressed file's).
+MeshHeader ReadPlyHeader(Input& in, bool checkSizes = true);
 // The PLY header's part of ProbeSplit (MeshPiece.h): format, counts, the records' places and
 // sizes, or why the file cannot be read in pieces; `layout.fileBytes` is set by the caller.
 void DescribePlySplit(Input& in, SplitLayout& layout);

@@ -928,6 +928,32 @@ MeshHeader ReadHeader(const std::string& path)
   FailUnknown(in);
 }
 
+MeshHeader ReadProperties(const std::string& path)
+{
+  using namespace detail;
+  Input in(OpenFileSource(path), path);
+  const Family fam = DetectFamily(in);
+  if (fam == Family::Unknown)
+  {
+    FailUnknown(in);
+  }
+  MeshHeader h;
+  if (fam == Family::Ply)
+  {
+    const MeshHeader full = ReadPlyHeader(in, false);
+    h.format = full.format;
+    h.layout.scalars = full.layout.scalars;
+    h.faceScalars = full.faceScalars;
+  }
+  else
+  {
+    h.format = fam == Family::Obj ? Format::Obj
+      : fam == Family::StlAscii  ? Format::StlAscii
+                                 : Format::StlBinary;
+  }
+  return h;
+}
+
 // ---------------------------------------------------------------------------------------------
 MeshInputFile::MeshInputFile(std::string path, std::string tmpdir)
   : path_(std::move(path))

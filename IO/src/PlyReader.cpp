@@ -1150,11 +1150,14 @@ void DescribePlySplit(Input& in, SplitLayout& s)
     s.vertexProperties += std::string("property ") + kTypeNames[int(p.type)] + " " + p.name + "\n";
 }
 
-MeshHeader ReadPlyHeader(Input& in)
+MeshHeader ReadPlyHeader(Input& in, bool checkSizes)
 {
   Header h;
   ParseHeader(in, h);
-  CheckSizes(in, h);
+  if (checkSizes)
+  {
+    CheckSizes(in, h);
+  }
   MeshHeader mh;
   mh.format = h.format;
   mh.layout = h.layout;

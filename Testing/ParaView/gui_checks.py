@@ -197,6 +197,40 @@ def save_screen(filename):
     _save()
 
 
+def _kept_vertices(name):
+    """The positions of the test PLY's vertices whose uchar property `name` is not 0 (the PLY
+    test_gui_xvfb.py writes: x, y, z as floats, then `name`)."""
+    with open(_PLY, "rb") as f:
+        data = f.read()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode().split("\n")
+    count = int([line for line in header if line.startswith("element vertex")][0].split()[2])
+    kept = set()
+    for k in range(count):
+        x, y, z, flag = struct.unpack_from("<3fB", data, end + 13 * k)
+        if flag:
+            kept.add((x, y, z))
+    return kept
+
+
+def check_locked(name):
+    """Every vertex the active source's Lock Array `name` locks is in its output, unmoved."""
+    try:
+        data = GetActiveSource().GetClientSideObject().GetOutputDataObject(0)
+        points = data.GetPoints()
+        out = set(tuple(struct.unpack("<3f", struct.pack("<3f", *points.GetPoint(i))))
+                  for i in range(points.GetNumberOfPoints()))
+        kept = _kept_vertices(name)
+        if not kept or not kept <= out:
+            raise AssertionError("%d of the %d vertices locked by %r are not in the output" %
+                                 (len(kept - out), len(kept), name))
+        _results["checks"].append({"locked": name, "vertices": len(kept)})
+    except Exception:
+        _results["errors"].append(traceback.format_exc())
+        print(traceback.format_exc())
+    _save()
+
+
 def finish():
     _results["finished"] = True
     _save()

@@ -5,7 +5,8 @@ PV_PLUGIN_PATH and plays test_gui_xvfb.xml.in (QtTesting events: menus, File > O
 properties panel, Apply). gui_checks.py, run in the GUI's Python shell, records each result;
 this script then checks them: every proxy was made from the menu it should be in, holds the
 values typed into the panel, and gives the triangle count of the same VTK filter run with the
-same settings outside ParaView; the decimations end at or below the typed target.
+same settings outside ParaView; the decimations end at or below the typed target. The Lock Array
+chosen in a drop-down of the file's vertex properties keeps its vertices where they were.
 
 Exit 77 (ctest SKIP_RETURN_CODE) when xvfb-run is missing or the X server cannot start.
 
@@ -31,7 +32,8 @@ TIMEOUT = 600
 
 
 def write_ply(path, nu=120, nv=80):
-    """A bumpy torus, binary PLY: 2*nu*nv triangles, closed, no two faces alike."""
+    """A bumpy torus, binary PLY: 2*nu*nv triangles, closed, no two faces alike, with a vertex
+    property "keep"."""
     points = []
     for i in range(nu):
         u = 2 * math.pi * i / nu
@@ -48,11 +50,13 @@ def write_ply(path, nu=120, nv=80):
             faces += [(a, b, c), (a, c, d)]
     with open(path, "wb") as f:
         f.write(("ply\nformat binary_little_endian 1.0\nelement vertex %d\n"
-                 "property float x\nproperty float y\nproperty float z\nelement face %d\n"
-                 "property list uchar int vertex_indices\nend_header\n" %
+                 "property float x\nproperty float y\nproperty float z\nproperty uchar keep\n"
+                 "element face %d\nproperty list uchar int vertex_indices\nend_header\n" %
                  (len(points), len(faces))).encode())
-        for p in points:
-            f.write(struct.pack("<3f", *p))
+        for k, p in enumerate(points):
+            # "keep": a vertex property the SIPMSS Decimate File Reader's Lock Array lists
+            # (10 vertices, so that the decimation still reaches its target)
+            f.write(struct.pack("<3fB", *p, 1 if k < nv and k % 8 == 0 else 0))
         for t in faces:
             f.write(struct.pack("<B3i", 3, *t))
     return len(faces)
@@ -141,7 +145,16 @@ def main():
     want = {"SIPMSSCluster", "SIPMSSDecimate", "SIPMSSDecimateFile", "SIPMSSClusterFile",
             "SIPMSSDecimateFileReader"}
     seen = set()
+    locked = [check for check in results["checks"] if "locked" in check]
+    if [check["locked"] for check in locked] != ["keep"]:
+        errors.append("the vertices locked by the Lock Array chosen in the panel were not "
+                      "checked: %s" % locked)
+    for check in locked:
+        print("Lock Array %r chosen in the panel: its %d vertices are in the output" %
+              (check["locked"], check["vertices"]))
     for check in results["checks"]:
+        if "locked" in check:
+            continue
         seen.add(check["proxy"])
         got, expected = check["triangles"], check["expected"]
         if check["input_triangles"] != n_input:

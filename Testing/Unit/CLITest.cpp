@@ -704,6 +704,23 @@ TEST_F(CLI, LockAndSelectionArraysNameAVertexProperty)
     " --algorithm decimate --lock-array keep --weld 0.1 --quiet");
   EXPECT_EQ(weld.status, 2) << weld.out;
   EXPECT_NE(weld.out.find("--weld"), std::string::npos) << weld.out;
+  // `info` names what --lock-array and --selection-array can take
+  Result info = RunCli("info " + in);
+  EXPECT_EQ(info.status, 0) << info.out;
+  EXPECT_NE(info.out.find("\"vertex_properties\": [\n    \"keep\"\n  ]"), std::string::npos)
+    << info.out;
+  EXPECT_NE(info.out.find("\"face_properties\": []"), std::string::npos) << info.out;
+  const std::string faces = this->P("faces.ply");
+  {
+    std::ofstream f(faces);
+    f << "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+         "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+         "property uchar sel\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2 1\n";
+  }
+  info = RunCli("info " + faces);
+  EXPECT_EQ(info.status, 0) << info.out;
+  EXPECT_NE(info.out.find("\"face_properties\": [\n    \"sel\"\n  ]"), std::string::npos)
+    << info.out;
 }
 
 // --attributes weighs vertex properties in every algorithm; compare --attributes measures them.

@@ -878,6 +878,68 @@ TEST(IOHeader, PlyFromHeaderOthersByScan)
   EXPECT_EQ(h.faceCount, 2u);
 }
 
+TEST(IOHeader, PropertiesFromTheHeaderAlone)
+{
+  TempDir dir;
+  PlyBuilder b(Enc::LE);
+  b.H("element vertex 3").H("property float x").H("property float y").H("property float z");
+  b.H("property float nx").H("property float ny").H("property float nz");
+  b.H("property uchar red").H("property uchar green").H("property uchar blue");
+  b.H("property float quality").H("property int mask");
+  b.H("element face 1").H("property list uchar int vertex_indices").H("property uchar sel");
+  for (int i = 0; i < 3; ++i)
+  {
+    b.V("float", i).V("float", 0).V("float", 0).V("float", 0).V("float", 0).V("float", 1);
+    b.V("uchar", 1).V("uchar", 2).V("uchar", 3).V("float", 0.5).V("int", i).EndRecord();
+  }
+  b.V("uchar", 3).V("int", 0).V("int", 1).V("int", 2).V("uchar", 1).EndRecord();
+  const std::string bytes = b.Bytes();
+  const std::string ply = dir.File("p.ply");
+  WriteFile(ply, bytes);
+  const std::vector<std::string> points{ "quality", "mask" }, cells{ "sel" };
+  MeshHeader h = ReadProperties(ply);
+  EXPECT_EQ(h.format, Format::PlyBinaryLE);
+  EXPECT_EQ(h.layout.scalars, points);
+  EXPECT_EQ(h.faceScalars, cells);
+  EXPECT_EQ(h.vertexCount, 0u);
+  EXPECT_EQ(h.faceCount, 0u);
+  // the names are those a run reads (ReadHeader's)
+  EXPECT_EQ(ReadHeader(ply).layout.scalars, points);
+  const std::string gz = dir.File("p.ply.gz");
+  WriteGzip(gz, bytes);
+  h = ReadProperties(gz);
+  EXPECT_EQ(h.layout.scalars, points);
+  EXPECT_EQ(h.faceScalars, cells);
+  // the header alone: a body cut short still names its properties (ReadHeader refuses it)
+  const std::string cut = dir.File("cut.ply");
+  WriteFile(cut, bytes.substr(0, bytes.size() - 20));
+  EXPECT_EQ(ReadProperties(cut).layout.scalars, points);
+  EXPECT_THROW(ReadHeader(cut), MeshIOError);
+  // STL and OBJ name none
+  const std::string obj = dir.File("t.obj");
+  WriteFile(obj, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+  h = ReadProperties(obj);
+  EXPECT_EQ(h.format, Format::Obj);
+  EXPECT_TRUE(h.layout.scalars.empty());
+  EXPECT_TRUE(h.faceScalars.empty());
+  const std::string stl = dir.File("t.stl");
+  WriteFile(stl, BinaryStl(kStlTris));
+  EXPECT_EQ(ReadProperties(stl).format, Format::StlBinary);
+  EXPECT_TRUE(ReadProperties(stl).layout.scalars.empty());
+  // errors name the file
+  WriteFile(dir.File("bad.ply"), "ply\nformat ascii 1.0\nelement vertex x\nend_header\n");
+  try
+  {
+    ReadProperties(dir.File("bad.ply"));
+    ADD_FAILURE() << "a malformed header was accepted";
+  }
+  catch (const MeshIOError& e)
+  {
+    EXPECT_NE(std::string(e.what()).find("bad.ply"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(ReadProperties(dir.File("missing.ply")), MeshIOError);
+}
+
 // ---------------------------------------------------------------------------------------------
 struct SharedCase
 {

@@ -751,6 +751,8 @@ int RunInfo(const std::string& path)
   for (const auto& n : s.header.layout.scalars)
     props.push_back(n);
   j["vertex_properties"] = props;
+  // (the names --selection-array can take as a face property)
+  j["face_properties"] = s.header.faceScalars;
   std::printf("%s\n", j.dump(2).c_str());
   return 0;
 }

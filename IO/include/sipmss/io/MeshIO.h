@@ -188,6 +188,12 @@ private:
 // that counts (vertexCount = vertices delivered, faceCount = faces/polygons in the file).
 MeshHeader ReadHeader(const std::string& path);
 
+// The named properties alone, from the header (a PLY's, also gzip-compressed; never a scan):
+// layout.scalars (the vertex properties a run can name as point arrays) and faceScalars (its
+// face properties); the counts are 0. STL and OBJ name none (their layout comes from the body).
+// Throws MeshIOError(path: reason) when the file cannot be opened or its header is malformed.
+MeshHeader ReadProperties(const std::string& path);
+
 // ---------------------------------------------------------------------------------------------
 // Streaming writer. Counts are declared first; vertices then triangles are streamed.
 // PLY needs every vertex before the first triangle; STL and OBJ accept triangles as soon as the
