@@ -6,7 +6,8 @@
  * management layer (DML): in core when the data fits MemoryBudgetMB, otherwise out of core with
  * block files in TemporaryDirectories and a page cache in memory. Input comes from the input port
  * (a vtkPolyData; polygons are triangulated, strips converted, vertices and lines ignored with a
- * warning) or, when FileName is set, streamed straight from a PLY, STL or OBJ file (optionally
+ * warning, ghost cells (vtkGhostType DUPLICATECELL or HIDDENCELL: another piece's cells) skipped
+ * and the ghost arrays not carried) or, when FileName is set, streamed straight from a PLY, STL or OBJ file (optionally
  * gzip-compressed) without loading it first.
  */
 #ifndef vtkSIPMSSFilterBase_h

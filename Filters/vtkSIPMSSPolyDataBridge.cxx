@@ -48,6 +48,14 @@ struct AttributePlan
   io::VertexLayout layout;
 };
 
+// The ghost array (vtkGhostType) describes the pieces of the input, not the surface: it is
+// neither carried (the output's points and cells are new) nor a choice for a selection.
+bool IsGhostArray(vtkAbstractArray* a)
+{
+  return a && a->GetName() &&
+    std::strcmp(a->GetName(), vtkDataSetAttributes::GhostArrayName()) == 0;
+}
+
 AttributePlan Plan(vtkPointData* pointData)
 {
   AttributePlan plan;
@@ -64,7 +72,7 @@ AttributePlan Plan(vtkPointData* pointData)
   for (int i = 0; i < pointData->GetNumberOfArrays(); ++i)
   {
     vtkDataArray* a = pointData->GetArray(i);
-    if (!a || a == plan.normals || a == plan.tcoords)
+    if (!a || a == plan.normals || a == plan.tcoords || IsGhostArray(a))
     {
       continue;
     }
@@ -263,7 +271,8 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
     for (int a = 0; a < cd->GetNumberOfArrays(); ++a)
     {
       vtkDataArray* array = cd->GetArray(a);
-      if (array && array->GetName() && array->GetNumberOfComponents() == 1)
+      if (array && array->GetName() && array->GetNumberOfComponents() == 1 &&
+        !IsGhostArray(array))
       {
         header.faceScalars.emplace_back(array->GetName());
         if (header.faceScalars.back() == options.faceFlag)
@@ -407,11 +416,22 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
     };
     vtkIdType npts;
     const vtkIdType* ids;
+    // Ghost cells (a copy of another piece's cell, or a hidden one) are not part of this piece.
+    vtkUnsignedCharArray* ghosts = input->GetCellGhostArray();
+    auto ghost = [ghosts](vtkIdType cell) {
+      return ghosts &&
+        (ghosts->GetValue(cell) &
+          (vtkDataSetAttributes::DUPLICATECELL | vtkDataSetAttributes::HIDDENCELL)) != 0;
+    };
     // (cell ids: the vertices' and lines' cells first, then the polygons', then the strips')
     vtkIdType cellId = input->GetNumberOfVerts() + input->GetNumberOfLines();
     auto polys = vtk::TakeSmartPointer(input->GetPolys()->NewIterator());
     for (polys->GoToFirstCell(); !polys->IsDoneWithTraversal(); polys->GoToNextCell(), ++cellId)
     {
+      if (ghost(cellId))
+      {
+        continue;
+      }
       polys->GetCurrentCell(npts, ids);
       ++stats.polygons;
       if (flagArray)
@@ -431,6 +451,10 @@ sipmss::algorithms::MeshSource PolyDataSource(vtkPolyData* input, vtkIdType* ski
     auto strips = vtk::TakeSmartPointer(input->GetStrips()->NewIterator());
     for (strips->GoToFirstCell(); !strips->IsDoneWithTraversal(); strips->GoToNextCell(), ++cellId)
     {
+      if (ghost(cellId))
+      {
+        continue;
+      }
       strips->GetCurrentCell(npts, ids);
       ++stats.polygons;
       if (flagArray)

@@ -149,6 +149,60 @@ class SIPMSSPythonTest(unittest.TestCase):
         for i in range(0, f.GetOutput().GetNumberOfPoints(), 97):
             self.assertEqual(f.GetOutput().GetPoint(i), g.GetOutput().GetPoint(i))
 
+    def test_ghost_cells_are_not_part_of_the_piece(self):
+        # A piece with ghost cells (copies of another piece's cells, as D3 or
+        # RedistributeDataSet make them, or hidden ones): both filters give what the piece
+        # without them gives, and the ghost arrays are not carried.
+        from vtkmodules.vtkCommonDataModel import vtkDataSetAttributes
+        src = sphere(60)
+        full = src.GetOutput()
+        owned = vtkCellArray()
+        ghosted = vtkPolyData()
+        ghosted.DeepCopy(full)
+        cell_ghosts = ghosted.AllocateCellGhostArray()
+        point_ghosts = ghosted.AllocatePointGhostArray()
+        ids = full.GetPolys()
+        pts = [0, 0, 0]
+        n_ghost = 0
+        for c in range(full.GetNumberOfCells()):
+            cell = full.GetCell(c)
+            z = sum(full.GetPoint(cell.GetPointId(k))[2] for k in range(3)) / 3
+            if z > 0.2:
+                kind = (vtkDataSetAttributes.DUPLICATECELL if c % 2 else
+                        vtkDataSetAttributes.HIDDENCELL)
+                cell_ghosts.SetValue(c, kind)
+                n_ghost += 1
+                for k in range(3):
+                    point_ghosts.SetValue(cell.GetPointId(k), vtkDataSetAttributes.DUPLICATEPOINT)
+            else:
+                owned.InsertNextCell(3, [cell.GetPointId(k) for k in range(3)])
+        self.assertGreater(n_ghost, 100)
+        reference = vtkPolyData()
+        reference.SetPoints(full.GetPoints())
+        reference.SetPolys(owned)
+        reference.GetPointData().ShallowCopy(full.GetPointData())
+        for make in (lambda: vtkSIPMSSCluster(), lambda: vtkSIPMSSDecimate()):
+            outs = []
+            for pd in (ghosted, reference):
+                f = make()
+                f.SetInputData(pd)
+                if isinstance(f, vtkSIPMSSDecimate):
+                    f.SetTargetNumberOfTriangles(500)
+                else:
+                    f.SetMaximumGridDimension(20)
+                f.Update()
+                outs.append(f.GetOutput())
+            got, want = outs
+            name = got.GetClassName()
+            self.assertEqual(got.GetNumberOfPolys(), want.GetNumberOfPolys(), name)
+            self.assertEqual(got.GetNumberOfPoints(), want.GetNumberOfPoints(), name)
+            for i in range(got.GetNumberOfPoints()):
+                self.assertEqual(got.GetPoint(i), want.GetPoint(i))
+            self.assertIsNone(got.GetPointData().GetArray("vtkGhostType"))
+            self.assertIsNone(got.GetCellData().GetArray("vtkGhostType"))
+            self.assertEqual(got.GetPointData().GetNumberOfArrays(),
+                             want.GetPointData().GetNumberOfArrays())
+
     def test_cell_selection_keeps_the_cells_outside_it(self):
         """SelectionArray naming a cell array of a pipeline mesh: every triangle outside the
         selection (the cells where it is 0) is in the output with the same corners."""
