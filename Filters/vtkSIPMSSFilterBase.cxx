@@ -375,6 +375,10 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     {
       vtkWarningMacro(<< note); // e.g. a full temporary directory and where the files went
     }
+    for (const std::string& warning : stats.warnings)
+    {
+      vtkWarningMacro(<< warning); // e.g. a two-stage bound the clustering used up
+    }
     this->PageHits = stats.storage.hits;
     this->PageMisses = stats.storage.misses;
     this->BytesRead = stats.storage.bytesRead;

@@ -9,6 +9,8 @@
 #include <algorithm>
 #include <cstring>
 #include <optional>
+#include <sstream>
+#include <string>
 
 namespace sipmss::algorithms
 {
@@ -61,6 +63,40 @@ DecimateOptions StageTwoOptions(const TwoStageOptions& options, const RunStats& 
   return dopt;
 }
 
+// A warning when the grid alone used up the error bound of the run or of some of its levels:
+// their decimation may make only collapses without error, so they are the clustered mesh.
+void WarnSpentBound(const DecimateOptions& dopt, RunStats& stats)
+{
+  if (!std::isfinite(dopt.maximumError) || dopt.spentError <= 0)
+  {
+    return;
+  }
+  const int K = std::max(1, dopt.levelsOfDetail);
+  const bool spaced = BoundIsTheOnlyStop(dopt);
+  int spent = 0; // the finest levels, 0 to spent - 1, have a bound no larger than the grid's error
+  while (spent < K &&
+    dopt.maximumError * (spaced ? LevelBoundFraction(spent, K) : 1.0) <= dopt.spentError)
+  {
+    ++spent;
+  }
+  if (spent == 0)
+  {
+    return;
+  }
+  std::ostringstream m;
+  m << "two-stage: the clustering's error (" << dopt.spentError
+    << (dopt.absoluteError ? "" : " of the diagonal") << ") already reaches the error bound of "
+    << (K == 1 ? std::string("the run")
+          : spent == K ? std::string("every level of detail")
+          : spent == 1 ? std::string("level of detail 0")
+                       : "levels of detail 0 to " + std::to_string(spent - 1))
+    << " (" << dopt.maximumError * (spaced ? LevelBoundFraction(spent - 1, K) : 1.0)
+    << "): only collapses without error are made there, so "
+    << (K == 1 ? "the output is" : spent == 1 ? "that level is" : "those levels are")
+    << " the clustered mesh; a finer grid leaves more of the bound to the decimation";
+  stats.warnings.push_back(m.str());
+}
+
 // Stage 2 on the clustered mesh, its statistics added to the run's. Stage 2 measures its
 // collapses against the clustered mesh's planes (with the cell quadrics carried, against those
 // and the cells' input planes together): the two stages' errors add up (a bound of the distance
@@ -81,6 +117,8 @@ RunStats RunStageTwo(detail::StoredMesh& handoff, io::MeshSink& output, const De
   stats.prunedTriangles = s2.prunedTriangles;
   stats.errorDiagonal = s1.errorDiagonal;
   stats.achievedError = std::max(0.0, s1.achievedError) + std::max(0.0, s2.achievedError);
+  stats.warnings.insert(stats.warnings.end(), s2.warnings.begin(), s2.warnings.end());
+  WarnSpentBound(dopt, stats);
   return s2;
 }
 

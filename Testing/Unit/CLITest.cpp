@@ -578,7 +578,25 @@ TEST_F(CLI, ErrorBoundAndAchievedError)
       last = triangles;
     }
     EXPECT_EQ(ReadAll(this->P("e.ply")), ReadAll(this->P("e_lod2.ply"))) << algorithm;
+    // (two-stage at grid 20: the clustering's error, 0.0018 of the diagonal, is above the
+    // finest level's bound, 0.001, and the user is told so)
+    EXPECT_EQ(b.out.find("level of detail 0 (") != std::string::npos,
+      std::string(algorithm) != "decimate")
+      << algorithm << "\n" << b.out;
   }
+  // A grid whose own error reaches the bound: the user is told that the output (or which
+  // levels) are the clustered mesh, on stderr and in the stats JSON.
+  Result spent = RunCli("simplify " + in + " " + this->P("g.ply") +
+    " --quiet --algorithm two-stage --grid 3 --max-error 0.0005 --stats-json " + this->P("g.json"));
+  ASSERT_EQ(spent.status, 0) << spent.out;
+  EXPECT_NE(spent.out.find("sipmss: warning: two-stage: the clustering's error"), std::string::npos)
+    << spent.out;
+  EXPECT_NE(spent.out.find("the output is the clustered mesh"), std::string::npos) << spent.out;
+  EXPECT_NE(ReadAll(this->P("g.json")).find("the output is the clustered mesh"), std::string::npos);
+  Result levels = RunCli("simplify " + in + " " + this->P("h.ply") +
+    " --quiet --algorithm two-stage --grid 3 --max-error 0.0005 --lods 2");
+  ASSERT_EQ(levels.status, 0) << levels.out;
+  EXPECT_NE(levels.out.find("every level of detail"), std::string::npos) << levels.out;
 }
 
 // --selection-array naming a face property: the same output from a gzip file whose face element

@@ -518,6 +518,7 @@ int RunSimplify(const SimplifyArgs& a)
       j["achieved_error"] = nullptr;
     }
     j["diagonal"] = stats.errorDiagonal;
+    j["warnings"] = stats.warnings;
     nlohmann::json phases = nlohmann::json::array();
     for (const auto& p : stats.phases)
     {
@@ -548,6 +549,10 @@ int RunSimplify(const SimplifyArgs& a)
   {
     // e.g. a full temporary directory and where the block files went: even with --quiet
     std::fprintf(stderr, "sipmss: warning: %s\n", note.c_str());
+  }
+  for (const std::string& warning : stats.warnings)
+  {
+    std::fprintf(stderr, "sipmss: warning: %s\n", warning.c_str());
   }
   if (stats.droppedInputFaces)
   {

@@ -243,6 +243,9 @@ struct RunStats
   std::string memoryBudgetOrigin;
   // A distributed run (ClusterOptions::communicator): this rank's share of the traffic.
   CommunicationStats communication;
+  // What the user should know about the result (the CLI prints them as warnings, also with
+  // --quiet, and lists them in the stats JSON; the filters report them as VTK warnings).
+  std::vector<std::string> warnings;
 };
 
 // Times one phase and records the DML mode in use when it ends.
