@@ -4,6 +4,7 @@
 #include "vtkSIPMSSPolyDataBridge.h"
 
 #include "vtkCellData.h"
+#include "vtkDataSetAttributes.h"
 #include "vtkInformation.h"
 #include "vtkInformationVector.h"
 #include "vtkMultiProcessController.h"
@@ -16,6 +17,7 @@
 #include "sipmss/algorithms/Simplify.h"
 
 #include <algorithm>
+#include <cstring>
 #include <memory>
 #include <optional>
 #include <sstream>
@@ -294,6 +296,10 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     for (int i = 0; i < input->GetCellData()->GetNumberOfArrays(); ++i)
     {
       vtkAbstractArray* a = input->GetCellData()->GetAbstractArray(i);
+      if (a && a->GetName() && std::strcmp(a->GetName(), vtkDataSetAttributes::GhostArrayName()) == 0)
+      {
+        continue; // (the pieces' ghost cells, skipped: not the user's data)
+      }
       cellArrays.emplace_back(a && a->GetName() ? a->GetName() : "(unnamed)");
     }
     if (!cellArrays.empty())
@@ -375,9 +381,13 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     {
       vtkWarningMacro(<< note); // e.g. a full temporary directory and where the files went
     }
-    for (const std::string& warning : stats.warnings)
+    if (!distributed || controller->GetLocalProcessId() == 0)
     {
-      vtkWarningMacro(<< warning); // e.g. a two-stage bound the clustering used up
+      // (about the whole result, the same on every rank: said once)
+      for (const std::string& warning : stats.warnings)
+      {
+        vtkWarningMacro(<< warning); // e.g. a two-stage bound the clustering used up
+      }
     }
     this->PageHits = stats.storage.hits;
     this->PageMisses = stats.storage.misses;

@@ -64,7 +64,8 @@ DecimateOptions StageTwoOptions(const TwoStageOptions& options, const RunStats& 
 }
 
 // A warning when the grid alone used up the error bound of the run or of some of its levels:
-// their decimation may make only collapses without error, so they are the clustered mesh.
+// their decimation may make only collapses without error, so they stay at about the clustered
+// mesh's size.
 void WarnSpentBound(const DecimateOptions& dopt, RunStats& stats)
 {
   if (!std::isfinite(dopt.maximumError) || dopt.spentError <= 0)
@@ -91,9 +92,10 @@ void WarnSpentBound(const DecimateOptions& dopt, RunStats& stats)
           : spent == 1 ? std::string("level of detail 0")
                        : "levels of detail 0 to " + std::to_string(spent - 1))
     << " (" << dopt.maximumError * (spaced ? LevelBoundFraction(spent - 1, K) : 1.0)
-    << "): only collapses without error are made there, so "
-    << (K == 1 ? "the output is" : spent == 1 ? "that level is" : "those levels are")
-    << " the clustered mesh; a finer grid leaves more of the bound to the decimation";
+    << "): only collapses without error (in flat regions) are made there, so "
+    << (K == 1 ? "the output stays" : spent == 1 ? "that level stays" : "those levels stay")
+    << " at about the clustered mesh's size; a finer grid leaves more of the bound to the "
+       "decimation";
   stats.warnings.push_back(m.str());
 }
 

@@ -185,12 +185,14 @@ class SIPMSSPythonTest(unittest.TestCase):
             outs = []
             for pd in (ghosted, reference):
                 f = make()
+                messages = Messages(f)
                 f.SetInputData(pd)
                 if isinstance(f, vtkSIPMSSDecimate):
                     f.SetTargetNumberOfTriangles(500)
                 else:
                     f.SetMaximumGridDimension(20)
                 f.Update()
+                self.assertNotIn("vtkGhostType", " ".join(messages.warnings))
                 outs.append(f.GetOutput())
             got, want = outs
             name = got.GetClassName()
