@@ -74,7 +74,9 @@ Mesh ReadWhole(const std::string& path)
 struct PieceRun
 {
   std::vector<Mesh> pieces;
-  std::vector<bool> split, scattered;
+  // (char, not bool: the ranks are threads that write their entries at the same time, and
+  // std::vector<bool> packs its entries into shared words)
+  std::vector<char> split, scattered;
   std::vector<std::string> whyNot, errors;
   std::vector<std::uint64_t> bytes, faces, sent, received;
 };
@@ -133,8 +135,8 @@ void ExpectPiecesAreTheWhole(
   {
     const std::size_t k = std::size_t(r);
     ASSERT_TRUE(run.errors[k].empty()) << run.errors[k];
-    ASSERT_EQ(run.split[k], !scattered) << run.whyNot[k];
-    ASSERT_EQ(run.scattered[k], scattered);
+    ASSERT_EQ(run.split[k] != 0, !scattered) << run.whyNot[k];
+    ASSERT_EQ(run.scattered[k] != 0, scattered);
     const std::vector<Tri> t = Triangles(run.pieces[k]);
     all.insert(all.end(), t.begin(), t.end());
     faces += run.faces[k];
@@ -397,7 +399,7 @@ TEST(FilePiece, ABadFileFailsEveryRank)
   const std::string good = dir.File("good.ply");
   const Mesh goodMesh = sipmss::testing::BumpyUVSphere(10);
   Write(goodMesh, good);
-  std::vector<bool> split(3, true);
+  std::vector<char> split(3, true); // (char: written by the rank threads at once)
   std::vector<std::string> why(3);
   std::vector<Mesh> pieces(3);
   RunRanks(3, [&](Communicator& comm) {
