@@ -15,6 +15,8 @@
 #include "vtkStringArray.h"
 
 #include <exception>
+#include <filesystem>
+#include <system_error>
 #include <limits>
 #include <string>
 
@@ -32,6 +34,13 @@ void vtkSIPMSSDecimate::ReadFileArrayNames()
   this->FilePointArrays->Initialize();
   this->FileArrays->Initialize();
   if (!this->FileName || !*this->FileName)
+  {
+    return;
+  }
+  // Only a regular file is opened here: a pipe would lose what this read takes from it before
+  // the run reads it.
+  std::error_code error;
+  if (!std::filesystem::is_regular_file(this->FileName, error))
   {
     return;
   }

@@ -134,8 +134,8 @@ public:
    * alone (io::ReadProperties: a PLY's vertex and face properties, also gzip-compressed; STL and
    * OBJ name none): GetFilePointArrayNames() lists its point arrays (LockArray's choices),
    * GetFileArrayNames() its point arrays, then its cell arrays (SelectionArray's). Read again at
-   * each call; empty without a FileName or when the header cannot be read (the run then says
-   * why). ParaView's File sources list them in their drop-downs.
+   * each call; empty without a FileName, for anything but a regular file (a pipe is never read
+   * here) or when the header cannot be read (the run then says why). ParaView's File sources list them in their drop-downs.
    */
   vtkStringArray* GetFilePointArrayNames();
   vtkStringArray* GetFileArrayNames();

@@ -205,6 +205,45 @@ class SIPMSSPythonTest(unittest.TestCase):
             self.assertEqual(got.GetPointData().GetNumberOfArrays(),
                              want.GetPointData().GetNumberOfArrays())
 
+    def test_file_array_names_read_the_header_of_a_regular_file_only(self):
+        # The choices of LockArray and SelectionArray for a FileName run: the PLY header's
+        # vertex properties, then its face properties. A pipe is never opened for them (its
+        # bytes belong to the run): no writer here, and the call returns at once, empty.
+        with tempfile.TemporaryDirectory() as tmp:
+            path = os.path.join(tmp, "p.ply")
+            with open(path, "w") as f:
+                f.write("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                        "property float y\nproperty float z\nproperty uchar keep\n"
+                        "element face 1\nproperty list uchar int vertex_indices\n"
+                        "property uchar sel\nend_header\n0 0 0 1\n1 0 0 0\n0 1 0 0\n"
+                        "3 0 1 2 1\n")
+            f = vtkSIPMSSDecimate()
+            names = lambda a: [a.GetValue(i) for i in range(a.GetNumberOfValues())]
+            self.assertEqual(names(f.GetFilePointArrayNames()), [])
+            f.SetFileName(path)
+            self.assertEqual(names(f.GetFilePointArrayNames()), ["keep"])
+            self.assertEqual(names(f.GetFileArrayNames()), ["keep", "sel"])
+            fifo = os.path.join(tmp, "pipe.ply")
+            os.mkfifo(fifo)
+            with open(path, "rb") as src:
+                content = src.read()
+
+            def write():  # (blocks until a reader opens the pipe)
+                with open(fifo, "wb") as w:
+                    w.write(content)
+
+            import threading
+            writer = threading.Thread(target=write, daemon=True)
+            writer.start()
+            f.SetFileName(fifo)
+            self.assertEqual(names(f.GetFilePointArrayNames()), [])
+            self.assertEqual(names(f.GetFileArrayNames()), [])
+            # every byte is still there for the run
+            with open(fifo, "rb") as r:
+                self.assertEqual(r.read(), content)
+            writer.join(10)
+            self.assertFalse(writer.is_alive())
+
     def test_cell_selection_keeps_the_cells_outside_it(self):
         """SelectionArray naming a cell array of a pipeline mesh: every triangle outside the
         selection (the cells where it is 0) is in the output with the same corners."""

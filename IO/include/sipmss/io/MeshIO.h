@@ -191,6 +191,8 @@ MeshHeader ReadHeader(const std::string& path);
 // The named properties alone, from the header (a PLY's, also gzip-compressed; never a scan):
 // layout.scalars (the vertex properties a run can name as point arrays) and faceScalars (its
 // face properties); the counts are 0. STL and OBJ name none (their layout comes from the body).
+// It reads the start of `path`: a pipe loses those bytes (vtkSIPMSSDecimate calls it only for a
+// regular file).
 // Throws MeshIOError(path: reason) when the file cannot be opened or its header is malformed.
 MeshHeader ReadProperties(const std::string& path);
 
