@@ -4,7 +4,6 @@
 #include "vtkSIPMSSPolyDataBridge.h"
 
 #include "vtkCellData.h"
-#include "vtkDataSetAttributes.h"
 #include "vtkInformation.h"
 #include "vtkInformationVector.h"
 #include "vtkMultiProcessController.h"
@@ -17,7 +16,6 @@
 #include "sipmss/algorithms/Simplify.h"
 
 #include <algorithm>
-#include <cstring>
 #include <memory>
 #include <optional>
 #include <sstream>
@@ -296,7 +294,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     for (int i = 0; i < input->GetCellData()->GetNumberOfArrays(); ++i)
     {
       vtkAbstractArray* a = input->GetCellData()->GetAbstractArray(i);
-      if (a && a->GetName() && std::strcmp(a->GetName(), vtkDataSetAttributes::GhostArrayName()) == 0)
+      if (bridge::IsGhostArray(a))
       {
         continue; // (the pieces' ghost cells, skipped: not the user's data)
       }

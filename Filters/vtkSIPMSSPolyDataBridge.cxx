@@ -48,14 +48,6 @@ struct AttributePlan
   io::VertexLayout layout;
 };
 
-// The ghost array (vtkGhostType) describes the pieces of the input, not the surface: it is
-// neither carried (the output's points and cells are new) nor a choice for a selection.
-bool IsGhostArray(vtkAbstractArray* a)
-{
-  return a && a->GetName() &&
-    std::strcmp(a->GetName(), vtkDataSetAttributes::GhostArrayName()) == 0;
-}
-
 AttributePlan Plan(vtkPointData* pointData)
 {
   AttributePlan plan;
@@ -98,6 +90,12 @@ AttributePlan Plan(vtkPointData* pointData)
 }
 
 } // namespace
+
+bool IsGhostArray(vtkAbstractArray* a)
+{
+  return a && a->GetName() &&
+    std::strcmp(a->GetName(), vtkDataSetAttributes::GhostArrayName()) == 0;
+}
 
 std::string CoreAttributeNames(vtkPolyData* input, const std::string& list, std::string& problem)
 {

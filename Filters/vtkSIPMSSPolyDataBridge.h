@@ -6,6 +6,7 @@
 
 #include "vtkSmartPointer.h"
 
+class vtkAbstractArray;
 class vtkAlgorithm;
 class vtkPointData;
 class vtkPolyData;
@@ -30,6 +31,11 @@ std::string CoreAttributeNames(vtkPolyData* input, const std::string& list, std:
 // The input's bounds; throws MeshIOError naming the first point with a non-finite coordinate
 // (the filters call it for every pipeline input before a run).
 std::array<double, 6> Bounds(vtkPolyData* input);
+
+// Whether `a` is a ghost array (vtkGhostType): it describes the pieces of the input, not the
+// surface, so it is neither carried (the output's points and cells are new) nor a choice for a
+// selection, and the ghost cells it marks are skipped.
+bool IsGhostArray(vtkAbstractArray* a);
 
 // Names of the input's point arrays that are not numeric (string, variant): not carried.
 std::vector<std::string> PointArraysNotCarried(vtkPolyData* input);

@@ -125,9 +125,7 @@ void SetErrorBound(RunContext& ctx, const MeshState& mesh, int level = 0)
     ctx.opt.errorDiagonal > 0 ? ctx.opt.errorDiagonal : std::sqrt(d.x * d.x + d.y * d.y + d.z * d.z);
   if (std::isfinite(ctx.opt.maximumError))
   {
-    const int K = std::max(1, ctx.opt.levelsOfDetail);
-    const double fraction = BoundIsTheOnlyStop(ctx.opt) ? LevelBoundFraction(level, K) : 1.0;
-    const double e = std::max(0.0, ctx.opt.maximumError * fraction - ctx.opt.spentError) *
+    const double e = std::max(0.0, LevelBound(ctx.opt, level) - ctx.opt.spentError) *
       (ctx.opt.absoluteError ? 1.0 : ctx.diagonal);
     ctx.maxErr2 = e * e;
   }

@@ -73,10 +73,8 @@ void WarnSpentBound(const DecimateOptions& dopt, RunStats& stats)
     return;
   }
   const int K = std::max(1, dopt.levelsOfDetail);
-  const bool spaced = BoundIsTheOnlyStop(dopt);
   int spent = 0; // the finest levels, 0 to spent - 1, have a bound no larger than the grid's error
-  while (spent < K &&
-    dopt.maximumError * (spaced ? LevelBoundFraction(spent, K) : 1.0) <= dopt.spentError)
+  while (spent < K && LevelBound(dopt, spent) <= dopt.spentError)
   {
     ++spent;
   }
@@ -91,8 +89,7 @@ void WarnSpentBound(const DecimateOptions& dopt, RunStats& stats)
           : spent == K ? std::string("every level of detail")
           : spent == 1 ? std::string("level of detail 0")
                        : "levels of detail 0 to " + std::to_string(spent - 1))
-    << " (" << dopt.maximumError * (spaced ? LevelBoundFraction(spent - 1, K) : 1.0)
-    << "): only collapses without error (in flat regions) are made there, so "
+    << " (" << LevelBound(dopt, spent - 1) << "): only collapses without error (in flat regions) are made there, so "
     << (K == 1 ? "the output stays" : spent == 1 ? "that level stays" : "those levels stay")
     << " at about the clustered mesh's size; a finer grid leaves more of the bound to the "
        "decimation";

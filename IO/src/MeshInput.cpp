@@ -947,9 +947,7 @@ MeshHeader ReadProperties(const std::string& path)
   }
   else
   {
-    h.format = fam == Family::Obj ? Format::Obj
-      : fam == Family::StlAscii  ? Format::StlAscii
-                                 : Format::StlBinary;
+    h.format = FormatOf(fam, in);
   }
   return h;
 }

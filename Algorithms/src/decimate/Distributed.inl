@@ -263,11 +263,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
       o.boundaryWeight = 0;
       o.pruneSize = 0;
       o.levelsOfDetail = 1;
-      if (boundOnly)
-      {
-        // (the pieces stop at the first level's bound)
-        o.maximumError = options.maximumError * LevelBoundFraction(0, K);
-      }
+      o.maximumError = LevelBound(options, 0); // (the first level's, when it spaces them)
       o.trianglesPerFixedVertex = kTrianglesPerBorderVertex;
       o.targetTriangles = boundOnly ? 0
                                     : std::max<std::uint64_t>(1,

@@ -136,6 +136,15 @@ inline double LevelBoundFraction(int level, int levels)
   return std::ldexp(1.0, -std::max(0, levels - 1 - level));
 }
 
+// The error bound of level `level` in maximumError's unit (before spentError is taken off): its
+// LevelBoundFraction of maximumError when the bound alone spaces the levels, else maximumError.
+inline double LevelBound(const DecimateOptions& o, int level)
+{
+  return BoundIsTheOnlyStop(o)
+    ? o.maximumError * LevelBoundFraction(level, std::max(1, o.levelsOfDetail))
+    : o.maximumError;
+}
+
 // Runs Algorithm I on `input` and streams the final mesh into `output`.
 // onLevel (optional) is called once per level with a callback that re-emits that level's mesh.
 RunStats Decimate(const MeshSource& input, io::MeshSink& output, const DecimateOptions& options,
