@@ -231,6 +231,27 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
   }
   std::uint64_t lastKey = std::numeric_limits<std::uint64_t>::max();
   std::uint32_t lastCell = kNoCell;
+  // Each vertex's key is computed kAhead vertices early, and the cache entry and map slot it
+  // will look up are fetched then: in an input whose vertices are not in spatial order those
+  // lookups go anywhere in the map.
+  constexpr std::size_t kAhead = 8;
+  std::uint64_t keys[kAhead];
+  std::uint64_t lastAhead = lastKey;
+  auto lookAhead = [&](std::size_t j) {
+    const float* q = c.xyz + 3 * j;
+    const std::uint64_t key = cluster.grid.Key(q[0], q[1], q[2]);
+    keys[j % kAhead] = key;
+    if (key != lastAhead)
+    {
+      lastAhead = key;
+      __builtin_prefetch(&cluster.recent[Mix(key) & (ClusterState::kRecent - 1)]);
+      cluster.cellMap.Prefetch(key);
+    }
+  };
+  for (std::size_t j = 0; j < std::min(kAhead, c.count); ++j)
+  {
+    lookAhead(j);
+  }
   for (std::size_t i = 0; i < c.count; ++i)
   {
     if ((i & 4095) == 4095)
@@ -238,7 +259,11 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
       Tick(cluster, i);
     }
     const float* p = c.xyz + 3 * i;
-    const std::uint64_t key = cluster.grid.Key(p[0], p[1], p[2]);
+    const std::uint64_t key = keys[i % kAhead];
+    if (i + kAhead < c.count)
+    {
+      lookAhead(i + kAhead);
+    }
     std::uint32_t cell = lastCell;
     if (key != lastKey)
     {
@@ -296,10 +321,14 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
 
 void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count)
 {
-  // In core, the vertex records of the faces a few ahead are fetched while this one is added
-  // (their loads overlap the face's arithmetic).
+  // In core, the vertex records of the face kAhead faces ahead are fetched while this one is
+  // added, and (from those records, by then in the cache) the cell records of the face
+  // kCellAhead ahead: in an input whose faces are not in spatial order both go anywhere in
+  // memory, and their loads then overlap the faces' arithmetic.
   const auto* base = static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id()));
-  constexpr std::size_t kAhead = 8;
+  const auto* cellBase =
+    static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
+  constexpr std::size_t kAhead = 16, kCellAhead = 8;
   for (std::size_t t = 0; t < count; ++t)
   {
     if ((t & 4095) == 4095)
@@ -315,6 +344,30 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
         if (g[k] < cluster.verticesSeen)
         {
           __builtin_prefetch(base + g[k]);
+        }
+      }
+    }
+    if (base && cellBase && t + kCellAhead < count)
+    {
+      const std::uint32_t* g = f + 3 * kCellAhead;
+      std::uint32_t seen[3] = { kNoCell, kNoCell, kNoCell };
+      for (int k = 0; k < 3; ++k)
+      {
+        if (g[k] < cluster.verticesSeen)
+        {
+          const std::uint32_t cell = base[g[k]].cell;
+          seen[k] = cell;
+          if (cell < cluster.numCells && (k == 0 || cell != seen[0]) && (k < 2 || cell != seen[1]))
+          {
+            // (every cache line the record touches)
+            const std::uintptr_t first =
+              reinterpret_cast<std::uintptr_t>(cellBase + std::size_t(cell) * sizeof(CellRec));
+            for (std::uintptr_t line = first & ~std::uintptr_t(63); line < first + sizeof(CellRec);
+                 line += 64)
+            {
+              __builtin_prefetch(reinterpret_cast<const void*>(line), 1);
+            }
+          }
         }
       }
     }
@@ -1373,6 +1426,29 @@ std::uint64_t ClusterGrid::Key(double x, double y, double z) const
 
 namespace
 {
+// An incoherent input is reordered only when the run goes out of core (docs/architecture.md,
+// "Input layout"): in core the clustering's lookups are fetched ahead (AddVertices, AddTriangles)
+// and cost less than the layout step. The mode as BeginInput's Config will choose it, for V
+// vertices and F faces in the grid over `bounds`; V = 0 (the header announced no sizes and the
+// probe stopped before the end): as for an input of any size.
+bool ClusterGoesOutOfCore(const ClusterOptions& options, std::uint64_t V, std::uint64_t F,
+  const std::array<double, 6>& bounds)
+{
+  const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
+  storage::Profile profile = options.storage;
+  profile.structures.clear();
+  if (V == 0)
+  {
+    profile.structures.push_back({ "input of unknown size", 1, std::uint64_t(1) << 60, 0.0 });
+  }
+  else
+  {
+    AddClusterStructures(profile, V, F,
+      std::uint64_t(grid.dims[0]) * grid.dims[1] * grid.dims[2], 4 * options.attributes.size());
+  }
+  return storage::PlannedMode(profile) == storage::Mode::OutOfCore;
+}
+
 RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
   Progress& progress)
 {
@@ -1409,6 +1485,7 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
     {
       bs.MeasureLayout();
     }
+    bool stoppedEarly = false;
     try
     {
       // (measuring, the read stops early: on this thread, where the stop reaches the reader)
@@ -1416,14 +1493,7 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
     }
     catch (const detail::ProbeDone&)
     {
-    }
-    if (measure && bs.Layout().Faces() > 0)
-    {
-      stats.layoutFarFraction = bs.Layout().FarFraction();
-      if (stats.layoutFarFraction > detail::kIncoherentFarFraction)
-      {
-        throw detail::ReorderNeeded{};
-      }
+      stoppedEarly = true;
     }
     bounds = bs.b;
     V = bs.VerticesSeen();
@@ -1431,6 +1501,15 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
     if (F == 0)
     {
       F = 2 * V; // (no sizes in the header: a closed surface has about two faces per vertex)
+    }
+    if (measure && bs.Layout().Faces() > 0)
+    {
+      stats.layoutFarFraction = bs.Layout().FarFraction();
+      if (stats.layoutFarFraction > detail::kIncoherentFarFraction &&
+        ClusterGoesOutOfCore(options, stoppedEarly && !bs.Announced() ? 0 : V, F, bounds))
+      {
+        throw detail::ReorderNeeded{};
+      }
     }
   }
   const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);

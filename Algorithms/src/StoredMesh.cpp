@@ -147,6 +147,7 @@ LayoutProbe ProbeLayout(const MeshSource& input, Progress& progress)
   try
   {
     input(sink, io::ReadOptions{});
+    probe.complete = true;
   }
   catch (const ProbeDone&)
   {

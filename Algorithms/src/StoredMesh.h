@@ -102,6 +102,7 @@ struct LayoutProbe
   std::uint64_t verticesSeen = 0;
   std::array<double, 6> bounds{};
   bool measured = false;  // faces were measured
+  bool complete = false;  // the probe read the whole input (verticesSeen are all)
   double farFraction = 0; // of the first kProbeFaces faces
   bool Incoherent() const { return this->measured && this->farFraction > kIncoherentFarFraction; }
 };

@@ -176,11 +176,13 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   dml.Config(options.decimate.storage);
   RunStats stats;
 
-  // The layout step for an incoherent input: the input is copied into the DML and reordered,
-  // and stage 1 reads the copy (freed once read). The probe is stage 1's bounds pass: the
-  // grid's box comes from it.
+  // The layout step for an incoherent input when stage 1 goes out of core: the input is copied
+  // into the DML and reordered, and stage 1 reads the copy (freed once read). In core stage 1
+  // reads the input as it is (its lookups are fetched ahead; docs/architecture.md, "Input
+  // layout"). The probe is stage 1's bounds pass: the grid's box comes from it.
   ClusterOptions probeOptions;
   probeOptions.maximumGridDimension = options.gridDimension;
+  probeOptions.attributes = options.decimate.attributes;
   detail::LayoutProbe probe;
   const bool probed = options.decimate.layout == LayoutPolicy::Automatic;
   if (probed)
@@ -188,9 +190,20 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     PhaseTimer timer(stats, dml, "stage 1 bounds");
     probe = detail::ProbeLayout(input, progress);
   }
+  auto stage1OutOfCore = [&] {
+    // (a header without sizes, the probe stopped before the end: as for an input of any size)
+    const std::uint64_t v = probe.vertices ? probe.vertices : (probe.complete ? probe.verticesSeen : 0);
+    const std::uint64_t f = probe.faces ? probe.faces : 2 * v;
+    storage::Profile profile = options.decimate.storage;
+    profile.structures.assign({ { "stage 1", 1,
+      v ? std::uint64_t(EstimateClusterBytes(v, f, probeOptions)) : std::uint64_t(1) << 60,
+      0.0 } });
+    return storage::PlannedMode(profile) == storage::Mode::OutOfCore;
+  };
   std::optional<detail::StoredMesh> reordered;
   MeshSource stage1Input = input;
-  if (options.decimate.layout == LayoutPolicy::Reorder || probe.Incoherent())
+  if (options.decimate.layout == LayoutPolicy::Reorder ||
+    (probe.Incoherent() && stage1OutOfCore()))
   {
     detail::StoredMesh& mesh = reordered.emplace(dml);
     detail::ReadAndReorder(input, mesh, dml, options.decimate.storage,

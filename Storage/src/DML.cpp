@@ -27,13 +27,16 @@ using detail::Kind;
 
 namespace
 {
+// Blocks from this size on get huge pages (two of 2 MiB at least).
+constexpr std::uint64_t kHugeBlockBytes = std::uint64_t(4) << 20;
+
 // In-core blocks are accessed at random (rings, quadrics, candidates): on large blocks 2 MiB
 // pages save most TLB misses (the kernel's "madvise" THP mode leaves them off otherwise).
 void AdviseHugePages(void* p, std::uint64_t bytes)
 {
 #ifdef MADV_HUGEPAGE
   constexpr std::uint64_t kHuge = std::uint64_t(2) << 20;
-  if (!p || bytes < 2 * kHuge)
+  if (!p || bytes < kHugeBlockBytes)
   {
     return;
   }
@@ -795,7 +798,25 @@ void DML::Impl::ResizeInCore(Block& b, std::uint64_t count)
     cap = newBytes;
   }
   this->acc.Charge(HeapCost(cap)); // throws BudgetError when it does not fit
-  void* p = std::realloc(b.mem, cap);
+  // A block of huge-page size moves to fresh memory advised for huge pages (realloc would move
+  // its small pages as they are): the cell records of a clustering grow this way, and are then
+  // accessed at random (in a shuffled input a TLB miss each on small pages; Lucy-size
+  // clustering 1.4 s faster, docs/benchmarks.md).
+  void* p = nullptr;
+  if (cap >= kHugeBlockBytes)
+  {
+    p = std::malloc(cap);
+    if (p)
+    {
+      AdviseHugePages(p, cap);
+      std::memcpy(p, b.mem, oldBytes);
+      std::free(b.mem);
+    }
+  }
+  else
+  {
+    p = std::realloc(b.mem, cap);
+  }
   if (!p)
   {
     this->acc.Release(HeapCost(cap));
@@ -1079,6 +1100,22 @@ DML::DML(std::unique_ptr<FileBackend> backend)
 }
 
 DML::~DML() = default;
+
+Mode PlannedMode(const Profile& profile)
+{
+  // (Config's C on a DML that holds nothing but this profile)
+  std::uint64_t c = detail::ProfileHeapCost(profile) +
+    HeapCost(sizeof(Block) * (profile.structures.size() + 1));
+  for (const auto& s : profile.structures)
+  {
+    c += HeapCost(CheckedBytes(s.maxCount, std::max<std::size_t>(s.elementSize, 1)));
+  }
+  const std::uint64_t B = profile.memoryBudget;
+  return profile.policy == ModePolicy::OutOfCore ||
+      (profile.policy == ModePolicy::Automatic && B != 0 && c > B)
+    ? Mode::OutOfCore
+    : Mode::InCore;
+}
 
 Mode DML::Config(const Profile& profile)
 {

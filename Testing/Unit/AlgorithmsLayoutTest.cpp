@@ -108,24 +108,25 @@ Mesh Grid(int n, bool shuffled)
   return m;
 }
 
-MeshSource SourceOf(const Mesh& m)
+// announce: the header gives the counts (as a PLY's does; else as a source that cannot).
+MeshSource SourceOf(const Mesh& m, bool announce = true)
 {
-  return [&m](io::MeshSink& sink, const io::ReadOptions&) {
+  return [&m, announce](io::MeshSink& sink, const io::ReadOptions&) {
     io::MeshHeader h;
     h.format = io::Format::PlyBinaryLE;
-    h.vertexCount = m.xyz.size() / 3;
-    h.faceCount = m.tris.size() / 3;
+    h.vertexCount = announce ? m.xyz.size() / 3 : 0;
+    h.faceCount = announce ? m.tris.size() / 3 : 0;
     h.layout.scalars = { "s", "t" };
     sink.Begin(h);
     io::VertexChunk c;
-    c.count = h.vertexCount;
+    c.count = m.xyz.size() / 3;
     c.xyz = m.xyz.data();
     c.scalars = m.scalars.data();
     sink.Vertices(c);
-    sink.Triangles(m.tris.data(), h.faceCount);
+    sink.Triangles(m.tris.data(), m.tris.size() / 3);
     io::ReadStats st;
-    st.vertices = h.vertexCount;
-    st.triangles = st.polygons = h.faceCount;
+    st.vertices = m.xyz.size() / 3;
+    st.triangles = st.polygons = m.tris.size() / 3;
     sink.End(st);
     return st;
   };
@@ -306,32 +307,107 @@ double Rms(const Mesh& reference, const Collect& out)
   return CompareMeshes(a, b, co).rms;
 }
 
-// Every core reorders a shuffled input (and only that), in core and out of core alike: the same
-// bytes in both modes, and the error of the run on the input in scanner order within 1%.
-TEST(AlgorithmsLayout, ShuffledInputsAreReorderedWithTheSameResultInEveryMode)
+// The triangles of a run's output as positions alone (Geometry without point data).
+std::vector<std::array<Corner, 3>> Positions(const Collect& out)
+{
+  return Geometry(out.xyz, std::vector<float>(2 * out.xyz.size() / 3, 0.f), out.tris);
+}
+
+// A shuffled input is reordered by the decimation in every mode, and by the clustering and
+// two-stage only out of core (in core their lookups are fetched ahead and cost less than the
+// layout step). The decimation gives the same bytes in both modes; the clustering (exact sums)
+// the same triangles over the same points, numbered in another order; every run's error is
+// within 1% of the run on the input in scanner order.
+TEST(AlgorithmsLayout, ShuffledInputsAreReorderedWhereItPays)
 {
   const Mesh ordered = Grid(250, false);  // 63,001 vertices, 125,000 triangles
   const Mesh shuffled = Grid(250, true);
-  for (const char* algorithm : { "cluster", "decimate", "two-stage" })
+  for (const std::string algorithm : { "cluster", "decimate", "two-stage" })
   {
+    const bool reorderedInCore = algorithm == "decimate";
     const CoreRun a = Simplify(ordered, algorithm, 0);
     EXPECT_FALSE(a.stats.reordered) << algorithm;
     EXPECT_LT(a.stats.layoutFarFraction, detail::kIncoherentFarFraction) << algorithm;
     const CoreRun inCore = Simplify(shuffled, algorithm, 0);
     const CoreRun outOfCore = Simplify(shuffled, algorithm, 512 << 10);
-    EXPECT_TRUE(inCore.stats.reordered) << algorithm;
+    EXPECT_EQ(inCore.stats.reordered, reorderedInCore) << algorithm;
+    EXPECT_FALSE(inCore.stats.storage.usedOutOfCore) << algorithm;
     EXPECT_TRUE(outOfCore.stats.reordered) << algorithm;
     EXPECT_TRUE(outOfCore.stats.storage.usedOutOfCore) << algorithm;
     EXPECT_GT(inCore.stats.layoutFarFraction, 0.5) << algorithm;
-    EXPECT_TRUE(inCore.out.xyz == outOfCore.out.xyz) << algorithm;
-    EXPECT_TRUE(inCore.out.tris == outOfCore.out.tris) << algorithm;
-    const double e0 = Rms(ordered, a.out), e1 = Rms(ordered, inCore.out);
-    EXPECT_NEAR(e1, e0, 0.01 * e0) << algorithm;
-    EXPECT_NEAR(double(inCore.out.tris.size()), double(a.out.tris.size()),
-      0.01 * double(a.out.tris.size())) << algorithm;
-    // Keep: the input's own order, no layout step
-    const CoreRun kept = Simplify(shuffled, algorithm, 0, LayoutPolicy::Keep);
+    EXPECT_GT(outOfCore.stats.layoutFarFraction, 0.5) << algorithm;
+    if (algorithm == "decimate")
+    {
+      EXPECT_TRUE(inCore.out.xyz == outOfCore.out.xyz) << algorithm;
+      EXPECT_TRUE(inCore.out.tris == outOfCore.out.tris) << algorithm;
+    }
+    if (algorithm == "cluster")
+    {
+      EXPECT_FALSE(inCore.out.tris == outOfCore.out.tris); // (another numbering)
+      EXPECT_TRUE(Positions(inCore.out) == Positions(outOfCore.out));
+      EXPECT_TRUE(Positions(inCore.out) == Positions(a.out));
+    }
+    const double e0 = Rms(ordered, a.out);
+    for (const CoreRun* run : { &inCore, &outOfCore })
+    {
+      EXPECT_NEAR(Rms(ordered, run->out), e0, 0.01 * e0) << algorithm;
+      EXPECT_NEAR(double(run->out.tris.size()), double(a.out.tris.size()),
+        0.01 * double(a.out.tris.size())) << algorithm;
+    }
+    // Keep: the input's own order, no layout step (the clustering also out of core, where
+    // Automatic reorders; a shuffled decimation out of core is slow); Reorder: the step also in
+    // core
+    const CoreRun kept =
+      Simplify(shuffled, algorithm, algorithm == "cluster" ? 512 << 10 : 0, LayoutPolicy::Keep);
     EXPECT_FALSE(kept.stats.reordered) << algorithm;
+    const CoreRun forced = Simplify(shuffled, algorithm, 0, LayoutPolicy::Reorder);
+    EXPECT_TRUE(forced.stats.reordered) << algorithm;
+  }
+}
+
+// A source that announces no sizes, whose first faces show it shuffled: when the probe stops
+// before the end the size is unknown, so the clustering and two-stage reorder it under any
+// bounded budget (as an input of any size might go out of core), and not when unbounded; when the
+// probe reads it all (a small input), the counted size decides.
+TEST(AlgorithmsLayout, AnInputOfUnknownSizeIsReorderedUnderABoundedBudget)
+{
+  const Mesh big = Grid(260, true); // 135,200 triangles: more than the probe measures
+  const Mesh small = Grid(200, true); // 80,000: the probe reads it all
+  ASSERT_GT(big.tris.size() / 3, detail::kProbeFaces);
+  ASSERT_LT(small.tris.size() / 3, detail::kProbeFaces);
+  for (const std::string algorithm : { "cluster", "two-stage" })
+  {
+    for (const std::uint64_t budget : { std::uint64_t(0), std::uint64_t(1) << 30 })
+    {
+      for (const Mesh* m : { &big, &small })
+      {
+        NullProgress progress;
+        storage::Profile p;
+        p.memoryBudget = budget;
+        Collect out;
+        RunStats stats;
+        if (algorithm == "cluster")
+        {
+          ClusterOptions o;
+          o.maximumGridDimension = 40;
+          o.storage = p;
+          stats = Cluster(SourceOf(*m, false), out, o, progress);
+        }
+        else
+        {
+          TwoStageOptions t;
+          t.gridDimension = 60;
+          t.decimate.targetTriangles = 2000;
+          t.decimate.storage = p;
+          stats = TwoStage(SourceOf(*m, false), out, t, progress);
+        }
+        EXPECT_EQ(stats.reordered, budget != 0 && m == &big)
+          << algorithm << " budget " << budget << " triangles " << m->tris.size() / 3;
+        EXPECT_FALSE(stats.storage.usedOutOfCore) << algorithm;
+        EXPECT_GT(stats.layoutFarFraction, 0.5) << algorithm;
+        EXPECT_GT(out.tris.size(), 0u) << algorithm;
+      }
+    }
   }
 }
 

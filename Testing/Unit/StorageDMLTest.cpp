@@ -438,6 +438,63 @@ TEST(StorageDML, ConfigEstimateAndForcedModes)
   EXPECT_TRUE(ListDir(tmp.Path()).empty());
 }
 
+// PlannedMode is Config's choice on a fresh DML, also right at the budget's edge.
+TEST(StorageDML, PlannedModeIsConfigsChoice)
+{
+  TempDir tmp;
+  int outOfCore = 0, inCore = 0; // (Automatic, bounded)
+  for (ModePolicy policy : { ModePolicy::Automatic, ModePolicy::InCore, ModePolicy::OutOfCore })
+  {
+    for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(1) << 20 })
+    {
+      // C = 3.5 n bytes and the DML's metadata, around the budget of 1 MiB
+      for (std::uint64_t n = 280000; n <= 320000; n += 97)
+      {
+        Profile p = MakeProfile(tmp.Path(), budget, policy);
+        p.structures = { { "a", 3, n, 0.0 }, { "b", 1, n / 2, 0.0 } };
+        DML dml;
+        const Mode planned = PlannedMode(p);
+        ASSERT_EQ(int(planned), int(dml.Config(p))) << int(policy) << " " << budget << " " << n;
+        if (policy == ModePolicy::Automatic && budget)
+        {
+          (planned == Mode::OutOfCore ? outOfCore : inCore)++;
+        }
+      }
+    }
+  }
+  EXPECT_GT(outOfCore, 10);
+  EXPECT_GT(inCore, 10);
+  EXPECT_TRUE(ListDir(tmp.Path()).empty());
+}
+
+// An in-core block that grows past the huge-page size moves to fresh memory: its elements stay,
+// the new ones are zero.
+TEST(StorageDML, InCoreGrowthKeepsTheElements)
+{
+  DML dml;
+  Array<std::uint64_t> a(dml, 1000);
+  for (std::uint64_t i = 0; i < a.Size(); ++i)
+  {
+    a.Set(i, i * 7 + 1);
+  }
+  std::uint64_t filled = a.Size();
+  while (a.Size() < (std::uint64_t(24) << 20) / sizeof(std::uint64_t))
+  {
+    a.Resize(a.Size() * 2 + 3);
+    for (std::uint64_t i = 0; i < a.Size(); i += 997)
+    {
+      ASSERT_EQ(a.Get(i), i < filled ? i * 7 + 1 : 0u) << i << " of " << a.Size();
+    }
+    for (std::uint64_t i = filled; i < a.Size(); ++i)
+    {
+      a.Set(i, i * 7 + 1);
+    }
+    filled = a.Size();
+    EXPECT_EQ(dml.GetMode(), Mode::InCore);
+  }
+  EXPECT_EQ(a.Get(filled - 1), (filled - 1) * 7 + 1);
+}
+
 TEST(StorageDML, ConfigWithOpenBlocksMovesThem)
 {
   TempDir tmp;

@@ -275,6 +275,15 @@ public:
     }
   }
   void Release() { this->slots_.Close(); }
+  // In core, starts loading the home slot of `key` (a lookup a few vertices later finds it in
+  // the cache); out of core nothing.
+  void Prefetch(std::uint64_t key) const
+  {
+    if (const auto* base = static_cast<const KeySlot*>(this->dml_.BasePointer(this->slots_.Id())))
+    {
+      __builtin_prefetch(base + this->Home(key, this->slots_.Size()));
+    }
+  }
   // The cell of `key`, or kNoCell.
   std::uint32_t Find(std::uint64_t key) const
   {
@@ -450,6 +459,7 @@ public:
   }
   std::uint64_t Faces() const { return this->faces_; }
   std::uint64_t VerticesSeen() const { return this->seen_; }
+  std::uint64_t Announced() const { return this->expected_; } // (the header's vertex count)
   void Begin(const io::MeshHeader& h) override
   {
     this->expected_ = h.vertexCount;

@@ -204,10 +204,11 @@ struct PhaseStat
 };
 
 // The layout step for inputs whose vertices and faces are not in a spatially coherent order
-// (docs/architecture.md, "Input layout"). Automatic: when a run would go out of core, the first
-// faces are measured and an incoherent input is copied into the DML and reordered (vertices along
-// a Morton curve, faces by their lowest vertex) before the core runs on it. Keep: never.
-// Reorder: always (the result is the core's on the reordered mesh, in any storage mode).
+// (docs/architecture.md, "Input layout"). Automatic: the first faces are measured and an
+// incoherent input is copied into the DML and reordered (vertices along a Morton curve, faces by
+// their lowest vertex) before the core runs on it: always in the decimation, only out of core in
+// the clustering and two-stage. Keep: never. Reorder: always (the result is the core's on the
+// reordered mesh, in any storage mode).
 enum class LayoutPolicy : std::uint8_t
 {
   Automatic,

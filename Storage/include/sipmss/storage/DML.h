@@ -70,6 +70,11 @@ struct Profile
   std::string budgetOrigin;
 };
 
+// The mode Config(profile) chooses on a DML with no open blocks: out of core when the policy
+// says so, or when it is Automatic and the structures' cost C exceeds a bounded budget. For
+// decisions made before the DML is configured (an algorithm's layout step).
+Mode PlannedMode(const Profile& profile);
+
 struct Stats
 {
   Mode mode = Mode::InCore;
