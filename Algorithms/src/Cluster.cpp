@@ -28,6 +28,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
 #include <cstring>
 #include <limits>
 #include <optional>
@@ -329,6 +330,7 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
   const auto* cellBase =
     static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
   constexpr std::size_t kAhead = 16, kCellAhead = 8;
+  const std::size_t cellBytes = cluster.options.exactSums ? sizeof(CellRec) : kPlainBytes;
   for (std::size_t t = 0; t < count; ++t)
   {
     if ((t & 4095) == 4095)
@@ -359,10 +361,10 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
           seen[k] = cell;
           if (cell < cluster.numCells && (k == 0 || cell != seen[0]) && (k < 2 || cell != seen[1]))
           {
-            // (every cache line the record touches)
+            // (every cache line the update touches)
             const std::uintptr_t first =
               reinterpret_cast<std::uintptr_t>(cellBase + std::size_t(cell) * sizeof(CellRec));
-            for (std::uintptr_t line = first & ~std::uintptr_t(63); line < first + sizeof(CellRec);
+            for (std::uintptr_t line = first & ~std::uintptr_t(63); line < first + cellBytes;
                  line += 64)
             {
               __builtin_prefetch(reinterpret_cast<const void*>(line), 1);
@@ -460,7 +462,7 @@ void AppendVertex(ClusterState& cluster, const CellRec& rec, const float* attr, 
   std::uint64_t index)
 {
   // The quadric to minimize: the cell's, with its attribute error (Attributes.h).
-  const Quadric cellQ = cluster.options.exactSums ? cluster.units.ToDouble(rec.q) : rec.plain;
+  const Quadric cellQ = cluster.options.exactSums ? cluster.units.ToDouble(rec.q) : rec.plain.q;
   Quadric Q = cellQ;
   if (cluster.xSize)
   {
@@ -973,7 +975,7 @@ void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e)
       }
       else
       {
-        AddTo(rec.plain, plain);
+        AddTo(rec.plain.q, plain);
       }
     });
   }
@@ -1025,10 +1027,10 @@ void AddTrianglePlain(ClusterState& cluster, const std::uint32_t* f, const Verte
   for (const VertexRec* v : { &a, &b, &c })
   {
     UpdateCell(cluster, v->cell, [&](CellRec& rec) {
-      AddTo(rec.plain, q);
-      rec.plainSum[0] += double(v->x) - centre[0];
-      rec.plainSum[1] += double(v->y) - centre[1];
-      rec.plainSum[2] += double(v->z) - centre[2];
+      AddTo(rec.plain.q, q);
+      rec.plain.sum[0] += double(v->x) - centre[0];
+      rec.plain.sum[1] += double(v->y) - centre[1];
+      rec.plain.sum[2] += double(v->z) - centre[2];
       ++rec.corners;
       if (sampled &&
         std::tie(v->x, v->y, v->z) < std::tie(rec.first[0], rec.first[1], rec.first[2]))
@@ -1266,7 +1268,7 @@ void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q,
         double(Fixed(rec.sum[1])) * inv + (double(o[1]) - centre[1]),
         double(Fixed(rec.sum[2])) * inv + (double(o[2]) - centre[2]))
     : Eigen::Vector3d(
-        rec.plainSum[0] * plainInv, rec.plainSum[1] * plainInv, rec.plainSum[2] * plainInv);
+        rec.plain.sum[0] * plainInv, rec.plain.sum[1] * plainInv, rec.plain.sum[2] * plainInv);
   Eigen::Matrix3d A;
   const double* q = Q.q;
   A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];

@@ -169,28 +169,33 @@ struct FixedUnits
   }
 };
 
+// With ClusterOptions::exactSums off: a cell's quadric and corner sum in doubles, added in the
+// input's order (the corners about FixedUnits::centre).
+struct PlainSums
+{
+  Quadric q;
+  double sum[3];
+};
+
 struct CellRec
 {
-  // The cell's plane quadric sums (Quadric.h) about FixedUnits::centre, and the sum of its faces'
-  // corners: exact (FixedUnits::position from the grid's origin), or with
-  // ClusterOptions::exactSums off doubles added in the input's order (the corners about the
-  // centre).
-  union
-  {
-    FixedQuadric q;
-    Quadric plain;
-  };
-  union
-  {
-    FixedSum sum[3];
-    double plainSum[3];
-  };
-  float first[3]; // its lexicographically smallest corner (the paper's sampled-vertex fallback)
-  std::uint32_t vertices;  // input vertices in the cell (the point data's mean)
   std::uint64_t corners;   // corners of faces in the cell (the mean's count)
   std::uint64_t triangles; // candidate output triangles whose smallest cell is this one; later
                            // the end of its bucket
+  float first[3]; // its lexicographically smallest corner (the paper's sampled-vertex fallback)
+  std::uint32_t vertices; // input vertices in the cell (the point data's mean)
+  // The cell's plane quadric sums (Quadric.h) about FixedUnits::centre, and the sum of its faces'
+  // corners: exact (q and sum; FixedUnits::position from the grid's origin), or in doubles
+  // (plain). The counters come first, so that a face's update with plain sums touches the
+  // record's first kPlainBytes (3 cache lines, not 4).
+  union
+  {
+    FixedQuadric q;
+    PlainSums plain;
+  };
+  FixedSum sum[3];
 };
+constexpr std::size_t kPlainBytes = offsetof(CellRec, plain) + sizeof(PlainSums);
 
 struct KeySlot
 {
