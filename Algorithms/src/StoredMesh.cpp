@@ -378,21 +378,25 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
   {
     newOf.emplace(this->dml_, static_cast<std::size_t>(V));
   }
-  // Else, when the inverse is read in at most kMaxSlices slices of what the spare memory holds,
-  // the faces are renumbered in one pass per slice (linear, no comparisons); else by sorting
-  // their corners (n log n, for any size).
-  const std::uint64_t sliceLength = std::max<std::uint64_t>(
-    1024, this->dml_.SpareMemory(8) / 2 / sizeof(OldNew));
+  // Else, when the inverse is read in slices of what the spare memory holds and every slice's
+  // bucket of corners gets a buffer of kBucketMin corners in the other half, the faces are
+  // renumbered by distributing their corners to the slices' buckets (linear, no comparisons,
+  // nine sequential passes of 4 bytes a corner for any number of slices); else by sorting their
+  // corners (n log n, for any size).
+  const std::uint64_t spare = this->dml_.SpareMemory(8);
+  const std::uint64_t sliceLength = std::max<std::uint64_t>(1024, spare / 2 / sizeof(OldNew));
   const std::uint64_t slices = newOf ? 0 : (V + sliceLength - 1) / sliceLength;
-  constexpr std::uint64_t kMaxSlices = 32;
+  constexpr std::uint64_t kBucketMin = 4096;
+  const std::uint64_t bucketLength = slices ? spare / 2 / sizeof(std::uint32_t) / slices : 0;
   const Renumbering path = newOf ? Renumbering::InMemory
-    : slices <= kMaxSlices       ? Renumbering::Slices
+    : bucketLength >= kBucketMin ? Renumbering::Slices
                                  : Renumbering::SortedCorners;
+  this->slices_ = path == Renumbering::Slices ? slices : 0;
   // Progress: each sort and scan's share by the bytes it moves.
   const std::size_t groups = (this->stride_ + 15) / 16;
-  const double faceBytes = newOf ? 0.0
-    : slices <= kMaxSlices     ? 3.0 * double(sizeof(Triangle)) // (a pass's share: its 1/slices)
-                               : 4.0 * 3 * sizeof(Corner);
+  const double faceBytes = path == Renumbering::InMemory ? 0.0
+    : path == Renumbering::Slices ? 9.0 * double(sizeof(Triangle))
+                                  : 4.0 * 3 * sizeof(Corner);
   const double total =
     double(V) * (2 * sizeof(KeyRec) + (newOf ? 0 : 2 * sizeof(OldNew)) +
                   2.0 * double(groups) * sizeof(AttrRec)) +
@@ -547,51 +551,126 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     });
     newOf.reset();
   }
-  else if (slices <= kMaxSlices)
+  else if (path == Renumbering::Slices)
   {
-    // A few slices of the inverse in memory, one pass over the faces each: the faces are read
-    // in their old numbering and written renumbered to a second block (corners outside the
-    // slice keep what an earlier pass wrote).
-    Array<Triangle> renumbered(this->dml_, T);
-    storage::CountedBuffer<OldNew> slice(this->dml_, static_cast<std::size_t>(sliceLength));
-    std::vector<Triangle> src, dst;
-    for (std::uint64_t lo = 0; lo < V; lo += sliceLength)
+    // The corners go to one bucket per slice of the inverse (their old vertices, in face order);
+    // each bucket is renumbered with its slice in memory; then the faces are read again in their
+    // old numbering and each corner takes the next new number from its slice's bucket: the
+    // buckets hand them out in the order they went in.
+    std::vector<std::uint64_t> begin(static_cast<std::size_t>(slices) + 1, 0);
+    std::vector<Triangle> tris;
+    auto bucketOf = [sliceLength](std::uint32_t v) { return std::size_t(v / sliceLength); };
     {
-      const std::uint64_t n = std::min(sliceLength, V - lo);
-      inverse.Read(lo, n, slice.Data());
-      const double from = done / total;
-      const double span = double(T) * 3 * sizeof(Triangle) / double(slices) / total;
-      done += double(T) * 3 * sizeof(Triangle) / double(slices);
-      Scan(this->triangles_, T, src, [&](const Triangle* t, std::uint64_t first, std::uint64_t c) {
+      auto done1 = step(double(T) * sizeof(Triangle));
+      Scan(this->triangles_, T, tris, [&](const Triangle* t, std::uint64_t first, std::uint64_t n) {
         tick(first);
-        dst.resize(static_cast<std::size_t>(c));
-        if (lo > 0)
-        {
-          renumbered.Read(first, c, dst.data());
-        }
-        for (std::uint64_t i = 0; i < c; ++i)
+        for (std::uint64_t i = 0; i < n; ++i)
         {
           for (int k = 0; k < 3; ++k)
           {
-            const std::uint64_t v = t[i].v[k];
-            if (v - lo < n)
-            {
-              dst[i].v[k] = slice[v - lo].now;
-            }
-          }
-          if (lo + n == V)
-          {
-            LowestFirst(dst[i]); // (the last slice: every corner is renumbered)
+            ++begin[bucketOf(t[i].v[k]) + 1];
           }
         }
-        renumbered.Write(first, c, dst.data());
-        if ((first & (kChunk * 64 - 1)) == 0)
-        {
-          progress.Tick(from + span * double(first) / double(T));
-        }
+        done1(double(first + n) / double(T));
       });
     }
+    for (std::size_t b = 0; b < slices; ++b)
+    {
+      begin[b + 1] += begin[b];
+    }
+    Array<std::uint32_t> refs(this->dml_, 3 * T);
+    const std::size_t per = static_cast<std::size_t>(bucketLength);
+    {
+      // (the buckets' write buffers, each flushed when full)
+      storage::CountedBuffer<std::uint32_t> buf(this->dml_, static_cast<std::size_t>(slices) * per);
+      std::vector<std::uint64_t> at(begin.begin(), begin.end() - 1);
+      std::vector<std::size_t> fill(static_cast<std::size_t>(slices), 0);
+      auto flush = [&](std::size_t b) {
+        refs.Write(at[b], fill[b], buf.Data() + b * per);
+        at[b] += fill[b];
+        fill[b] = 0;
+      };
+      auto done2 = step(2.0 * double(T) * sizeof(Triangle));
+      Scan(this->triangles_, T, tris, [&](const Triangle* t, std::uint64_t first, std::uint64_t n) {
+        tick(first);
+        for (std::uint64_t i = 0; i < n; ++i)
+        {
+          for (int k = 0; k < 3; ++k)
+          {
+            const std::size_t b = bucketOf(t[i].v[k]);
+            buf[b * per + fill[b]++] = t[i].v[k];
+            if (fill[b] == per)
+            {
+              flush(b);
+            }
+          }
+        }
+        done2(double(first + n) / double(T));
+      });
+      for (std::size_t b = 0; b < slices; ++b)
+      {
+        if (fill[b])
+        {
+          flush(b);
+        }
+      }
+    }
+    {
+      storage::CountedBuffer<OldNew> slice(this->dml_, static_cast<std::size_t>(sliceLength));
+      std::vector<std::uint32_t> chunk;
+      auto done3 = step(2.0 * double(T) * sizeof(Triangle));
+      for (std::size_t b = 0; b < slices; ++b)
+      {
+        const std::uint64_t lo = b * sliceLength, n = std::min(sliceLength, V - lo);
+        inverse.Read(lo, n, slice.Data());
+        for (std::uint64_t first = begin[b]; first < begin[b + 1]; first += 3 * kChunk)
+        {
+          tick(first);
+          const std::uint64_t c = std::min<std::uint64_t>(3 * kChunk, begin[b + 1] - first);
+          chunk.resize(static_cast<std::size_t>(c));
+          refs.Read(first, c, chunk.data());
+          for (std::uint32_t& v : chunk)
+          {
+            v = slice[v - lo].now;
+          }
+          refs.Write(first, c, chunk.data());
+          done3(double(first + c) / double(3 * T));
+        }
+      }
+    }
     inverse.Close();
+    Array<Triangle> renumbered(this->dml_, T);
+    {
+      // (the buckets' read buffers, each refilled when used up)
+      storage::CountedBuffer<std::uint32_t> buf(this->dml_, static_cast<std::size_t>(slices) * per);
+      std::vector<std::uint64_t> at(begin.begin(), begin.end() - 1);
+      std::vector<std::size_t> next(static_cast<std::size_t>(slices), 0), held(next);
+      std::vector<Triangle> dst;
+      auto done4 = step(3.0 * double(T) * sizeof(Triangle));
+      Scan(this->triangles_, T, tris, [&](const Triangle* t, std::uint64_t first, std::uint64_t n) {
+        tick(first);
+        dst.resize(static_cast<std::size_t>(n));
+        for (std::uint64_t i = 0; i < n; ++i)
+        {
+          for (int k = 0; k < 3; ++k)
+          {
+            const std::size_t b = bucketOf(t[i].v[k]);
+            if (next[b] == held[b])
+            {
+              held[b] = static_cast<std::size_t>(std::min<std::uint64_t>(per, begin[b + 1] - at[b]));
+              refs.Read(at[b], held[b], buf.Data() + b * per);
+              at[b] += held[b];
+              next[b] = 0;
+            }
+            dst[i].v[k] = buf[b * per + next[b]++];
+          }
+          LowestFirst(dst[i]);
+        }
+        renumbered.Write(first, n, dst.data());
+        done4(double(first + n) / double(T));
+      });
+    }
+    refs.Close();
     this->triangles_.Swap(renumbered); // (the old numbering closes with `renumbered`)
   }
   else

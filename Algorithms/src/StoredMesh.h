@@ -183,7 +183,7 @@ public:
   // vertices: every step a storage::Sort or a sequential scan, no random access. Point data
   // follows its vertex.
   // Returns how the faces were renumbered: the inverse permutation in memory, in slices of it
-  // (one pass over the faces each), or by sorting their corners.
+  // (the corners distributed to a bucket per slice), or by sorting their corners.
   enum class Renumbering
   {
     InMemory,
@@ -192,6 +192,8 @@ public:
   };
   // threads: for the sorts in core (1: the calling thread only; 0: all cores).
   Renumbering Reorder(Progress& progress, int threads = 0);
+  // The number of slices of the last Reorder (0 unless Renumbering::Slices).
+  std::uint64_t Slices() const { return this->slices_; }
 
   // Random access, for a mesh put together from parts (the distributed decimation's gather):
   // triangles written at a position (the count grows to cover them), and ranges read back
@@ -221,6 +223,7 @@ private:
   storage::Array<Triangle> triangles_;
   storage::BlockId attrs_ = -1;
   std::uint64_t triangleCount_ = 0;
+  std::uint64_t slices_ = 0;
   LayoutMeter layout_;
   std::array<double, 6> bounds_;
 };
