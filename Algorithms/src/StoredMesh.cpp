@@ -452,6 +452,27 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       [](const KeyRec& a, const KeyRec& b) { return a.key != b.key ? a.key < b.key : a.old < b.old; },
       step(2.0 * double(V) * sizeof(KeyRec)), threads);
     std::vector<OldNew> map;
+    // In slices, the (old, new) pairs go straight to their slice of the inverse (slice b holds
+    // the old indices [b sliceLength, (b + 1) sliceLength), so it starts there), through a
+    // buffer per slice; step 2 then orders each slice in memory.
+    std::optional<storage::CountedBuffer<OldNew>> dist;
+    const std::size_t perPair = static_cast<std::size_t>(bucketLength / 2);
+    std::vector<std::uint64_t> at;
+    std::vector<std::size_t> fill;
+    auto flush = [&](std::size_t b) {
+      inverse.Write(at[b], fill[b], dist->Data() + b * perPair);
+      at[b] += fill[b];
+      fill[b] = 0;
+    };
+    if (path == Renumbering::Slices)
+    {
+      dist.emplace(this->dml_, static_cast<std::size_t>(slices) * perPair);
+      fill.assign(static_cast<std::size_t>(slices), 0);
+      for (std::uint64_t b = 0; b < slices; ++b)
+      {
+        at.push_back(b * sliceLength);
+      }
+    }
     Scan(keys, V, recs, [&](const KeyRec* r, std::uint64_t first, std::uint64_t n) {
       tick(first);
       pts.resize(static_cast<std::size_t>(n));
@@ -464,16 +485,53 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         {
           (*newOf)[r[i].old] = static_cast<std::uint32_t>(first + i);
         }
+        else if (dist)
+        {
+          const std::size_t b = static_cast<std::size_t>(r[i].old / sliceLength);
+          (*dist)[b * perPair + fill[b]++] = map[i];
+          if (fill[b] == perPair)
+          {
+            flush(b);
+          }
+        }
       }
       this->points_.Write(first, n, pts.data());
-      if (!newOf)
+      if (!newOf && !dist)
       {
         inverse.Write(first, n, map.data());
       }
     });
+    for (std::size_t b = 0; b < fill.size(); ++b)
+    {
+      if (fill[b])
+      {
+        flush(b);
+      }
+    }
   }
   // 2. The inverse: for each old index (in order) its new one.
-  if (!newOf)
+  if (path == Renumbering::Slices)
+  {
+    // (each slice holds its own old indices: put in place in memory, by following cycles)
+    storage::CountedBuffer<OldNew> slice(this->dml_, static_cast<std::size_t>(sliceLength));
+    auto done2 = step(2.0 * double(V) * sizeof(OldNew));
+    for (std::uint64_t lo = 0; lo < V; lo += sliceLength)
+    {
+      progress.Poll();
+      const std::uint64_t n = std::min(sliceLength, V - lo);
+      inverse.Read(lo, n, slice.Data());
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        while (slice[i].old - lo != i)
+        {
+          std::swap(slice[i], slice[slice[i].old - lo]);
+        }
+      }
+      inverse.Write(lo, n, slice.Data());
+      done2(double(lo + n) / double(V));
+    }
+  }
+  else if (!newOf)
   {
     storage::Sort(this->dml_, inverse,
       [](const OldNew& a, const OldNew& b) { return a.old < b.old; },
