@@ -320,6 +320,21 @@ void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
   Tick(cluster);
 }
 
+// Whether a chunk of faces comes in spatial order: of its first 64 faces, at most a quarter
+// start more than 4,096 vertices away from the previous face's start (scanner order and fans
+// almost none, a shuffled input almost all; the measure of LayoutMeter on a sample).
+bool ComeInOrder(const std::uint32_t* idx, std::size_t count)
+{
+  const std::size_t n = std::min<std::size_t>(count, 65);
+  std::size_t far = 0;
+  for (std::size_t t = 1; t < n; ++t)
+  {
+    const std::uint32_t a = idx[3 * t], b = idx[3 * (t - 1)];
+    far += (a > b ? a - b : b - a) > 4096;
+  }
+  return 4 * far <= n;
+}
+
 void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count)
 {
   // In core, the vertex records of the face kAhead faces ahead are fetched while this one is
@@ -327,8 +342,11 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
   // kCellAhead ahead: in an input whose faces are not in spatial order both go anywhere in
   // memory, and their loads then overlap the faces' arithmetic.
   const auto* base = static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id()));
-  const auto* cellBase =
-    static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
+  // (cell records only for faces out of spatial order: in scanner order they are in the cache
+  // already, and fetching them cost 5% of the Lucy-size clustering)
+  const auto* cellBase = ComeInOrder(idx, count)
+    ? nullptr
+    : static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
   constexpr std::size_t kAhead = 16, kCellAhead = 8;
   const std::size_t cellBytes = cluster.options.exactSums ? sizeof(CellRec) : kPlainBytes;
   for (std::size_t t = 0; t < count; ++t)
