@@ -1446,29 +1446,6 @@ std::uint64_t ClusterGrid::Key(double x, double y, double z) const
 
 namespace
 {
-// An incoherent input is reordered only when the run goes out of core (docs/architecture.md,
-// "Input layout"): in core the clustering's lookups are fetched ahead (AddVertices, AddTriangles)
-// and cost less than the layout step. The mode as BeginInput's Config will choose it, for V
-// vertices and F faces in the grid over `bounds`; V = 0 (the header announced no sizes and the
-// probe stopped before the end): as for an input of any size.
-bool ClusterGoesOutOfCore(const ClusterOptions& options, std::uint64_t V, std::uint64_t F,
-  const std::array<double, 6>& bounds)
-{
-  const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
-  storage::Profile profile = options.storage;
-  profile.structures.clear();
-  if (V == 0)
-  {
-    profile.structures.push_back({ "input of unknown size", 1, std::uint64_t(1) << 60, 0.0 });
-  }
-  else
-  {
-    AddClusterStructures(profile, V, F,
-      std::uint64_t(grid.dims[0]) * grid.dims[1] * grid.dims[2], 4 * options.attributes.size());
-  }
-  return storage::PlannedMode(profile) == storage::Mode::OutOfCore;
-}
-
 RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
   Progress& progress)
 {
@@ -1591,6 +1568,26 @@ std::uint64_t MaxGridCells(const ClusterOptions& options)
 }
 
 } // namespace
+
+bool ClusterGoesOutOfCore(const ClusterOptions& options, std::uint64_t V, std::uint64_t F,
+  const std::array<double, 6>& bounds)
+{
+  // (in core the clustering's lookups are fetched ahead, AddVertices and AddTriangles, and cost
+  // less than the layout step)
+  const ClusterGrid grid = ClusterGrid::Make(bounds, options.maximumGridDimension);
+  storage::Profile profile = options.storage;
+  profile.structures.clear();
+  if (V == 0)
+  {
+    profile.structures.push_back({ "input of unknown size", 1, std::uint64_t(1) << 60, 0.0 });
+  }
+  else
+  {
+    AddClusterStructures(profile, V, F,
+      std::uint64_t(grid.dims[0]) * grid.dims[1] * grid.dims[2], 4 * options.attributes.size());
+  }
+  return storage::PlannedMode(profile) == storage::Mode::OutOfCore;
+}
 
 double EstimateClusterBytes(std::uint64_t V, std::uint64_t F, const ClusterOptions& options)
 {

@@ -118,6 +118,53 @@ void Scan(Array<T>& a, std::uint64_t n, std::vector<T>& buf, F&& f, std::uint64_
     f(buf.data(), first, c);
   }
 }
+// Appends elements to consecutive regions of one block, region b from starts[b] on, through a
+// write buffer of `per` elements a region flushed when full (the slices path's buckets).
+template <class T>
+class BucketWriter
+{
+public:
+  BucketWriter(storage::DML& dml, Array<T>& block, std::vector<std::uint64_t> starts,
+    std::size_t per)
+    : block_(block)
+    , at_(std::move(starts))
+    , fill_(at_.size(), 0)
+    , per_(per)
+    , buf_(dml, at_.size() * per)
+  {
+  }
+  void Add(std::size_t b, const T& x)
+  {
+    this->buf_[b * this->per_ + this->fill_[b]++] = x;
+    if (this->fill_[b] == this->per_)
+    {
+      this->Flush(b);
+    }
+  }
+  void Finish()
+  {
+    for (std::size_t b = 0; b < this->at_.size(); ++b)
+    {
+      this->Flush(b);
+    }
+  }
+
+private:
+  void Flush(std::size_t b)
+  {
+    if (this->fill_[b])
+    {
+      this->block_.Write(this->at_[b], this->fill_[b], this->buf_.Data() + b * this->per_);
+      this->at_[b] += this->fill_[b];
+      this->fill_[b] = 0;
+    }
+  }
+  Array<T>& block_;
+  std::vector<std::uint64_t> at_;
+  std::vector<std::size_t> fill_;
+  std::size_t per_;
+  storage::CountedBuffer<T> buf_;
+};
 } // namespace
 
 void AddLayoutStructures(
@@ -455,23 +502,15 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     // In slices, the (old, new) pairs go straight to their slice of the inverse (slice b holds
     // the old indices [b sliceLength, (b + 1) sliceLength), so it starts there), through a
     // buffer per slice; step 2 then orders each slice in memory.
-    std::optional<storage::CountedBuffer<OldNew>> dist;
-    const std::size_t perPair = static_cast<std::size_t>(bucketLength / 2);
-    std::vector<std::uint64_t> at;
-    std::vector<std::size_t> fill;
-    auto flush = [&](std::size_t b) {
-      inverse.Write(at[b], fill[b], dist->Data() + b * perPair);
-      at[b] += fill[b];
-      fill[b] = 0;
-    };
+    std::optional<BucketWriter<OldNew>> dist;
     if (path == Renumbering::Slices)
     {
-      dist.emplace(this->dml_, static_cast<std::size_t>(slices) * perPair);
-      fill.assign(static_cast<std::size_t>(slices), 0);
+      std::vector<std::uint64_t> starts;
       for (std::uint64_t b = 0; b < slices; ++b)
       {
-        at.push_back(b * sliceLength);
+        starts.push_back(b * sliceLength);
       }
+      dist.emplace(this->dml_, inverse, std::move(starts), static_cast<std::size_t>(bucketLength / 2));
     }
     Scan(keys, V, recs, [&](const KeyRec* r, std::uint64_t first, std::uint64_t n) {
       tick(first);
@@ -487,12 +526,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         }
         else if (dist)
         {
-          const std::size_t b = static_cast<std::size_t>(r[i].old / sliceLength);
-          (*dist)[b * perPair + fill[b]++] = map[i];
-          if (fill[b] == perPair)
-          {
-            flush(b);
-          }
+          dist->Add(static_cast<std::size_t>(r[i].old / sliceLength), map[i]);
         }
       }
       this->points_.Write(first, n, pts.data());
@@ -501,12 +535,9 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         inverse.Write(first, n, map.data());
       }
     });
-    for (std::size_t b = 0; b < fill.size(); ++b)
+    if (dist)
     {
-      if (fill[b])
-      {
-        flush(b);
-      }
+      dist->Finish();
     }
   }
   // 2. The inverse: for each old index (in order) its new one.
@@ -639,15 +670,8 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     Array<std::uint32_t> refs(this->dml_, 3 * T);
     const std::size_t per = static_cast<std::size_t>(bucketLength);
     {
-      // (the buckets' write buffers, each flushed when full)
-      storage::CountedBuffer<std::uint32_t> buf(this->dml_, static_cast<std::size_t>(slices) * per);
-      std::vector<std::uint64_t> at(begin.begin(), begin.end() - 1);
-      std::vector<std::size_t> fill(static_cast<std::size_t>(slices), 0);
-      auto flush = [&](std::size_t b) {
-        refs.Write(at[b], fill[b], buf.Data() + b * per);
-        at[b] += fill[b];
-        fill[b] = 0;
-      };
+      BucketWriter<std::uint32_t> buckets(
+        this->dml_, refs, std::vector<std::uint64_t>(begin.begin(), begin.end() - 1), per);
       auto done2 = step(2.0 * double(T) * sizeof(Triangle));
       Scan(this->triangles_, T, tris, [&](const Triangle* t, std::uint64_t first, std::uint64_t n) {
         tick(first);
@@ -655,23 +679,12 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         {
           for (int k = 0; k < 3; ++k)
           {
-            const std::size_t b = bucketOf(t[i].v[k]);
-            buf[b * per + fill[b]++] = t[i].v[k];
-            if (fill[b] == per)
-            {
-              flush(b);
-            }
+            buckets.Add(bucketOf(t[i].v[k]), t[i].v[k]);
           }
         }
         done2(double(first + n) / double(T));
       });
-      for (std::size_t b = 0; b < slices; ++b)
-      {
-        if (fill[b])
-        {
-          flush(b);
-        }
-      }
+      buckets.Finish();
     }
     {
       storage::CountedBuffer<OldNew> slice(this->dml_, static_cast<std::size_t>(sliceLength));

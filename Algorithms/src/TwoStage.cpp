@@ -191,14 +191,11 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     probe = detail::ProbeLayout(input, progress);
   }
   auto stage1OutOfCore = [&] {
-    // (a header without sizes, the probe stopped before the end: as for an input of any size)
+    // (a header without sizes, the probe stopped before the end: an input of unknown size)
     const std::uint64_t v = probe.vertices ? probe.vertices : (probe.complete ? probe.verticesSeen : 0);
-    const std::uint64_t f = probe.faces ? probe.faces : 2 * v;
-    storage::Profile profile = options.decimate.storage;
-    profile.structures.assign({ { "stage 1", 1,
-      v ? std::uint64_t(EstimateClusterBytes(v, f, probeOptions)) : std::uint64_t(1) << 60,
-      0.0 } });
-    return storage::PlannedMode(profile) == storage::Mode::OutOfCore;
+    ClusterOptions stage1 = probeOptions;
+    stage1.storage = options.decimate.storage;
+    return ClusterGoesOutOfCore(stage1, v, probe.faces ? probe.faces : 2 * v, probe.bounds);
   };
   std::optional<detail::StoredMesh> reordered;
   MeshSource stage1Input = input;

@@ -1101,20 +1101,34 @@ DML::DML(std::unique_ptr<FileBackend> backend)
 
 DML::~DML() = default;
 
-Mode PlannedMode(const Profile& profile)
+namespace
 {
-  // (Config's C on a DML that holds nothing but this profile)
-  std::uint64_t c = detail::ProfileHeapCost(profile) +
-    HeapCost(sizeof(Block) * (profile.structures.size() + 1));
+// The cost of a profile's structures (C without the DML's metadata and open blocks), and the
+// mode C decides under the profile's policy and budget: Config's rule, shared with PlannedMode.
+std::uint64_t StructuresCost(const Profile& profile)
+{
+  std::uint64_t c = HeapCost(sizeof(Block) * (profile.structures.size() + 1));
   for (const auto& s : profile.structures)
   {
     c += HeapCost(CheckedBytes(s.maxCount, std::max<std::size_t>(s.elementSize, 1)));
   }
+  return c;
+}
+
+Mode ModeFor(const Profile& profile, std::uint64_t c)
+{
   const std::uint64_t B = profile.memoryBudget;
   return profile.policy == ModePolicy::OutOfCore ||
       (profile.policy == ModePolicy::Automatic && B != 0 && c > B)
     ? Mode::OutOfCore
     : Mode::InCore;
+}
+} // namespace
+
+Mode PlannedMode(const Profile& profile)
+{
+  // (Config's C on a DML that holds nothing but this profile)
+  return ModeFor(profile, detail::ProfileHeapCost(profile) + StructuresCost(profile));
 }
 
 Mode DML::Config(const Profile& profile)
@@ -1143,8 +1157,7 @@ Mode DML::Config(const Profile& profile)
   I.acc.Add(I.profileCost);
 
   // C = sum(elementSize * maxCount) + metadata; never less than what is open now.
-  std::uint64_t c = I.acc.held - I.CacheCost() +
-    HeapCost(sizeof(Block) * (profile.structures.size() + 1));
+  std::uint64_t c = I.acc.held - I.CacheCost() + StructuresCost(profile);
   for (const auto& b : I.blocks)
   {
     if (b.mem)
@@ -1155,17 +1168,11 @@ Mode DML::Config(const Profile& profile)
   I.stats.declaredBytes = 0;
   for (const auto& s : profile.structures)
   {
-    c += HeapCost(CheckedBytes(s.maxCount, std::max<std::size_t>(s.elementSize, 1)));
     I.stats.declaredBytes += CheckedBytes(s.maxCount, s.elementSize);
   }
   c = std::max(c, I.CostInCore());
   const std::uint64_t B = profile.memoryBudget;
-  Mode target = Mode::InCore;
-  if (profile.policy == ModePolicy::OutOfCore ||
-    (profile.policy == ModePolicy::Automatic && B != 0 && c > B))
-  {
-    target = Mode::OutOfCore;
-  }
+  const Mode target = ModeFor(profile, c);
 
   // Drop the cache (its size and page size follow the budget and policy), move the blocks
   // without a limit (moving out frees memory), then apply the new budget, also on failure.

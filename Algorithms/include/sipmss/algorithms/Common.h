@@ -127,6 +127,12 @@ double EstimateClusterFaces(std::uint64_t V, std::uint64_t F, const ClusterOptio
 double EstimateDecimateWork(std::uint64_t V, std::uint64_t F, const DecimateOptions& options);
 // The bytes of a clustering's structures on V vertices and F faces (what it declares to the DML).
 double EstimateClusterBytes(std::uint64_t V, std::uint64_t F, const ClusterOptions& options);
+// Whether a clustering on V vertices and F faces in the grid over `bounds` goes out of core under
+// options.storage (the mode its Config will choose; V = 0: an input of unknown size, as one of any
+// size). The clustering and two-stage reorder an incoherent input only then (docs/architecture.md,
+// "Input layout").
+bool ClusterGoesOutOfCore(const ClusterOptions& options, std::uint64_t V, std::uint64_t F,
+  const std::array<double, 6>& bounds);
 
 // Defaults and ranges shared by every front end (SimplifyRequest, Simplify.h) and the cores'
 // option structs.
