@@ -348,7 +348,11 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
     ? nullptr
     : static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
   constexpr std::size_t kAhead = 16, kCellAhead = 8;
-  const std::size_t cellBytes = cluster.options.exactSums ? sizeof(CellRec) : kPlainBytes;
+  // (the record's part a face's update touches: the sums, and the smallest corner for the
+  // sampled-vertex fallback)
+  const std::size_t cellBytes = cluster.options.fallback == ClusterFallback::SampledVertex
+    ? sizeof(CellRec)
+    : (cluster.options.exactSums ? offsetof(CellRec, first) : kPlainBytes);
   for (std::size_t t = 0; t < count; ++t)
   {
     if ((t & 4095) == 4095)

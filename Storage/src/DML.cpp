@@ -29,13 +29,14 @@ namespace
 {
 // Blocks from this size on get huge pages (two of 2 MiB at least).
 constexpr std::uint64_t kHugeBlockBytes = std::uint64_t(4) << 20;
+constexpr std::size_t kHugePageBytes = std::size_t(2) << 20;
 
 // In-core blocks are accessed at random (rings, quadrics, candidates): on large blocks 2 MiB
 // pages save most TLB misses (the kernel's "madvise" THP mode leaves them off otherwise).
 void AdviseHugePages(void* p, std::uint64_t bytes)
 {
 #ifdef MADV_HUGEPAGE
-  constexpr std::uint64_t kHuge = std::uint64_t(2) << 20;
+  constexpr std::uint64_t kHuge = kHugePageBytes;
   if (!p || bytes < kHugeBlockBytes)
   {
     return;
@@ -801,11 +802,15 @@ void DML::Impl::ResizeInCore(Block& b, std::uint64_t count)
   // A block of huge-page size moves to fresh memory advised for huge pages (realloc would move
   // its small pages as they are): the cell records of a clustering grow this way, and are then
   // accessed at random (in a shuffled input a TLB miss each on small pages; Lucy-size
-  // clustering 1.4 s faster, docs/benchmarks.md).
+  // clustering 1.4 s faster, docs/benchmarks.md). It starts on a huge page, so records of a
+  // power-of-two size start on a cache line (cluster records: a face's update in two lines).
   void* p = nullptr;
   if (cap >= kHugeBlockBytes)
   {
-    p = std::malloc(cap);
+    if (::posix_memalign(&p, kHugePageBytes, cap) != 0)
+    {
+      p = nullptr;
+    }
     if (p)
     {
       AdviseHugePages(p, cap);

@@ -182,19 +182,22 @@ struct CellRec
   std::uint64_t corners;   // corners of faces in the cell (the mean's count)
   std::uint64_t triangles; // candidate output triangles whose smallest cell is this one; later
                            // the end of its bucket
-  float first[3]; // its lexicographically smallest corner (the paper's sampled-vertex fallback)
-  std::uint32_t vertices; // input vertices in the cell (the point data's mean)
   // The cell's plane quadric sums (Quadric.h) about FixedUnits::centre, and the sum of its faces'
   // corners: exact (q and sum; FixedUnits::position from the grid's origin), or in doubles
-  // (plain). The counters come first, so that a face's update with plain sums touches the
-  // record's first kPlainBytes (3 cache lines, not 4).
+  // (plain). What a face's update touches comes first: with plain sums the record's first
+  // kPlainBytes (120), two cache lines of a record that starts on one (256-byte records, in
+  // blocks aligned to cache lines: DML::Resize).
   union
   {
     FixedQuadric q;
     PlainSums plain;
   };
   FixedSum sum[3];
+  float first[3]; // its lexicographically smallest corner (the paper's sampled-vertex fallback)
+  std::uint32_t vertices; // input vertices in the cell (the point data's mean)
+  std::uint8_t pad[16];   // (to 256 bytes: a record per four cache lines)
 };
+static_assert(sizeof(CellRec) == 256, "CellRec: four cache lines");
 constexpr std::size_t kPlainBytes = offsetof(CellRec, plain) + sizeof(PlainSums);
 
 struct KeySlot
