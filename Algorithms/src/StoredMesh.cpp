@@ -73,6 +73,17 @@ std::uint64_t Spread21(std::uint64_t x)
   return x;
 }
 
+// The bits of the numbers below n (at least 1): a SortByKey key's.
+int BitsFor(std::uint64_t n)
+{
+  int bits = 1;
+  while (bits < 64 && ((n - 1) >> bits) != 0)
+  {
+    ++bits;
+  }
+  return bits;
+}
+
 // Rotates a triangle so that its lowest vertex comes first (its orientation is kept).
 template <class Tri>
 void LowestFirst(Tri& t)
@@ -495,9 +506,9 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       }
       keys.Write(first, n, recs.data());
     });
-    storage::Sort(this->dml_, keys,
+    storage::SortByKey(this->dml_, keys,
       [](const KeyRec& a, const KeyRec& b) { return a.key != b.key ? a.key < b.key : a.old < b.old; },
-      step(2.0 * double(V) * sizeof(KeyRec)), threads);
+      [](const KeyRec& r) { return r.key; }, 63, step(2.0 * double(V) * sizeof(KeyRec)), threads);
     std::vector<OldNew> map;
     // In slices, the (old, new) pairs go straight to their slice of the inverse (slice b holds
     // the old indices [b sliceLength, (b + 1) sliceLength), so it starts there), through a
@@ -564,9 +575,10 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
   }
   else if (!newOf)
   {
-    storage::Sort(this->dml_, inverse,
+    storage::SortByKey(this->dml_, inverse,
       [](const OldNew& a, const OldNew& b) { return a.old < b.old; },
-      step(2.0 * double(V) * sizeof(OldNew)), threads);
+      [](const OldNew& x) { return x.old; }, BitsFor(V), step(2.0 * double(V) * sizeof(OldNew)),
+      threads);
   }
 
   // 3. Point data, 16 words at a time: (new index, words) in old order, sorted by new index.
@@ -601,9 +613,10 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         }
         moved.Write(first, n, recs.data());
       }
-      storage::Sort(this->dml_, moved,
+      storage::SortByKey(this->dml_, moved,
         [](const AttrRec& a, const AttrRec& b) { return a.now < b.now; },
-        step(2.0 * double(V) * sizeof(AttrRec)), threads);
+        [](const AttrRec& r) { return r.now; }, BitsFor(V), step(2.0 * double(V) * sizeof(AttrRec)),
+        threads);
       for (std::uint64_t first = 0; first < V; first += ac)
       {
         progress.Poll();
@@ -765,7 +778,8 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     auto byVertex = [](const Corner& a, const Corner& b) {
       return (std::uint64_t(a.v) << 32 | a.face) < (std::uint64_t(b.v) << 32 | b.face);
     };
-    storage::Sort(this->dml_, corners, byVertex, step(2.0 * 3.0 * double(T) * sizeof(Corner)), threads);
+    storage::SortByKey(this->dml_, corners, byVertex, [](const Corner& c) { return c.v; },
+      BitsFor(V), step(2.0 * 3.0 * double(T) * sizeof(Corner)), threads);
     std::vector<OldNew> map;
     std::uint64_t mapFirst = 0;
     Scan(corners, 3 * T, cs, [&](Corner* c, std::uint64_t first, std::uint64_t n) {
@@ -788,7 +802,8 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     auto byFace = [](const Corner& a, const Corner& b) {
       return (std::uint64_t(a.face) << 2 | a.k) < (std::uint64_t(b.face) << 2 | b.k);
     };
-    storage::Sort(this->dml_, corners, byFace, step(2.0 * 3.0 * double(T) * sizeof(Corner)), threads);
+    storage::SortByKey(this->dml_, corners, byFace, [](const Corner& c) { return c.face; },
+      BitsFor(T), step(2.0 * 3.0 * double(T) * sizeof(Corner)), threads);
     Scan(corners, 3 * T, cs, [&](const Corner* c, std::uint64_t first, std::uint64_t n) {
       tick(first);
       tris.resize(static_cast<std::size_t>(n / 3));
@@ -804,13 +819,15 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     }, 3 * (kChunk / 3)); // (whole faces per chunk)
   }
   // 5. Faces (each rotated to start at its lowest vertex, orientation kept) by their vertices.
-  storage::Sort(this->dml_, this->triangles_,
+  //    (out of core by distribution to ranges of their lowest vertex: storage::SortByKey)
+  storage::SortByKey(this->dml_, this->triangles_,
     [](const Triangle& a, const Triangle& b) {
       const std::uint64_t ka = std::uint64_t(a.v[0]) << 32 | a.v[1];
       const std::uint64_t kb = std::uint64_t(b.v[0]) << 32 | b.v[1];
       return ka != kb ? ka < kb : a.v[2] < b.v[2];
     },
-    step(2.0 * double(T) * sizeof(Triangle)), threads);
+    [](const Triangle& t) { return t.v[0]; }, BitsFor(V), step(2.0 * double(T) * sizeof(Triangle)),
+    threads);
   return path;
 }
 

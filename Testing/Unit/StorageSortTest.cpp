@@ -1,4 +1,4 @@
-// storage::Sort against std::sort: in core and out of core at budgets from 64 KiB up, on random
+// storage::Sort and SortByKey against std::sort: in core and out of core at budgets from 64 KiB up, on random
 // and adversarial keys (duplicates, sorted, reversed, organ pipe, all equal, a median-of-three
 // killer), with the I/O it does, the memory it holds and an abort in the middle.
 #include "StorageTestUtil.h"
@@ -333,6 +333,306 @@ TEST(StorageSort, TooSmallABudgetIsAClearError)
     EXPECT_NE(std::string(e.what()).find("too few to sort"), std::string::npos) << e.what();
   }
   EXPECT_EQ(dml.GetStats().fileBytes, 100000u * 8) << "the merge's block is closed again";
+}
+
+// SortByKey: the same result as std::sort at every budget and on every kind of keys; by
+// distribution where the keys spread, by merges where they crowd.
+struct KeyedRun
+{
+  SortRun run;
+  SortMethod method = SortMethod::InMemory;
+};
+
+KeyedRun SortByKeyWithBudget(const std::vector<std::uint64_t>& in, std::uint64_t budget,
+  const std::string& dir, int keyBits = 64, const SortPoll& poll = {})
+{
+  Profile p;
+  p.directories = { dir };
+  p.memoryBudget = budget;
+  p.policy = budget ? ModePolicy::OutOfCore : ModePolicy::Automatic;
+  DML dml;
+  dml.Config(p);
+  Array<std::uint64_t> a(dml, in.size());
+  a.Write(0, in.size(), in.data());
+  KeyedRun r;
+  r.run.fileBytesBefore = dml.GetStats().fileBytes;
+  r.run.blockBytes = in.size() * sizeof(std::uint64_t);
+  const Stats before = dml.GetStats();
+  r.method = SortByKey(
+    dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+    [](std::uint64_t x) { return x; }, keyBits, poll);
+  r.run.stats = dml.GetStats();
+  r.run.stats.bytesRead -= before.bytesRead;
+  r.run.stats.bytesWritten -= before.bytesWritten;
+  r.run.out.resize(in.size());
+  a.Read(0, in.size(), r.run.out.data());
+  return r;
+}
+
+TEST(StorageSortByKey, EqualsStdSortAtEveryBudget)
+{
+  TempDir tmp;
+  for (std::uint64_t budget : { 0ull, 64ull << 10, 256ull << 10, 1ull << 20, 8ull << 20 })
+  {
+    for (const char* kind :
+      { "random", "duplicates", "sorted", "reversed", "organpipe", "equal", "sawtooth", "killer" })
+    {
+      for (std::uint64_t n : { std::uint64_t(2), std::uint64_t(1000), std::uint64_t(250000) })
+      {
+        const auto in = Keys(kind, n, budget + n + 1);
+        auto expect = in;
+        std::sort(expect.begin(), expect.end());
+        const KeyedRun r = SortByKeyWithBudget(in, budget, tmp.Path());
+        const std::string what = std::string(kind) + " n=" + std::to_string(n) +
+          " budget=" + std::to_string(budget);
+        EXPECT_TRUE(r.run.out == expect) << what;
+        EXPECT_EQ(r.run.stats.fileBytes, r.run.fileBytesBefore) << what;
+        if (budget)
+        {
+          EXPECT_EQ(r.run.stats.mode, Mode::OutOfCore) << what;
+          EXPECT_LE(r.run.stats.peakBytes, budget) << what;
+        }
+        else
+        {
+          EXPECT_EQ(r.method, SortMethod::InMemory) << what;
+        }
+      }
+    }
+  }
+}
+
+// Keys that spread are distributed: a count, a distribution and the buckets' sorts are three
+// reads and two writes of the data; keys crowded into one range of the key fall back to merging.
+TEST(StorageSortByKey, DistributesSpreadKeysAndMergesCrowdedOnes)
+{
+  TempDir tmp;
+  const std::uint64_t n = 500000; // 4 MB
+  for (const char* kind : { "random", "sorted", "reversed", "organpipe" })
+  {
+    const auto in = Keys(kind, n, 9);
+    auto expect = in;
+    std::sort(expect.begin(), expect.end());
+    // (the key's bits: the largest key's)
+    int bits = 1;
+    while (bits < 64 && (*std::max_element(in.begin(), in.end()) >> bits) != 0)
+    {
+      ++bits;
+    }
+    const KeyedRun r = SortByKeyWithBudget(in, 1 << 20, tmp.Path(), bits);
+    EXPECT_EQ(r.method, SortMethod::Distribution) << kind;
+    EXPECT_TRUE(r.run.out == expect) << kind;
+    const double written = double(r.run.stats.bytesWritten) / double(r.run.blockBytes);
+    const double read = double(r.run.stats.bytesRead) / double(r.run.blockBytes);
+    EXPECT_GE(written, 1.9) << kind;
+    EXPECT_LE(written, 2.2) << kind;
+    EXPECT_LE(read, 3.3) << kind;
+  }
+  for (const char* kind : { "equal", "duplicates" })
+  {
+    const auto in = Keys(kind, n, 9);
+    auto expect = in;
+    std::sort(expect.begin(), expect.end());
+    const KeyedRun r = SortByKeyWithBudget(in, 1 << 20, tmp.Path());
+    EXPECT_EQ(r.method, SortMethod::Merge) << kind;
+    EXPECT_TRUE(r.run.out == expect) << kind;
+  }
+  // Too many buckets for a page of write buffer each: merged.
+  const auto in = Keys("random", 4000000, 3); // 32 MB at 64 KiB
+  auto expect = in;
+  std::sort(expect.begin(), expect.end());
+  const KeyedRun r = SortByKeyWithBudget(in, 64 << 10, tmp.Path());
+  EXPECT_EQ(r.method, SortMethod::Merge);
+  EXPECT_TRUE(r.run.out == expect);
+}
+
+// A key that is a prefix of the order (faces by their first vertex): the same bytes as std::sort
+// in core and out of core.
+TEST(StorageSortByKey, SameBytesAsSortWithAPrefixKey)
+{
+  TempDir tmp;
+  const std::uint64_t n = 200000;
+  std::mt19937 rng(13);
+  std::vector<Face> in(n);
+  for (auto& f : in)
+  {
+    f = { static_cast<std::uint32_t>(rng() % 5000), static_cast<std::uint32_t>(rng() % 3),
+      static_cast<std::uint32_t>(rng()) };
+  }
+  auto expect = in;
+  std::sort(expect.begin(), expect.end(), FaceLess);
+  // (at 96 KiB the buckets are too many: merged)
+  for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(96) << 10, std::uint64_t(2) << 20 })
+  {
+    Profile p;
+    p.directories = { tmp.Path() };
+    p.memoryBudget = budget;
+    p.policy = budget ? ModePolicy::OutOfCore : ModePolicy::Automatic;
+    DML dml;
+    dml.Config(p);
+    Array<Face> a(dml, n);
+    a.Write(0, n, in.data());
+    const SortMethod m = SortByKey(dml, a, FaceLess, [](const Face& f) { return f.a; }, 13);
+    EXPECT_EQ(m,
+      budget == 0 ? SortMethod::InMemory
+                  : (budget < (1 << 20) ? SortMethod::Merge : SortMethod::Distribution))
+      << budget;
+    std::vector<Face> out(n);
+    a.Read(0, n, out.data());
+    EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0) << budget;
+  }
+}
+
+// An abort leaves the array as it was (out of core) or a permutation (in core), with no working
+// memory and no extra block held; progress is monotone and reaches 1, also when it merges.
+TEST(StorageSortByKey, AbortAndProgress)
+{
+  TempDir tmp;
+  for (const char* kind : { "random", "equal" })
+  {
+    for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(1) << 20 })
+    {
+      const std::uint64_t n = 300000;
+      const auto in = Keys(kind, n, 5);
+      for (int stopAt : { 1000000, 1, 2, 4 })
+      {
+        KeysInDml k(in, budget, tmp.Path());
+        const Stats before = k.dml.GetStats();
+        const std::uint64_t spareBefore = k.dml.SpareMemory(4);
+        int calls = 0;
+        double last = 0;
+        bool monotone = true;
+        bool stopped = false;
+        SortMethod method = SortMethod::InMemory;
+        try
+        {
+          method = SortByKey(
+            k.dml, k.a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+            [](std::uint64_t x) { return x; }, 64, [&](double f) {
+              monotone = monotone && f >= last && f <= 1.0;
+              last = f;
+              if (++calls == stopAt)
+              {
+                throw std::runtime_error("stop");
+              }
+            });
+        }
+        catch (const std::runtime_error&)
+        {
+          stopped = true;
+        }
+        const std::string what = std::string(kind) + " budget " + std::to_string(budget) +
+          " stop " + std::to_string(stopAt);
+        EXPECT_TRUE(monotone) << what;
+        EXPECT_EQ(k.dml.GetStats().fileBytes, before.fileBytes) << what;
+        EXPECT_EQ(k.dml.SpareMemory(4), spareBefore) << what;
+        std::vector<std::uint64_t> out(n);
+        k.a.Read(0, n, out.data());
+        auto sorted = in;
+        std::sort(sorted.begin(), sorted.end());
+        if (!stopped)
+        {
+          EXPECT_EQ(method,
+            budget == 0 ? SortMethod::InMemory
+                        : (std::string(kind) == "random" ? SortMethod::Distribution
+                                                         : SortMethod::Merge))
+            << what;
+          EXPECT_NEAR(last, 1.0, 1e-9) << what;
+          EXPECT_TRUE(out == sorted) << what;
+          continue;
+        }
+        if (budget && std::string(kind) == "random")
+        {
+          EXPECT_TRUE(out == in) << "the array changed: " << what;
+        }
+        std::sort(out.begin(), out.end());
+        EXPECT_TRUE(out == sorted) << what;
+      }
+    }
+  }
+}
+
+// The in-memory radix sort on one and two threads: every kind of keys, the full 64-bit range, keys
+// near the top, and ties of the key ordered by less; an abort on two threads leaves a permutation.
+TEST(StorageSortByKey, RadixSortInMemoryEqualsStdSort)
+{
+  const std::uint64_t n = (std::uint64_t(1) << 21) + 3;
+  auto less = [](std::uint64_t x, std::uint64_t y) { return x < y; };
+  auto id = [](std::uint64_t x) { return x; };
+  for (const char* kind :
+    { "random", "duplicates", "sorted", "reversed", "organpipe", "equal", "sawtooth", "killer" })
+  {
+    auto in = Keys(kind, n, 21);
+    if (std::string(kind) == "sawtooth")
+    {
+      for (auto& k : in)
+      {
+        k = ~std::uint64_t(0) - k; // (near the top of the range)
+      }
+    }
+    auto expect = in;
+    std::sort(expect.begin(), expect.end());
+    for (int threads : { 1, 2 })
+    {
+      auto out = in;
+      double last = 0;
+      detail::RadixSortByKey(out.data(), n, id, less, [&](double f) { last = f; }, threads);
+      EXPECT_TRUE(out == expect) << kind << " threads " << threads;
+      EXPECT_NEAR(last, 1.0, 1e-9) << kind;
+    }
+  }
+  // Faces by their first vertex (many ties, ordered by the rest).
+  std::mt19937 rng(17);
+  std::vector<Face> faces(n);
+  for (auto& f : faces)
+  {
+    f = { static_cast<std::uint32_t>(rng() % 100000), static_cast<std::uint32_t>(rng() % 3),
+      static_cast<std::uint32_t>(rng()) };
+  }
+  auto expect = faces;
+  std::sort(expect.begin(), expect.end(), FaceLess);
+  auto first = [](const Face& f) { return std::uint64_t(f.a); };
+  for (int threads : { 1, 2 })
+  {
+    auto out = faces;
+    detail::RadixSortByKey(out.data(), n, first, FaceLess, {}, threads);
+    EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0) << threads;
+  }
+  // An abort in the middle of the two threads' ranges.
+  auto in = Keys("random", n, 23);
+  auto out = in;
+  int calls = 0;
+  EXPECT_THROW(detail::RadixSortByKey(out.data(), n, id, less,
+                 [&](double) {
+                   if (++calls == 20)
+                   {
+                     throw std::runtime_error("stop");
+                   }
+                 },
+                 2),
+    std::runtime_error);
+  std::sort(in.begin(), in.end());
+  std::sort(out.begin(), out.end());
+  EXPECT_TRUE(out == in);
+}
+
+TEST(StorageSortByKey, AKeyAboveItsBitsIsAnError)
+{
+  TempDir tmp;
+  const auto in = Keys("random", 100000, 2);
+  KeysInDml k(in, 256 << 10, tmp.Path());
+  const std::uint64_t fileBytes = k.dml.GetStats().fileBytes;
+  EXPECT_THROW(SortByKey(
+                 k.dml, k.a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+                 [](std::uint64_t x) { return x; }, 20),
+    std::logic_error);
+  EXPECT_EQ(k.dml.GetStats().fileBytes, fileBytes);
+  std::vector<std::uint64_t> out(in.size());
+  k.a.Read(0, in.size(), out.data());
+  EXPECT_TRUE(out == in);
+  EXPECT_THROW(SortByKey(
+                 k.dml, k.a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+                 [](std::uint64_t x) { return x; }, 0),
+    std::invalid_argument);
 }
 
 } // namespace

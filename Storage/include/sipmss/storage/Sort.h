@@ -22,6 +22,7 @@
 #include <atomic>
 #include <cstdint>
 #include <functional>
+#include <stdexcept>
 #include <string>
 #include <thread>
 #include <utility>
@@ -56,6 +57,15 @@ template <class T, class Less>
 void SortInMemory(T* data, std::uint64_t n, Less& less, const SortPoll& poll, double from,
   double span)
 {
+  if (n == 0)
+  {
+    // (e.g. SortInMemoryParallel's sides when every element equals the pivot)
+    if (poll)
+    {
+      poll(from + span);
+    }
+    return;
+  }
   constexpr std::uint64_t kLeaf = std::uint64_t(1) << 16;
   struct Part
   {
@@ -357,6 +367,372 @@ void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {}, int t
   {
     array.Swap(other); // the sorted data is in `other`'s block; the old one closes with it
   }
+}
+
+
+// How SortByKey sorted: in memory, by distribution to key ranges, or by Sort's merges.
+enum class SortMethod
+{
+  InMemory,
+  Distribution,
+  Merge
+};
+
+namespace detail
+{
+// Sorting [data, data + n) by key and then by less (key never decreasing along less: the order
+// is less's): an in-place most-significant-digit radix sort on the key above its least value,
+// eight bits a level (American flag sort: a count, then each element swapped into its digit's
+// place); ranges of at most 64 elements and ranges of one key are finished by std::sort. At most
+// eight levels of recursion, 4 KiB each; no heap memory.
+//
+// One level: the elements ordered by their digit ((key - lo) >> shift) & 255; ends[d] is the end
+// of digit d's range (ends[-1] = 0).
+template <class T, class Key>
+void RadixPartition(T* data, std::size_t n, Key& key, std::uint64_t lo, int shift,
+  std::size_t (&ends)[256])
+{
+  auto digit = [&](const T& x) { return static_cast<std::size_t>(((key(x) - lo) >> shift) & 255); };
+  std::size_t head[256] = {};
+  for (std::size_t i = 0; i < n; ++i)
+  {
+    ++head[digit(data[i])];
+  }
+  std::size_t at = 0;
+  for (std::size_t d = 0; d < 256; ++d)
+  {
+    const std::size_t c = head[d];
+    head[d] = at;
+    at += c;
+    ends[d] = at;
+  }
+  for (std::size_t d = 0; d < 256; ++d)
+  {
+    while (head[d] < ends[d])
+    {
+      T x = data[head[d]];
+      std::size_t e = digit(x);
+      while (e != d)
+      {
+        std::swap(x, data[head[e]++]);
+        e = digit(x);
+      }
+      data[head[d]++] = x;
+    }
+  }
+}
+
+template <class T, class Key, class Less>
+void RadixSortLevel(T* data, std::size_t n, Key& key, Less& less, std::uint64_t lo, int shift)
+{
+  if (n <= 64)
+  {
+    std::sort(data, data + n, less);
+    return;
+  }
+  std::size_t ends[256];
+  RadixPartition(data, n, key, lo, shift, ends);
+  std::size_t begin = 0;
+  for (std::size_t d = 0; d < 256; begin = ends[d++])
+  {
+    if (ends[d] - begin < 2)
+    {
+      continue;
+    }
+    if (shift == 0)
+    {
+      std::sort(data + begin, data + ends[d], less); // (one key: less orders them)
+    }
+    else
+    {
+      RadixSortLevel(data + begin, ends[d] - begin, key, less, lo, shift - 8);
+    }
+  }
+}
+
+// The whole sort. From 2^20 elements with two threads (ResolveThreads), the first level's 256
+// ranges are sorted by both threads, each taking the next range; the calling thread polls
+// between its ranges (a throw stops the helper at its next range; the data stay a permutation).
+template <class T, class Key, class Less>
+void RadixSortByKey(
+  T* data, std::uint64_t n, Key& key, Less& less, const SortPoll& poll = {}, int threads = 1)
+{
+  if (n < 2)
+  {
+    return;
+  }
+  std::uint64_t lo = key(data[0]), hi = lo;
+  for (std::uint64_t i = 1; i < n; ++i)
+  {
+    const std::uint64_t k = key(data[i]);
+    lo = std::min(lo, k);
+    hi = std::max(hi, k);
+  }
+  int bits = 0;
+  while (bits < 64 && ((hi - lo) >> bits) != 0)
+  {
+    ++bits;
+  }
+  if (bits == 0)
+  {
+    SortInMemoryParallel(data, n, less, poll, threads); // (one key)
+    return;
+  }
+  const int shift = (bits - 1) / 8 * 8;
+  if (n < (std::uint64_t(1) << 20) || ResolveThreads(threads) < 2)
+  {
+    RadixSortLevel(data, static_cast<std::size_t>(n), key, less, lo, shift);
+    if (poll)
+    {
+      poll(1.0);
+    }
+    return;
+  }
+  std::size_t ends[256];
+  RadixPartition(data, static_cast<std::size_t>(n), key, lo, shift, ends);
+  std::atomic<std::size_t> next{ 0 };
+  std::atomic<std::uint64_t> done{ 0 };
+  std::atomic<bool> stop{ false };
+  auto work = [&](bool polls) {
+    for (std::size_t d; !stop.load(std::memory_order_relaxed) && (d = next++) < 256;)
+    {
+      const std::size_t begin = d ? ends[d - 1] : 0, c = ends[d] - begin;
+      if (c > 1)
+      {
+        if (shift == 0)
+        {
+          std::sort(data + begin, data + ends[d], less);
+        }
+        else
+        {
+          RadixSortLevel(data + begin, c, key, less, lo, shift - 8);
+        }
+      }
+      const std::uint64_t now = done += c;
+      if (polls && poll)
+      {
+        poll(double(now) / double(n));
+      }
+    }
+  };
+  std::thread helper([&] { work(false); });
+  try
+  {
+    work(true);
+  }
+  catch (...)
+  {
+    stop = true;
+    helper.join();
+    throw;
+  }
+  helper.join();
+  if (poll)
+  {
+    poll(1.0);
+  }
+}
+
+// SortByKey's distribution (out of core); false, with nothing changed and nothing held, when the
+// keys are too crowded or the data too large for one distribution within the working memory.
+template <class T, class Less, class Key>
+bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int keyBits,
+  const SortPoll& poll, int threads, double& told)
+{
+  const std::uint64_t n = array.Size();
+  const std::uint64_t pageElements = std::max<std::uint64_t>(1, dml.PageBytes() / sizeof(T));
+  Array<T> other(dml, n); // (opened before the memory is taken, as Sort's)
+  // The table: 2^binBits counts of equal ranges of the key (then each range's bucket) and three
+  // numbers per bucket (at most one bucket per range), within 1/16 of the working memory.
+  const std::uint64_t workBytes = dml.SpareMemory(4) / 8 * 7;
+  int binBits = std::min(keyBits, 16);
+  while (binBits > 4 && (std::uint64_t(4 * sizeof(std::uint64_t)) << binBits) > workBytes / 16)
+  {
+    --binBits;
+  }
+  const int shift = keyBits - binBits;
+  const std::size_t bins = std::size_t(1) << binBits;
+  CountedBuffer<std::uint64_t> table(dml, 4 * bins + 1);
+  std::uint64_t* count = table.Data(); // per range; later its bucket
+  std::uint64_t* start = count + bins; // per bucket (and the end)
+  std::uint64_t* at = start + bins + 1;
+  std::uint64_t* fill = at + bins;
+  const std::uint64_t spare = std::min<std::uint64_t>(n, dml.SpareMemory(4) / 8 * 7 / sizeof(T));
+  if (spare < 2 * pageElements)
+  {
+    return false;
+  }
+  CountedBuffer<T> buffer(dml, static_cast<std::size_t>(spare));
+  T* buf = buffer.Data();
+  auto rangeOf = [&](const T& x) {
+    const std::uint64_t k = key(x);
+    if (keyBits < 64 && (k >> keyBits) != 0)
+    {
+      throw std::logic_error("sipmss::storage::SortByKey: a key of more than " +
+        std::to_string(keyBits) + " bits");
+    }
+    return static_cast<std::size_t>(shift >= 64 ? 0 : k >> shift);
+  };
+  // Progress: the count is one read, the distribution a read and a write, the buckets a read, a
+  // sort and a write.
+  auto tell = [&poll, &told](double f) {
+    told = f;
+    if (poll)
+    {
+      poll(f);
+    }
+  };
+
+  // 1. The count of each key range.
+  std::fill(count, count + bins, 0);
+  for (std::uint64_t first = 0; first < n; first += spare)
+  {
+    const std::uint64_t c = std::min(spare, n - first);
+    array.Read(first, c, buf);
+    for (std::uint64_t i = 0; i < c; ++i)
+    {
+      ++count[rangeOf(buf[i])];
+    }
+    tell(0.15 * double(first + c) / double(n));
+  }
+  // 2. Buckets: runs of consecutive ranges that fit the buffer, each range in one bucket; each
+  //    bucket's write buffer holds a page at least (whole pages are written, no page is read).
+  std::size_t buckets = 0; // (closed so far)
+  start[0] = 0;
+  std::uint64_t held = 0; // (in the open bucket)
+  for (std::size_t r = 0; r < bins; ++r)
+  {
+    if (count[r] > spare)
+    {
+      return false; // (crowded keys)
+    }
+    if (held + count[r] > spare)
+    {
+      start[buckets + 1] = start[buckets] + held;
+      ++buckets;
+      held = 0;
+    }
+    held += count[r];
+    count[r] = buckets; // (the range's bucket)
+  }
+  start[buckets + 1] = start[buckets] + held;
+  ++buckets;
+  const std::uint64_t readElements = std::min(spare / 4, 2 * pageElements);
+  const std::uint64_t per = (spare - readElements) / buckets;
+  if (per < pageElements)
+  {
+    return false; // (a second level of buckets would be needed: merging is as good then)
+  }
+
+  // 3. Distribution into `other`: each bucket's elements in their order in the array.
+  T* in = buf + buckets * per;
+  for (std::size_t b = 0; b < buckets; ++b)
+  {
+    at[b] = start[b];
+    fill[b] = 0;
+  }
+  // Writes bucket b's buffer up to the last page boundary (all of it when `all`): after the
+  // first write a bucket writes whole pages only.
+  auto flush = [&](std::size_t b, bool all) {
+    std::uint64_t c = fill[b];
+    if (!all)
+    {
+      const std::uint64_t aligned = (at[b] + fill[b]) / pageElements * pageElements;
+      c = aligned > at[b] ? aligned - at[b] : fill[b];
+    }
+    if (c == 0)
+    {
+      return;
+    }
+    T* region = buf + b * per;
+    other.Write(at[b], c, region);
+    at[b] += c;
+    fill[b] -= c;
+    std::copy(region + c, region + c + fill[b], region);
+  };
+  for (std::uint64_t first = 0; first < n; first += readElements)
+  {
+    const std::uint64_t c = std::min(readElements, n - first);
+    array.Read(first, c, in);
+    for (std::uint64_t i = 0; i < c; ++i)
+    {
+      const std::size_t b = static_cast<std::size_t>(count[rangeOf(in[i])]);
+      buf[b * per + fill[b]++] = in[i];
+      if (fill[b] == per)
+      {
+        flush(b, false);
+      }
+    }
+    tell(0.15 + 0.35 * double(first + c) / double(n));
+  }
+  for (std::size_t b = 0; b < buckets; ++b)
+  {
+    flush(b, true);
+  }
+
+  // 4. Each bucket sorted in memory, in place in `other`.
+  for (std::size_t b = 0; b < buckets; ++b)
+  {
+    const std::uint64_t c = start[b + 1] - start[b];
+    if (c > 0)
+    {
+      other.Read(start[b], c, buf);
+      RadixSortByKey(buf, c, key, less, SortPoll(), threads);
+      other.Write(start[b], c, buf);
+    }
+    tell(0.5 + 0.5 * double(start[b + 1]) / double(n));
+  }
+  array.Swap(other); // (the old order closes with `other`)
+  return true;
+}
+} // namespace detail
+
+// Sort with a key: key(x) is a number below 2^keyBits that never decreases along `less`
+// (less(a, b) implies key(a) <= key(b)), e.g. an element's leading field. The result is Sort's
+// (docs/architecture.md, "Sorting").
+// - In core: an in-place radix sort on the key (detail::RadixSortByKey; two threads from 2^20
+//   elements), ties of the key ordered by `less`.
+// - Out of core, when the key spreads the elements, a distribution instead of Sort's merges:
+//   1. one read counts the elements of each of up to 2^16 equal ranges of the key;
+//   2. consecutive ranges are grouped into buckets that fit the working memory;
+//   3. one read and write distributes the elements to their bucket's place in a second block,
+//      through a write buffer per bucket that writes whole pages;
+//   4. each bucket is read, radix-sorted in memory and written back; the blocks are exchanged.
+//   Three reads and two writes of the data, no merge (whose heap compares an element of a
+//   Lucy-size array about 28 times). When one range alone holds more than the working memory
+//   (crowded keys), or the buckets are too many for a page of write buffer each (an array larger
+//   than about spare^2 / page bytes), it sorts as Sort does, after the count.
+// An abort (the poll throws) leaves the array a permutation of its elements (out of core: as it
+// was) and every temporary block closed.
+template <class T, class Less, class Key>
+SortMethod SortByKey(DML& dml, Array<T>& array, Less less, Key key, int keyBits,
+  const SortPoll& poll = {}, int threads = 0)
+{
+  if (keyBits < 1 || keyBits > 64)
+  {
+    throw std::invalid_argument("sipmss::storage::SortByKey: keyBits must be 1 to 64");
+  }
+  if (array.Size() < 2)
+  {
+    return SortMethod::InMemory;
+  }
+  if (T* base = static_cast<T*>(dml.BasePointer(array.Id())))
+  {
+    detail::RadixSortByKey(base, array.Size(), key, less, poll, threads);
+    return SortMethod::InMemory;
+  }
+  double told = 0; // (the progress the count reported)
+  if (detail::SortByDistribution(dml, array, less, key, keyBits, poll, threads, told))
+  {
+    return SortMethod::Distribution;
+  }
+  SortPoll rest;
+  if (poll)
+  {
+    rest = [&poll, told](double f) { poll(told + (1.0 - told) * f); };
+  }
+  Sort(dml, array, less, rest, threads);
+  return SortMethod::Merge;
 }
 
 } // namespace sipmss::storage
