@@ -12,6 +12,10 @@
 #include <sstream>
 #include <string>
 
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
+
 namespace sipmss::algorithms
 {
 namespace
@@ -272,6 +276,12 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     Prefix(stats.phases, from1, "stage 1 ");
   }
   dml.Reconfigure(); // stage 1's input-sized blocks are gone
+#if defined(__GLIBC__)
+  // Stage 1's reader thread (Prefetched) freed its chunk buffers into a malloc arena of its own,
+  // which keeps them resident; stage 2 would add its memory on top (the 400M-triangle file at
+  // 8 MB: 0.8 MB more peak RSS than the clustering alone).
+  ::malloc_trim(0);
+#endif
 
   // Stage 2: edge collapse on the DML-resident clustered mesh.
   DecimateOptions dopt = StageTwoOptions(options, s1, dml);
