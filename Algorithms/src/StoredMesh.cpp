@@ -428,6 +428,12 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     throw std::length_error("the layout step numbers faces in 32 bits: " + std::to_string(T) +
       " triangles are too many");
   }
+  // (the block was sized by the header's count of polygons, and grown by doubling: the sorts
+  // below take the whole block, so it holds just the triangles)
+  if (this->triangles_.Size() != T)
+  {
+    this->triangles_.Resize(T);
+  }
   // The inverse permutation (for each old index its new one): in memory when it fits the
   // budget's spare memory (then faces are renumbered in one scan), else a block sorted by old
   // index and joined with the faces' corners by sorting them.
@@ -652,6 +658,10 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     if (bucketed)
     {
       sorter.emplace(this->dml_, T, V, lowest, faceLess);
+      if (sorter->OneBucket())
+      {
+        sorter.reset(); // (written in place and sorted by SortByKey, step 5)
+      }
     }
   };
   // (a pass's renumbered faces: to the sorter, else written back in place)

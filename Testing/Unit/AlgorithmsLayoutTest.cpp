@@ -109,13 +109,15 @@ Mesh Grid(int n, bool shuffled)
 }
 
 // announce: the header gives the counts (as a PLY's does; else as a source that cannot).
-MeshSource SourceOf(const Mesh& m, bool announce = true)
+// faces: the header's face count when not the triangles' (a PLY counts polygons, of which the
+// reader drops some and splits others into several triangles).
+MeshSource SourceOf(const Mesh& m, bool announce = true, std::uint64_t faces = 0)
 {
-  return [&m, announce](io::MeshSink& sink, const io::ReadOptions&) {
+  return [&m, announce, faces](io::MeshSink& sink, const io::ReadOptions&) {
     io::MeshHeader h;
     h.format = io::Format::PlyBinaryLE;
     h.vertexCount = announce ? m.xyz.size() / 3 : 0;
-    h.faceCount = announce ? m.tris.size() / 3 : 0;
+    h.faceCount = announce ? (faces ? faces : m.tris.size() / 3) : 0;
     h.layout.scalars = { "s", "t" };
     sink.Begin(h);
     io::VertexChunk c;
@@ -154,7 +156,7 @@ std::vector<std::array<Corner, 3>> Geometry(const std::vector<float>& xyz,
   return out;
 }
 
-void CheckReorderKeepsTheMesh(std::uint64_t budget)
+void CheckReorderKeepsTheMesh(std::uint64_t budget, std::uint64_t announcedFaces = 0)
 {
   const Mesh m = Grid(120, true); // 14,641 vertices, 28,800 triangles
   storage::Profile p;
@@ -163,7 +165,7 @@ void CheckReorderKeepsTheMesh(std::uint64_t budget)
   storage::DML dml;
   dml.Config(p);
   detail::StoredMesh mesh(dml);
-  SourceOf(m)(mesh, io::ReadOptions{});
+  SourceOf(m, true, announcedFaces)(mesh, io::ReadOptions{});
   EXPECT_GT(mesh.Layout().FarFraction(), 0.3); // (random jumps of 14,641 vertices, window 4,096)
   NullProgress progress;
   progress.BeginPhase("test", 1, 0);
@@ -196,6 +198,20 @@ TEST(AlgorithmsLayout, ReorderKeepsTheMeshInCore)
 TEST(AlgorithmsLayout, ReorderKeepsTheMeshOutOfCore)
 {
   CheckReorderKeepsTheMesh(256 << 10);
+}
+
+// A header that counts more faces than come (dropped ones) or fewer (polygons split into
+// triangles, the block then grown past them): the copy's block is longer than its triangles.
+TEST(AlgorithmsLayout, ReorderKeepsTheMeshWhenTheHeaderMiscountsFaces)
+{
+  for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(256) << 10 })
+  {
+    for (std::uint64_t faces : { std::uint64_t(28800 + 1000), std::uint64_t(20000) })
+    {
+      SCOPED_TRACE("budget " + std::to_string(budget) + ", header faces " + std::to_string(faces));
+      CheckReorderKeepsTheMesh(budget, faces);
+    }
+  }
 }
 
 TEST(AlgorithmsLayout, ScannerOrderIsCoherentShuffledIsNot)

@@ -618,7 +618,8 @@ TEST(StorageSortByKey, RadixSortInMemoryEqualsStdSort)
 // from 64 KiB (one bucket, sorted out of core at the end) to 8 MiB (many buckets), with spread
 // keys and with keys crowded into one bucket (that bucket sorted out of core on its own).
 std::vector<Face> SortByBuckets(const std::vector<Face>& in, std::uint64_t keyEnd,
-  std::uint64_t budget, const std::string& dir, std::size_t* buckets = nullptr)
+  std::uint64_t budget, const std::string& dir, std::size_t* buckets = nullptr,
+  bool* oneBucket = nullptr)
 {
   Profile p;
   p.directories = { dir };
@@ -640,7 +641,18 @@ std::vector<Face> SortByBuckets(const std::vector<Face>& in, std::uint64_t keyEn
     {
       *buckets = sorter.Buckets();
     }
-    sorter.Finish(out);
+    if (oneBucket)
+    {
+      *oneBucket = sorter.OneBucket();
+    }
+    double last = 0;
+    bool monotone = true;
+    sorter.Finish(out, [&](double f) {
+      monotone = monotone && f >= last && f <= 1.0 + 1e-12;
+      last = f;
+    });
+    EXPECT_TRUE(monotone);
+    EXPECT_NEAR(last, 1.0, 1e-9);
   }
   EXPECT_EQ(dml.GetStats().fileBytes, fileBytes) << "a temporary block is left";
   EXPECT_LE(dml.GetStats().peakBytes, budget);
@@ -671,12 +683,18 @@ TEST(StorageBucketSorter, EqualsStdSortSpreadAndCrowded)
     for (std::uint64_t budget : { 64ull << 10, 1ull << 20, 8ull << 20 })
     {
       std::size_t buckets = 0;
-      const auto out = SortByBuckets(in, 100000, budget, tmp.Path(), &buckets);
+      bool one = false;
+      const auto out = SortByBuckets(in, 100000, budget, tmp.Path(), &buckets, &one);
       EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0)
         << kind << " budget " << budget << " buckets " << buckets;
       if (budget == (1u << 20))
       {
         EXPECT_GT(buckets, 1u) << "3.6 MB in 1 MiB: several buckets";
+        EXPECT_FALSE(one);
+      }
+      if (budget == (64u << 10))
+      {
+        EXPECT_TRUE(one) << "64 KiB: no room for a table of segments";
       }
     }
   }

@@ -452,9 +452,10 @@ void RadixSortLevel(T* data, std::size_t n, Key& key, Less& less, std::uint64_t 
   }
 }
 
-// The whole sort. From 2^20 elements with two threads (ResolveThreads), the first level's 256
-// ranges are sorted by both threads, each taking the next range; the calling thread polls
-// between its ranges (a throw stops the helper at its next range; the data stay a permutation).
+// The whole sort. From 2^16 elements the first level's 256 ranges are sorted one by one with a
+// poll after each; from 2^20 with two threads (ResolveThreads) by both threads, each taking the
+// next range, the calling thread polling between its ranges (a throw stops the helper at its
+// next range; the data stay a permutation).
 template <class T, class Key, class Less>
 void RadixSortByKey(
   T* data, std::uint64_t n, Key& key, Less& less, const SortPoll& poll = {}, int threads = 1)
@@ -481,7 +482,7 @@ void RadixSortByKey(
     return;
   }
   const int shift = std::max(0, bits - 8); // (the top digit: the key's top eight bits)
-  if (n < (std::uint64_t(1) << 20) || ResolveThreads(threads) < 2)
+  if (n < (std::uint64_t(1) << 16))
   {
     RadixSortLevel(data, static_cast<std::size_t>(n), key, less, lo, shift);
     if (poll)
@@ -490,6 +491,9 @@ void RadixSortByKey(
     }
     return;
   }
+  // (larger: the first level here, then its ranges with a poll after each, on two threads from
+  // 2^20 elements)
+  const bool two = n >= (std::uint64_t(1) << 20) && ResolveThreads(threads) >= 2;
   std::size_t ends[256];
   RadixPartition(data, static_cast<std::size_t>(n), key, lo, shift, ends);
   std::atomic<std::size_t> next{ 0 };
@@ -517,6 +521,11 @@ void RadixSortByKey(
       }
     }
   };
+  if (!two)
+  {
+    work(true);
+    return;
+  }
   std::thread helper([&] { work(false); });
   try
   {
@@ -765,7 +774,7 @@ public:
     // are gone by then), over ranges of the key of a power of two (a key's bucket is a shift).
     const std::uint64_t wanted = std::clamp<std::uint64_t>((n + spare - 1) / spare, 1, keys);
     const std::uint64_t range = (keys + wanted - 1) / wanted;
-    while ((std::uint64_t(2) << this->shift_) <= range)
+    while (this->shift_ < 62 && (std::uint64_t(2) << this->shift_) <= range)
     {
       ++this->shift_;
     }
@@ -875,7 +884,10 @@ public:
             }
           }
         }
-        Sort(this->dml_, alone, this->less_);
+        const double from = double(at) / double(this->n_), span = double(count) / double(this->n_);
+        Sort(this->dml_, alone, this->less_, poll ? SortPoll([&poll, from, span](double f) {
+          poll(from + span * f);
+        }) : SortPoll());
         CountedBuffer<T> chunk(this->dml_, static_cast<std::size_t>(std::min<std::uint64_t>(
           count, std::max<std::uint64_t>(64, this->dml_.SpareMemory(4) / 4 / sizeof(T)))));
         for (std::uint64_t o = 0; o < count; o += chunk.Size())
@@ -895,6 +907,10 @@ public:
   }
 
   std::size_t Buckets() const { return this->buckets_; }
+  // Whether the key's range could not be cut (a table of segments for that many buckets would not
+  // fit the memory): one bucket, sorted at the end by Sort when larger than the memory. A
+  // producer that can write its elements in place and sort them itself does better then.
+  bool OneBucket() const { return this->shift_ < 0; }
 
 private:
   static constexpr std::uint64_t kNone = ~std::uint64_t(0);
