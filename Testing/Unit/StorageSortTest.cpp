@@ -212,26 +212,39 @@ bool FaceLess(const Face& x, const Face& y)
   return x.c < y.c;
 }
 
-TEST(StorageSort, SameBytesInCoreAndOutOfCore)
+// Faces over 5,000 first vertices, 3 second ones and any third: many ties of the first.
+std::vector<Face> RandomFaces(std::uint64_t n, unsigned seed)
 {
-  TempDir tmp;
-  const std::uint64_t n = 200000;
-  std::mt19937 rng(11);
+  std::mt19937 rng(seed);
   std::vector<Face> in(n);
   for (auto& f : in)
   {
     f = { static_cast<std::uint32_t>(rng() % 5000), static_cast<std::uint32_t>(rng() % 3),
       static_cast<std::uint32_t>(rng()) };
   }
+  return in;
+}
+
+// A DML with this budget in dir: out of core when bounded, else automatic.
+void Configure(DML& dml, std::uint64_t budget, const std::string& dir)
+{
+  Profile p;
+  p.directories = { dir };
+  p.memoryBudget = budget;
+  p.policy = budget ? ModePolicy::OutOfCore : ModePolicy::Automatic;
+  dml.Config(p);
+}
+
+TEST(StorageSort, SameBytesInCoreAndOutOfCore)
+{
+  TempDir tmp;
+  const std::uint64_t n = 200000;
+  const std::vector<Face> in = RandomFaces(n, 11);
   std::vector<std::vector<Face>> outs;
   for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(96) << 10, std::uint64_t(2) << 20 })
   {
-    Profile p;
-    p.directories = { tmp.Path() };
-    p.memoryBudget = budget;
-    p.policy = budget ? ModePolicy::OutOfCore : ModePolicy::Automatic;
     DML dml;
-    dml.Config(p);
+    Configure(dml, budget, tmp.Path());
     Array<Face> a(dml, n);
     a.Write(0, n, in.data());
     Sort(dml, a, FaceLess);
@@ -345,12 +358,8 @@ struct KeyedRun
 KeyedRun SortByKeyWithBudget(const std::vector<std::uint64_t>& in, std::uint64_t budget,
   const std::string& dir, int keyBits = 64, const SortPoll& poll = {})
 {
-  Profile p;
-  p.directories = { dir };
-  p.memoryBudget = budget;
-  p.policy = budget ? ModePolicy::OutOfCore : ModePolicy::Automatic;
   DML dml;
-  dml.Config(p);
+  Configure(dml, budget, dir);
   Array<std::uint64_t> a(dml, in.size());
   a.Write(0, in.size(), in.data());
   KeyedRun r;
@@ -450,24 +459,14 @@ TEST(StorageSortByKey, SameBytesAsSortWithAPrefixKey)
 {
   TempDir tmp;
   const std::uint64_t n = 200000;
-  std::mt19937 rng(13);
-  std::vector<Face> in(n);
-  for (auto& f : in)
-  {
-    f = { static_cast<std::uint32_t>(rng() % 5000), static_cast<std::uint32_t>(rng() % 3),
-      static_cast<std::uint32_t>(rng()) };
-  }
+  const std::vector<Face> in = RandomFaces(n, 13);
   auto expect = in;
   std::sort(expect.begin(), expect.end(), FaceLess);
   // (at 96 KiB the buckets are too many: merged)
   for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(96) << 10, std::uint64_t(2) << 20 })
   {
-    Profile p;
-    p.directories = { tmp.Path() };
-    p.memoryBudget = budget;
-    p.policy = budget ? ModePolicy::OutOfCore : ModePolicy::Automatic;
     DML dml;
-    dml.Config(p);
+    Configure(dml, budget, tmp.Path());
     Array<Face> a(dml, n);
     a.Write(0, n, in.data());
     const SortMethod m = SortByKey(dml, a, FaceLess, [](const Face& f) { return f.a; }, 13);
@@ -703,12 +702,8 @@ TEST(StorageBucketSorter, EqualsStdSortSpreadAndCrowded)
 TEST(StorageBucketSorter, WrongCountsAndKeysAreErrors)
 {
   TempDir tmp;
-  Profile p;
-  p.directories = { tmp.Path() };
-  p.memoryBudget = 1 << 20;
-  p.policy = ModePolicy::OutOfCore;
   DML dml;
-  dml.Config(p);
+  Configure(dml, 1 << 20, tmp.Path());
   auto first = [](const Face& f) { return std::uint64_t(f.a); };
   using Sorter = BucketSorter<Face, decltype(first), decltype(&FaceLess)>;
   Array<Face> out(dml, 10);
