@@ -444,7 +444,18 @@ TEST(StorageSortByKey, DistributesSpreadKeysAndMergesCrowdedOnes)
     EXPECT_EQ(r.method, SortMethod::Merge) << kind;
     EXPECT_TRUE(r.run.out == expect) << kind;
   }
-  // Too many buckets for a page of write buffer each: merged.
+  // Buckets whose write buffers hold less than a page (partial pages: read first, then written):
+  // still distributed.
+  {
+    const auto in = Keys("random", 2000000, 4); // 16 MB at 256 KiB
+    auto expect = in;
+    std::sort(expect.begin(), expect.end());
+    const KeyedRun r = SortByKeyWithBudget(in, 256 << 10, tmp.Path());
+    EXPECT_EQ(r.method, SortMethod::Distribution);
+    EXPECT_TRUE(r.run.out == expect);
+    EXPECT_LE(r.run.stats.peakBytes, std::uint64_t(256) << 10);
+  }
+  // Too many buckets for 1/16 of a page of write buffer each: merged.
   const auto in = Keys("random", 4000000, 3); // 32 MB at 64 KiB
   auto expect = in;
   std::sort(expect.begin(), expect.end());

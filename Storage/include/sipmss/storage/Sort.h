@@ -630,9 +630,12 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
   ++buckets;
   const std::uint64_t readElements = std::min(spare / 4, 2 * pageElements);
   const std::uint64_t per = (spare - readElements) / buckets;
-  if (per < pageElements)
+  // A bucket's buffer of a page or more writes whole pages; down to 1/16 of a page its writes
+  // are partial (the page is read first), which still costs less than merging; below that a
+  // second level of buckets would be needed, and merging is as good.
+  if (per < std::max<std::uint64_t>(64, pageElements / 16))
   {
-    return false; // (a second level of buckets would be needed: merging is as good then)
+    return false;
   }
 
   // 3. Distribution into `other`: each bucket's elements in their order in the array.
@@ -707,12 +710,13 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
 //   1. one read counts the elements of each of up to 2^16 equal ranges of the key;
 //   2. consecutive ranges are grouped into buckets that fit the working memory;
 //   3. one read and write distributes the elements to their bucket's place in a second block,
-//      through a write buffer per bucket that writes whole pages;
+//      through a write buffer per bucket that writes whole pages (partial ones when the buffer
+//      is smaller than a page, down to 1/16 of one);
 //   4. each bucket is read, radix-sorted in memory and written back; the blocks are exchanged.
 //   Three reads and two writes of the data, no merge (whose heap compares an element of a
 //   Lucy-size array about 28 times). When one range alone holds more than the working memory
-//   (crowded keys), or the buckets are too many for a page of write buffer each (an array larger
-//   than about spare^2 / page bytes), it sorts as Sort does, after the count.
+//   (crowded keys), or the buckets are too many for 1/16 of a page of write buffer each (an array
+//   larger than about 16 spare^2 / page bytes), it sorts as Sort does, after the count.
 // An abort (the poll throws) leaves the array a permutation of its elements (out of core: as it
 // was) and every temporary block closed.
 template <class T, class Less, class Key>
