@@ -435,33 +435,25 @@ TEST(StorageSortByKey, DistributesSpreadKeysAndMergesCrowdedOnes)
     EXPECT_LE(written, 2.2) << kind;
     EXPECT_LE(read, 3.3) << kind;
   }
+  // (sorted as std::sort does, by this method, within the budget)
+  auto check = [&tmp](const std::vector<std::uint64_t>& in, std::uint64_t budget,
+                 SortMethod method, const std::string& what) {
+    auto expect = in;
+    std::sort(expect.begin(), expect.end());
+    const KeyedRun r = SortByKeyWithBudget(in, budget, tmp.Path());
+    EXPECT_EQ(r.method, method) << what;
+    EXPECT_TRUE(r.run.out == expect) << what;
+    EXPECT_LE(r.run.stats.peakBytes, budget) << what;
+  };
   for (const char* kind : { "equal", "duplicates" })
   {
-    const auto in = Keys(kind, n, 9);
-    auto expect = in;
-    std::sort(expect.begin(), expect.end());
-    const KeyedRun r = SortByKeyWithBudget(in, 1 << 20, tmp.Path());
-    EXPECT_EQ(r.method, SortMethod::Merge) << kind;
-    EXPECT_TRUE(r.run.out == expect) << kind;
+    check(Keys(kind, n, 9), 1 << 20, SortMethod::Merge, kind);
   }
   // Buckets whose write buffers hold less than a page (partial pages: read first, then written):
-  // still distributed.
-  {
-    const auto in = Keys("random", 2000000, 4); // 16 MB at 256 KiB
-    auto expect = in;
-    std::sort(expect.begin(), expect.end());
-    const KeyedRun r = SortByKeyWithBudget(in, 256 << 10, tmp.Path());
-    EXPECT_EQ(r.method, SortMethod::Distribution);
-    EXPECT_TRUE(r.run.out == expect);
-    EXPECT_LE(r.run.stats.peakBytes, std::uint64_t(256) << 10);
-  }
-  // Too many buckets for 1/16 of a page of write buffer each: merged.
-  const auto in = Keys("random", 4000000, 3); // 32 MB at 64 KiB
-  auto expect = in;
-  std::sort(expect.begin(), expect.end());
-  const KeyedRun r = SortByKeyWithBudget(in, 64 << 10, tmp.Path());
-  EXPECT_EQ(r.method, SortMethod::Merge);
-  EXPECT_TRUE(r.run.out == expect);
+  // still distributed. 16 MB at 256 KiB.
+  check(Keys("random", 2000000, 4), 256 << 10, SortMethod::Distribution, "partial pages");
+  // Too many buckets for 1/16 of a page of write buffer each: merged. 32 MB at 64 KiB.
+  check(Keys("random", 4000000, 3), 64 << 10, SortMethod::Merge, "too many buckets");
 }
 
 // A key that is a prefix of the order (faces by their first vertex): the same bytes as std::sort
