@@ -36,14 +36,13 @@ constexpr std::size_t kHugePageBytes = std::size_t(2) << 20;
 void AdviseHugePages(void* p, std::uint64_t bytes)
 {
 #ifdef MADV_HUGEPAGE
-  constexpr std::uint64_t kHuge = kHugePageBytes;
   if (!p || bytes < kHugeBlockBytes)
   {
     return;
   }
   const std::uintptr_t a = reinterpret_cast<std::uintptr_t>(p);
-  const std::uintptr_t first = (a + kHuge - 1) & ~std::uintptr_t(kHuge - 1);
-  const std::uintptr_t last = (a + bytes) & ~std::uintptr_t(kHuge - 1);
+  const std::uintptr_t first = (a + kHugePageBytes - 1) & ~std::uintptr_t(kHugePageBytes - 1);
+  const std::uintptr_t last = (a + bytes) & ~std::uintptr_t(kHugePageBytes - 1);
   if (last > first)
   {
     ::madvise(reinterpret_cast<void*>(first), last - first, MADV_HUGEPAGE); // advice only

@@ -424,6 +424,29 @@ void RadixPartition(T* data, std::size_t n, Key& key, std::uint64_t lo, int shif
 }
 
 template <class T, class Key, class Less>
+void RadixSortLevel(T* data, std::size_t n, Key& key, Less& less, std::uint64_t lo, int shift);
+
+// Finishes one digit's range of a level at `shift`: at shift 0 its elements have one key and
+// less orders them; else the next level (the last takes the lowest eight bits, those above them
+// being equal in the range).
+template <class T, class Key, class Less>
+void RadixSortDigit(T* data, std::size_t n, Key& key, Less& less, std::uint64_t lo, int shift)
+{
+  if (n < 2)
+  {
+    return;
+  }
+  if (shift == 0)
+  {
+    std::sort(data, data + n, less);
+  }
+  else
+  {
+    RadixSortLevel(data, n, key, less, lo, std::max(0, shift - 8));
+  }
+}
+
+template <class T, class Key, class Less>
 void RadixSortLevel(T* data, std::size_t n, Key& key, Less& less, std::uint64_t lo, int shift)
 {
   if (n <= 64)
@@ -436,19 +459,7 @@ void RadixSortLevel(T* data, std::size_t n, Key& key, Less& less, std::uint64_t 
   std::size_t begin = 0;
   for (std::size_t d = 0; d < 256; begin = ends[d++])
   {
-    if (ends[d] - begin < 2)
-    {
-      continue;
-    }
-    if (shift == 0)
-    {
-      std::sort(data + begin, data + ends[d], less); // (one key: less orders them)
-    }
-    else
-    {
-      // (the last level takes the lowest eight bits; those above it are equal in the range)
-      RadixSortLevel(data + begin, ends[d] - begin, key, less, lo, std::max(0, shift - 8));
-    }
+    RadixSortDigit(data + begin, ends[d] - begin, key, less, lo, shift);
   }
 }
 
@@ -503,17 +514,7 @@ void RadixSortByKey(
     for (std::size_t d; !stop.load(std::memory_order_relaxed) && (d = next++) < 256;)
     {
       const std::size_t begin = d ? ends[d - 1] : 0, c = ends[d] - begin;
-      if (c > 1)
-      {
-        if (shift == 0)
-        {
-          std::sort(data + begin, data + ends[d], less);
-        }
-        else
-        {
-          RadixSortLevel(data + begin, c, key, less, lo, std::max(0, shift - 8));
-        }
-      }
+      RadixSortDigit(data + begin, c, key, less, lo, shift);
       const std::uint64_t now = done += c;
       if (polls && poll)
       {
@@ -575,15 +576,8 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
   }
   CountedBuffer<T> buffer(dml, static_cast<std::size_t>(spare));
   T* buf = buffer.Data();
-  auto rangeOf = [&](const T& x) {
-    const std::uint64_t k = key(x);
-    if (keyBits < 64 && (k >> keyBits) != 0)
-    {
-      throw std::logic_error("sipmss::storage::SortByKey: a key of more than " +
-        std::to_string(keyBits) + " bits");
-    }
-    return static_cast<std::size_t>(shift >= 64 ? 0 : k >> shift);
-  };
+  // (shift < 64: binBits >= 1)
+  auto rangeOf = [&](const T& x) { return static_cast<std::size_t>(key(x) >> shift); };
   // Progress: the count is one read, the distribution a read and a write, the buckets a read, a
   // sort and a write.
   auto tell = [&poll, &told](double f) {
@@ -602,12 +596,17 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
     array.Read(first, c, buf);
     for (std::uint64_t i = 0; i < c; ++i)
     {
+      // (every key is checked here, once)
+      if (keyBits < 64 && (key(buf[i]) >> keyBits) != 0)
+      {
+        throw std::logic_error("sipmss::storage::SortByKey: a key of more than " +
+          std::to_string(keyBits) + " bits");
+      }
       ++count[rangeOf(buf[i])];
     }
     tell(0.15 * double(first + c) / double(n));
   }
-  // 2. Buckets: runs of consecutive ranges that fit the buffer, each range in one bucket; each
-  //    bucket's write buffer holds a page at least (whole pages are written, no page is read).
+  // 2. Buckets: runs of consecutive ranges that fit the buffer, each range in one bucket.
   std::size_t buckets = 0; // (closed so far)
   start[0] = 0;
   std::uint64_t held = 0; // (in the open bucket)
@@ -645,8 +644,9 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
     at[b] = start[b];
     fill[b] = 0;
   }
-  // Writes bucket b's buffer up to the last page boundary (all of it when `all`): after the
-  // first write a bucket writes whole pages only.
+  // Writes bucket b's buffer up to the last page boundary it reaches (else all of it, and all of
+  // it when `all`): with a buffer of a page or more, a bucket writes whole pages after its first
+  // write.
   auto flush = [&](std::size_t b, bool all) {
     std::uint64_t c = fill[b];
     if (!all)
@@ -753,13 +753,13 @@ SortMethod SortByKey(DML& dml, Array<T>& array, Less less, Key key, int keyBits,
 
 // Sorting elements that are produced one by one (out of core), by a key whose range [0, keyEnd)
 // is known but not how the elements spread over it: the key's range is cut into equal buckets
-// expected to hold half the working memory each; Add puts an element in its bucket's write
-// buffer, and a full buffer is appended to a block as a segment of that bucket (no count pass,
-// no distribution pass: the producer's pass is the distribution). Finish reads each bucket's
-// segments, radix-sorts them (RadixSortByKey) and writes them to `out` in key order: one read and
-// one write of the data besides the producer's. A bucket that turns out larger than the working
-// memory is copied to a block of its own and sorted by Sort. The result is Sort's (key never
-// decreasing along less). Every byte of working memory is charged to the DML.
+// expected to hold what the memory spares at construction each; Add puts an element in its
+// bucket's write buffer, and a full buffer is appended to a block as a segment of that bucket
+// (no count pass, no distribution pass: the producer's pass is the distribution). Finish reads
+// each bucket's segments, radix-sorts them (RadixSortByKey) and writes them to `out` in key
+// order: one read and one write of the data besides the producer's. A bucket that turns out
+// larger than the working memory is copied to a block of its own and sorted by Sort. The result
+// is Sort's (key never decreasing along less). Every byte of working memory is charged to the DML.
 template <class T, class Key, class Less>
 class BucketSorter
 {
@@ -870,12 +870,16 @@ public:
       }
       else
       {
-        // (crowded keys: the bucket sorted out of core on its own)
+        // (crowded keys: the bucket sorted out of core on its own, copied through a chunk buffer
+        // of a quarter of the spare memory)
         sortBuf.reset();
         Array<T> alone(this->dml_, count);
+        auto chunkSize = [&] {
+          return static_cast<std::size_t>(std::min<std::uint64_t>(
+            count, std::max<std::uint64_t>(64, this->dml_.SpareMemory(4) / 4 / sizeof(T))));
+        };
         {
-          CountedBuffer<T> chunk(this->dml_, static_cast<std::size_t>(std::min<std::uint64_t>(
-            count, std::max<std::uint64_t>(64, this->dml_.SpareMemory(4) / 4 / sizeof(T)))));
+          CountedBuffer<T> chunk(this->dml_, chunkSize());
           std::uint64_t filled = 0;
           for (std::uint64_t s = this->Last()[b]; s != kNone; s = this->SegPrev()[s])
           {
@@ -892,8 +896,7 @@ public:
         Sort(this->dml_, alone, this->less_, poll ? SortPoll([&poll, from, span](double f) {
           poll(from + span * f);
         }) : SortPoll());
-        CountedBuffer<T> chunk(this->dml_, static_cast<std::size_t>(std::min<std::uint64_t>(
-          count, std::max<std::uint64_t>(64, this->dml_.SpareMemory(4) / 4 / sizeof(T)))));
+        CountedBuffer<T> chunk(this->dml_, chunkSize());
         for (std::uint64_t o = 0; o < count; o += chunk.Size())
         {
           const std::uint64_t c = std::min<std::uint64_t>(chunk.Size(), count - o);
