@@ -120,6 +120,7 @@ void vtkSIPMSSDecimate::FillRequest(sipmss::algorithms::SimplifyRequest& request
   request.pruneSize = this->PruneSize;
   request.levelsOfDetail = this->NumberOfLevelsOfDetail;
   request.lockBoundary = this->LockBoundary;
+  request.fitSurface = this->FitSurface;
   request.boundaryWeight = this->BoundaryWeight;
   request.weldDistance = this->WeldDistance;
   request.lockArray = this->LockArray ? this->LockArray : "";
@@ -150,6 +151,7 @@ void vtkSIPMSSDecimate::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "PruneSize: " << this->PruneSize << "\n";
   os << indent << "NumberOfLevelsOfDetail: " << this->NumberOfLevelsOfDetail << "\n";
   os << indent << "LockBoundary: " << this->LockBoundary << "\n";
+  os << indent << "FitSurface: " << this->FitSurface << "\n";
   os << indent << "BoundaryWeight: " << this->BoundaryWeight << "\n";
   os << indent << "WeldDistance: " << this->WeldDistance << "\n";
   os << indent << "PreClusterGridDimension: " << this->PreClusterGridDimension << "\n";

@@ -78,6 +78,15 @@ public:
   vtkSetMacro(LockBoundary, bool);
   vtkGetMacro(LockBoundary, bool);
   vtkBooleanMacro(LockBoundary, bool);
+  /**
+   * Fit the merged vertices to the input (default on): each moves along its normal so that the
+   * output's faces pass through a sample of the input's vertices in the least-squares sense,
+   * never above the largest collapse's error. Off: the quadrics' positions. (Not across MPI
+   * ranks: a distributed run writes the quadrics' positions.)
+   */
+  vtkSetMacro(FitSurface, bool);
+  vtkGetMacro(FitSurface, bool);
+  vtkBooleanMacro(FitSurface, bool);
   vtkSetClampMacro(BoundaryWeight, double, 0.0, VTK_DOUBLE_MAX);
   vtkGetMacro(BoundaryWeight, double);
   ///@}
@@ -159,6 +168,7 @@ protected:
   double PruneSize = 0.0;
   int NumberOfLevelsOfDetail = 1;
   bool LockBoundary = false;
+  bool FitSurface = true;
   double BoundaryWeight = 100.0;
   double WeldDistance = -1.0;
   int PreClusterGridDimension = 0;

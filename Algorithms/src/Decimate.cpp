@@ -19,6 +19,7 @@
 #include "decimate/Sweep.inl"
 #include "decimate/Step.inl"
 #include "decimate/Compact.inl"
+#include "decimate/Fit.inl"
 
 namespace sipmss::algorithms
 {
@@ -180,6 +181,7 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
 
   const std::uint64_t F0 = mesh.liveFaces;
   const std::vector<std::uint64_t> levels = Levels(ctx, F0);
+  SampleInput(ctx, mesh, levels);
   const int K = int(levels.size());
   auto emitLevel = [&](int level) {
     if (onLevel)
@@ -187,7 +189,10 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
       // (the final write follows the last level's: this phase never ends the run)
       ctx.progress.BeginPhase("write", kWork::kWrite * double(mesh.nv + mesh.nf),
         PassesWork(ctx, mesh, mesh.liveFaces, std::size_t(level) + 1, levels));
-      onLevel(level, [&](io::MeshSink& sink) { Emit(ctx, mesh, sink); });
+      onLevel(level, [&](io::MeshSink& sink) {
+        Fit(ctx, mesh);
+        Emit(ctx, mesh, sink);
+      });
     }
   };
   {
@@ -231,6 +236,10 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
     }
   }
   {
+    PhaseTimer timer(ctx.stats, mesh.dml, "fit");
+    Fit(ctx, mesh);
+  }
+  {
     PhaseTimer timer(ctx.stats, mesh.dml, "write");
     ctx.progress.BeginPhase("write", kWork::kWrite * double(mesh.nv + mesh.nf), 0.0);
     Emit(ctx, mesh, output);
@@ -262,7 +271,7 @@ void RunOnOwnState(const DecimateOptions& options, Progress& progress, RunStats&
 double DecimateBytes(std::uint64_t V, std::uint64_t F, std::size_t channels)
 {
   return double(V) *
-    double(sizeof(Vec3) + sizeof(Quadric) + sizeof(State) + sizeof(Cand) +
+    double(sizeof(Vec3) + sizeof(Quadric) + sizeof(State) + sizeof(Cand) + sizeof(FitSample) / 2 +
       4 * sizeof(std::uint32_t) + AttributeExtraSize(channels) * sizeof(double)) +
     double(F) * double(sizeof(Tri) + 3 * sizeof(std::uint32_t));
 }

@@ -228,6 +228,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   o.absoluteError = r.absoluteError;
   o.levelsOfDetail = r.levelsOfDetail;
   o.lockBoundary = r.lockBoundary;
+  o.fitSurface = r.fitSurface;
   o.boundaryWeight = r.EffectiveBoundaryWeight();
   o.weldDistance = r.weldDistance;
   o.lockArray = r.lockArray;

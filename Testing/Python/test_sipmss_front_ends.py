@@ -107,6 +107,7 @@ CASES = [
      ["--max-error", "2e-3", "--absolute-error"], True),
     (vtkSIPMSSDecimate, {"NumberOfLevelsOfDetail": 3}, ["--lods", "3"], True),  # (the schedule)
     (vtkSIPMSSDecimate, {"LockBoundary": True}, ["--lock-boundary"], True),
+    (vtkSIPMSSDecimate, {"FitSurface": False}, ["--no-fit"], True),
     (vtkSIPMSSDecimate, {"BoundaryWeight": 0.0}, ["--boundary-weight", "0"], True),
     (vtkSIPMSSDecimate, {"WeldDistance": 1e-6}, ["--weld", "1e-6"], True),
     (vtkSIPMSSDecimate, {"LockArray": "keep"}, ["--lock-array", "keep"], True),

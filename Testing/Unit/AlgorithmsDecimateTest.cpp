@@ -1754,15 +1754,18 @@ TEST(AlgorithmsDecimate, StatsAndPhases)
   {
     names.push_back(p.name);
   }
-  EXPECT_EQ(names, (std::vector<std::string>{ "read", "rings", "quadrics", "collapse", "write" }));
+  EXPECT_EQ(names,
+    (std::vector<std::string>{ "read", "rings", "quadrics", "collapse", "fit", "write" }));
   EXPECT_GT(r.stats.storage.peakBytes, 0u);
 }
 
 TEST(AlgorithmsDecimate, InitialQuadricIsUsed)
 {
-  // A huge quadric pinning vertex 0 keeps it in place even when the rest collapses.
+  // A huge quadric pinning vertex 0 keeps it in place even when the rest collapses (the
+  // quadric's position: without the final fit, which would move it by a little).
   Mesh g = Grid(12, Bumps);
   alg::DecimateOptions o;
+  o.fitSurface = false;
   o.targetTriangles = 20;
   const std::uint32_t pinned = 6 * 13 + 6; // the center vertex
   auto p = g.P(pinned);
@@ -1896,6 +1899,61 @@ TEST(AlgorithmsDecimate, SphereQuality)
   EXPECT_LT(rms, 2e-3);
 }
 
+
+TEST(AlgorithmsDecimate, TheFinalFitLowersTheDistanceAndMovesOnlyMergedVertices)
+{
+  // The fit moves merged vertices along their normals (the faces stay the same): the distance
+  // to the input falls, the largest collapse error (the achieved error) is what it was, and the
+  // result is the same in core and at a budget small enough for the fit's own blocks to page.
+  Mesh s = BumpySphere(5); // 20,480 triangles
+  alg::DecimateOptions o;
+  o.targetTriangles = 500;
+  o.fitSurface = false;
+  const Outcome plain = Simplify(MemorySource(s), o);
+  o.fitSurface = true;
+  const Outcome fitted = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(fitted.out.tris == plain.out.tris);
+  EXPECT_FALSE(fitted.out.xyz == plain.out.xyz);
+  EXPECT_EQ(fitted.stats.achievedError, plain.stats.achievedError);
+  const alg::CompareResult a = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(plain.out));
+  const alg::CompareResult b = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(fitted.out));
+  std::printf("[ fit      ] rms %.3e -> %.3e, hausdorff %.3e -> %.3e\n", a.rms, b.rms, a.hausdorff,
+    b.hausdorff);
+  EXPECT_LT(b.rms, 0.95 * a.rms);
+  EXPECT_LE(b.hausdorff, a.hausdorff * 1.05);
+  o.storage.policy = sipmss::storage::ModePolicy::OutOfCore;
+  o.storage.memoryBudget = 256u << 10;
+  const Outcome paged = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(paged.stats.storage.usedOutOfCore);
+  EXPECT_TRUE(paged.out.xyz == fitted.out.xyz);
+  EXPECT_TRUE(paged.out.tris == fitted.out.tris);
+
+  // Nothing collapses: nothing moves (the input's bytes).
+  o = alg::DecimateOptions();
+  o.targetTriangles = s.Triangles();
+  const Outcome same = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(same.out.xyz == s.xyz);
+
+  // Locked vertices (a lock array) keep their exact positions while their neighbours fit.
+  Mesh locked = BumpySphere(5);
+  locked.scalarNames = { "keep" };
+  locked.scalars.assign(locked.Vertices(), 0.0f);
+  for (std::size_t v = 0; v < locked.Vertices(); v += 7)
+  {
+    locked.scalars[v] = 1.0f;
+  }
+  o = alg::DecimateOptions();
+  o.targetTriangles = 2000;
+  o.lockArray = "keep";
+  const Outcome l = Simplify(MemorySource(locked), o);
+  std::size_t kept = 0;
+  for (std::size_t v = 0; v < locked.Vertices(); v += 7)
+  {
+    auto p = locked.P(v);
+    kept += HasVertex(l.out, p[0], p[1], p[2]);
+  }
+  EXPECT_EQ(kept, (locked.Vertices() + 6) / 7);
+}
 
 TEST(AlgorithmsDecimate, RingsSwitchingOutOfCoreOnTwoThreadsDoNotShareTheDML)
 {

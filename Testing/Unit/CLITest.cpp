@@ -438,6 +438,7 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     "--algorithm decimate --prune-size 2",
     "--algorithm decimate --prune-size nan",
     "--algorithm cluster --lock-boundary",
+    "--algorithm cluster --no-fit",
     "--algorithm cluster --weld 0.1",
     "--lock-array s",                            // locks and selections: decimation only
     "--algorithm two-stage --selection-array s",
@@ -483,6 +484,7 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
     "--algorithm two-stage --boundary-weight 1 --target 4", // stage 2's boundary quadrics
     "--algorithm decimate --boundary-weight 0", "--algorithm decimate --max-error inf",
     "--algorithm decimate --max-error 0.5 --lock-boundary --weld 0",
+    "--algorithm decimate --target 100 --no-fit",
     "--algorithm two-stage --grid 10 --lock-boundary --weld 0.01 --max-error 1",
     "--algorithm two-stage --grid 10 --prune-size 0.1 --target 4",
     "--algorithm decimate --prune-size 0 --target 4",

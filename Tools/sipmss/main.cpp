@@ -823,6 +823,11 @@ int main(int argc, char** argv)
     "when on; decimate, two-stage: default 100)");
   auto* lockBoundary = boundaries->add_flag("--lock-boundary", rq.lockBoundary,
     "decimate, two-stage: boundary vertices never move");
+  auto* noFit = boundaries->add_flag_function("--no-fit",
+    [&rq](std::int64_t) { rq.fitSurface = false; },
+    "decimate, two-stage: keep the merged vertices at the quadrics' positions (default: a final "
+    "fit moves each along its normal so that the faces pass through a sample of the input's "
+    "vertices in the least-squares sense, never above the largest collapse's error)");
   auto* weld = boundaries->add_option("--weld", rq.weldDistance,
     "decimate, two-stage: weld input vertices closer than this distance first (default: off)");
   auto* lockArray = boundaries->add_option("--lock-array", rq.lockArray,
@@ -878,7 +883,7 @@ int main(int argc, char** argv)
       { grid, rq.algorithm != algorithms::Algorithm::Decimate }, { bounds, cluster },
       { targetOption, !cluster }, { reduction, !cluster }, { maxError, !cluster },
       { absoluteError, !cluster }, { pruneSize, !cluster },
-      { lods, !cluster }, { lockBoundary, !cluster }, { weld, !cluster },
+      { lods, !cluster }, { lockBoundary, !cluster }, { noFit, !cluster }, { weld, !cluster },
       { lockArray, rq.algorithm == algorithms::Algorithm::Decimate },
       { selectionArray, rq.algorithm == algorithms::Algorithm::Decimate } };
     for (const auto& [option, ok] : applies)

@@ -74,16 +74,18 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   }
   const std::uint64_t nv2 = k;
   mesh.views.RO.Set(nv2, end);
+  TrackSamples(mesh, R); // (the removed vertices' candidates still name their survivors)
+  ++mesh.fitGeneration;
   // 3. Vertex data, and the candidates carried to the next pass.
   // (S, C, R: access of either kind, see WithAccess)
   auto carry = [&, kTop](const auto& S, const auto& C, const auto& R, std::uint64_t v,
                  State& flags, Cand& c) {
     const State sv = S.Get(v);
-    flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex));
+    flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex | kMerged));
     c = kNoCandidate;
     if (sv & kCollapsed)
     {
-      flags = State((flags & ~kNeedsLegal) | kSurvivor); // every edge changed
+      flags = State((flags & ~kNeedsLegal) | kSurvivor | kMerged); // every edge changed
     }
     else if ((sv & kMarked) && (sv & kNeedsLegal))
     {
@@ -341,12 +343,13 @@ void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink)
     rgba.resize(4 * chunk);
   }
   raw.resize(rec * chunk);
+  const View<Vec3> fitted = mesh.fittedValid ? View<Vec3>(mesh.dml, mesh.fitted) : View<Vec3>();
   const std::uint64_t total = mesh.nv + mesh.nf;
   for (std::uint64_t first = 0; first < mesh.nv; first += chunk)
   {
     ctx.progress.Tick(total ? double(first) / double(total) : 1.0);
     const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, mesh.nv - first));
-    mesh.views.P.GetRange(first, n, p.data());
+    (mesh.fittedValid ? fitted : mesh.views.P).GetRange(first, n, p.data());
     for (std::size_t i = 0; i < n; ++i)
     {
       xyz[3 * i] = float(p[i].x + mesh.origin.x);

@@ -263,6 +263,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
       o.boundaryWeight = 0;
       o.pruneSize = 0;
       o.levelsOfDetail = 1;
+      o.fitSurface = false; // (an intermediate)
       o.maximumError = LevelBound(options, 0); // (the first level's, when it spaces them)
       o.trianglesPerFixedVertex = kTrianglesPerBorderVertex;
       o.targetTriangles = boundOnly ? 0
@@ -516,6 +517,9 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     o.origin = origin;
     o.targetTriangles = boundOnly ? 0 : target;
     o.levelsFrom = F;
+    // No final fit across ranks: its samples would be the gathered pieces' vertices, not the
+    // input's, and a fit to them raised the error (TheFitIsTheSerialRunsOnly).
+    o.fitSurface = false;
     o.initialQuadric = [&gatheredQuadrics](std::uint64_t v, double q[10]) {
       const Quadric Q = gatheredQuadrics.Get(v);
       std::copy(Q.q, Q.q + 10, q);

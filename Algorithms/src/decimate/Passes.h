@@ -90,6 +90,7 @@
 #include "../StoredMesh.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -174,6 +175,7 @@ constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edg
 constexpr State kCollapsed = 256;  // survived a collapse of this pass
 constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
 constexpr State kPromote = 1024;   // its best partner collapsed: its second best became the best
+constexpr State kMerged = 2048;    // survived a collapse of some pass (the final fit may move it)
 constexpr State kDeferred = 2048;  // step 3: its collapse leaves its chunk, it runs after the round
 // An endpoint of a collapse of this pass: its ring in the CSR is stale until Compact.
 constexpr State kBusy = kRemoved | kCollapsed;
@@ -588,6 +590,14 @@ private:
   bool agreed_ = false;
 };
 
+// The final fit's sample: an input vertex's position (about the origin) and the vertex of the
+// current mesh that stands for it (kNone: none, its faces are gone).
+struct FitSample
+{
+  float p[3];
+  std::uint32_t owner;
+};
+
 // The state of a run, in three parts that the passes take explicitly.
 
 // What the run is asked and where it reports; fixed for the run.
@@ -685,6 +695,15 @@ struct MeshState
   Array<Cand> cand;
   Array<std::uint32_t> order; // the pass's candidates in processing order (<= nv of them)
   Array<std::uint32_t> remap; // compaction: old vertex -> new
+
+  // The final fit (Fit.inl): a sample of the input's vertices, each with the vertex of the
+  // current mesh that stands for it (Compact follows the collapses), and the fitted positions
+  // of the mesh as it was when fittedNv vertices and fittedNf faces were last fitted.
+  Array<FitSample> samples;
+  std::uint64_t nSamples = 0;
+  Array<Vec3> fitted;
+  bool fittedValid = false;
+  std::uint64_t fitGeneration = 0, fittedGeneration = 0; // (Compact counts the generations)
 
   // The views of the blocks through the DML (BindViews after anything that opens, resizes or
   // reconfigures), and those of a worker (through its DML, within its write ranges).
@@ -939,6 +958,11 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
 // compaction and output (Compact.inl)
 void Compact(RunContext& ctx, MeshState& mesh, PassState& pass);
 void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink);
+
+// the final fit (Fit.inl)
+void SampleInput(RunContext& ctx, MeshState& mesh, const std::vector<std::uint64_t>& levels);
+void TrackSamples(MeshState& mesh, const View<std::uint32_t>& R);
+void Fit(RunContext& ctx, MeshState& mesh);
 
 // the pass schedule and the run (../Decimate.cpp)
 std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0);

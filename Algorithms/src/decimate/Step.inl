@@ -440,6 +440,11 @@ std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const 
   }
   w.S.Set(v, State(kRemoved | kMarked));
   w.S.Set(u, State(su | kMarked | kCollapsed | (sv & (kBoundary | kFixed | kComplex))));
+  // The removed vertex's candidate names its survivor (nothing reads a removed vertex's
+  // candidate otherwise): Compact follows the final fit's samples with it.
+  Cand link = kNoCandidate;
+  link.partner = u;
+  w.C.Set(v, link);
   return removed;
 }
 
@@ -765,7 +770,7 @@ void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t 
 }
 
 // Restricts a collapse chunk's views to what its collapses write: the records of the vertices
-// [lo, hi) (states, positions, quadrics, point data) and any face; nothing else.
+// [lo, hi) (states, positions, quadrics, point data, candidates) and any face; nothing else.
 void ChunkBounds(
   Views& w, std::uint64_t lo, std::uint64_t hi, std::size_t recSize, std::size_t xSize)
 {
@@ -779,7 +784,7 @@ void ChunkBounds(
   {
     v->Restrict(storage::WriteBounds::None());
   }
-  w.C.Restrict(storage::WriteBounds::None());
+  w.C.Restrict(vertices); // (a removed vertex's candidate names its survivor: Collapse)
 }
 
 // Step 3 for the candidates at positions [groupBegin, groupEnd) of the order, which are in
@@ -825,7 +830,7 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
   phase.threads = ctx.threads;
   phase.helper = pass.splitOn && half > 0 && std::uint64_t(half) * size == pass.splitMid;
   phase.helperFirst = pass.splitMid;
-  phase.writes = { mesh.state.Id(), mesh.pos.Id() };
+  phase.writes = { mesh.state.Id(), mesh.pos.Id(), mesh.cand.Id() };
   phase.helperWrites.push_back({ mesh.faces.Id(), pass.splitFace,
     mesh.faces.Size() - std::min(pass.splitFace, mesh.faces.Size()) });
   if (mesh.recSize)

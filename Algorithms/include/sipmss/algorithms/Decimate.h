@@ -111,6 +111,15 @@ struct DecimateOptions
   // and RMS +1.0%, Lucy-size no faster (in core +2%, at 8 MB +3%) and RMS +0.9%: not taken.
   double farPassFraction = 0.5;
   double farRatio = 50.0;
+  // The final fit (decimate/Fit.inl): before each output is written, every vertex that stands
+  // for merged input vertices moves along its normal so that the output's faces pass through
+  // a sample of the input's vertices in the least-squares sense (the quadrics place a vertex
+  // on the input's planes; between the vertices a flat face then cuts a curved surface on one
+  // side only). A move never raises the vertex's quadric error above the largest collapse's
+  // (RunStats::achievedError stays true); vertices kept fixed, and vertices no collapse
+  // touched, stay exactly where they are. false: the quadric-optimal positions (the
+  // distributed run's first pass, whose output is not the result).
+  bool fitSurface = true;
   // Threads of the candidate sweep, the collapse step and the quadrics when in core (<= 0: the
   // hardware's). The result does not depend on it.
   int threads = 0;

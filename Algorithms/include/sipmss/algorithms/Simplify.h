@@ -56,6 +56,9 @@ struct SimplifyRequest
   // no boundary quadrics; decimate and two-stage: kDefaultDecimateBoundaryWeight).
   std::optional<double> boundaryWeight;
   bool lockBoundary = false;      // decimate, two-stage: boundary vertices never move
+  // Decimate, two-stage: the final fit of the merged vertices to a sample of the input
+  // (DecimateOptions::fitSurface); false: the quadrics' positions.
+  bool fitSurface = true;
   double weldDistance = kNoWeld;  // decimate, two-stage: >= 0 welds closer input vertices first
   // Decimate only: point-data scalars (by name; empty: none) whose non-zero vertices never move
   // or go (lockArray), or outside of whose non-zero vertices nothing changes (selectionArray; or
