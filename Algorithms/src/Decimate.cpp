@@ -173,15 +173,15 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
     }
     ctx.extraTarget = std::uint64_t(std::llround(ctx.opt.trianglesPerFixedVertex * double(fixed)));
   }
+  const std::uint64_t F0 = mesh.liveFaces;
+  const std::vector<std::uint64_t> levels = Levels(ctx, F0);
+  SampleInput(ctx, mesh, levels); // (before the source goes: it may hold initialSamples')
   if (ctx.opt.sourceConsumed)
   {
     ctx.opt.sourceConsumed();
     mesh.dml.Reconfigure();
+    mesh.BindViews();
   }
-
-  const std::uint64_t F0 = mesh.liveFaces;
-  const std::vector<std::uint64_t> levels = Levels(ctx, F0);
-  SampleInput(ctx, mesh, levels);
   const int K = int(levels.size());
   auto emitLevel = [&](int level) {
     if (onLevel)
@@ -244,6 +244,7 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
     ctx.progress.BeginPhase("write", kWork::kWrite * double(mesh.nv + mesh.nf), 0.0);
     Emit(ctx, mesh, output);
   }
+  ExportSamples(ctx, mesh);
   ctx.progress.Finish();
   ctx.stats.outputVertices = mesh.nv;
   ctx.stats.outputTriangles = mesh.nf;

@@ -299,9 +299,8 @@ try:
         for name, pieces, union in runs:
             merged = merged_ply(union, os.path.join(tmp, "merged.ply"))
             serial_dec = os.path.join(tmp, "serial-%s.ply" % algorithm)
-            # (a distributed run makes no final fit: its reference is the serial run without)
             cli("simplify", merged, serial_dec, "--algorithm", algorithm, "--target", str(TARGET),
-                "--lock-boundary", "--no-fit", *grid_args)
+                "--lock-boundary", *grid_args)
             serial_tris = read_ply(serial_dec)
             serial_rms = rms_of(merged, serial_dec)
             name = "%s, %s" % (algorithm, name)

@@ -15,8 +15,10 @@
 //    serial run's vertex has them.
 // 5. Rank 0 decimates the joined mesh with the user's options to the target, each vertex
 //    starting from its accumulated quadric (initialQuadric with initialQuadricReplacesFaces), so
-//    that the error and the bound measure the distance to the input's faces as in one run. The
-//    output is on rank 0; the other ranks' outputs are empty.
+//    that the error and the bound measure the distance to the input's faces as in one run, and
+//    fits the result to the samples of the input the pieces took (finalSamples in step 2, sent
+//    with the gather, initialSamples here). The output is on rank 0; the other ranks' outputs
+//    are empty.
 // The result has no seams (no border edge is left open: the joined mesh is the input's surface)
 // and no face twice. It is not the serial result: the first pass's choices are local. Rank 0
 // holds the gathered mesh: about kPieceSlack times the target plus the pieces' border strips.
@@ -139,7 +141,16 @@ private:
 enum : std::uint8_t
 {
   kVertexSection = 0,
-  kTriangleSection = 1
+  kTriangleSection = 1,
+  kSampleSection = 2
+};
+
+// A sample of the final fit between the passes: a position of the input (input coordinates)
+// and the vertex that stands for it (of the piece's output; on rank 0, of the gathered mesh).
+struct PieceSample
+{
+  double p[3];
+  std::uint64_t vertex;
 };
 
 void AddPhases(RunStats& to, const RunStats& from, const char* prefix)
@@ -246,6 +257,8 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
   // 2. The piece alone, its border locked, into `mine` with its quadrics.
   StoredMesh mine(dml);
   Array<Quadric> quadrics(dml, 1);
+  Array<PieceSample> samples(dml, 1); // (the final fit's, for rank 0's pass)
+  std::uint64_t nSamples = 0;
   double err = -1; // (relative to the whole input's diagonal, as each pass measures it)
   {
     PhaseTimer timer(stats, dml, "piece");
@@ -263,8 +276,17 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
       o.boundaryWeight = 0;
       o.pruneSize = 0;
       o.levelsOfDetail = 1;
-      o.fitSurface = false; // (an intermediate)
-      o.maximumError = LevelBound(options, 0); // (the first level's, when it spaces them)
+      o.fitSurface = false; // (an intermediate: rank 0 fits the result to the pieces' samples)
+      if (options.fitSurface)
+      {
+        o.finalSamples = [&samples, &nSamples](const double p[3], std::uint64_t v) {
+          if (nSamples == samples.Size())
+          {
+            samples.Resize(2 * nSamples);
+          }
+          samples.Set(nSamples++, PieceSample{ { p[0], p[1], p[2] }, v });
+        };
+      }      o.maximumError = LevelBound(options, 0); // (the first level's, when it spaces them)
       o.trianglesPerFixedVertex = kTrianglesPerBorderVertex;
       o.targetTriangles = boundOnly ? 0
                                     : std::max<std::uint64_t>(1,
@@ -293,17 +315,21 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
 
   // 3. The gather: every piece's vertices (position, point data, quadric) and triangles go to
   // rank 0, each at its place in the gathered mesh (the pieces one after the other).
-  std::vector<std::uint64_t> sizes(2 * std::size_t(N), 0);
-  sizes[2 * std::size_t(rank)] = mine.VertexCount();
-  sizes[2 * std::size_t(rank) + 1] = mine.TriangleCount();
+  // (per rank: vertices, triangles, the final fit's samples)
+  std::vector<std::uint64_t> sizes(3 * std::size_t(N), 0);
+  sizes[3 * std::size_t(rank)] = mine.VertexCount();
+  sizes[3 * std::size_t(rank) + 1] = mine.TriangleCount();
+  sizes[3 * std::size_t(rank) + 2] = nSamples;
   rounds.Sum(sizes.data(), sizes.size());
-  std::vector<std::uint64_t> vFirst(std::size_t(N) + 1, 0), tFirst(std::size_t(N) + 1, 0);
+  std::vector<std::uint64_t> vFirst(std::size_t(N) + 1, 0), tFirst(std::size_t(N) + 1, 0),
+    sFirst(std::size_t(N) + 1, 0);
   for (int r = 0; r < N; ++r)
   {
-    vFirst[r + 1] = vFirst[r] + sizes[2 * std::size_t(r)];
-    tFirst[r + 1] = tFirst[r] + sizes[2 * std::size_t(r) + 1];
+    vFirst[r + 1] = vFirst[r] + sizes[3 * std::size_t(r)];
+    tFirst[r + 1] = tFirst[r] + sizes[3 * std::size_t(r) + 1];
+    sFirst[r + 1] = sFirst[r] + sizes[3 * std::size_t(r) + 2];
   }
-  const std::uint64_t gatheredV = vFirst[N], gatheredT = tFirst[N];
+  const std::uint64_t gatheredV = vFirst[N], gatheredT = tFirst[N], gatheredS = sFirst[N];
   if (gatheredV > std::numeric_limits<std::uint32_t>::max() ||
     gatheredT > std::numeric_limits<std::uint32_t>::max())
   {
@@ -313,6 +339,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
   }
   std::optional<StoredMesh> gathered;
   Array<Quadric> gatheredQuadrics;
+  Array<PieceSample> gatheredSamples;
   Array<JoinKey> keys;
   const std::size_t stride = detail::PointDataWords(layout);
   {
@@ -328,6 +355,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
         h.layout = layout;
         gathered->Begin(h);
         gatheredQuadrics = Array<Quadric>(dml, std::max<std::uint64_t>(gatheredV, 1));
+        gatheredSamples = Array<PieceSample>(dml, std::max<std::uint64_t>(gatheredS, 1));
         keys = Array<JoinKey>(dml, std::max<std::uint64_t>(gatheredV, 1));
       }
     });
@@ -335,8 +363,8 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     const std::size_t share = std::max<std::size_t>(64 << 10, rounds.Limit() / std::size_t(N));
     const std::size_t vertexBytes = 12 + 4 * stride + sizeof(Quadric);
     const std::size_t sectionBytes = 1 + 2 * sizeof(std::uint64_t);
-    std::uint64_t nextV = 0, nextT = 0;
-    const std::uint64_t myV = mine.VertexCount(), myT = mine.TriangleCount();
+    std::uint64_t nextV = 0, nextT = 0, nextS = 0;
+    const std::uint64_t myV = mine.VertexCount(), myT = mine.TriangleCount(), myS = nSamples;
     std::vector<float> xyz;
     std::vector<std::uint32_t> words;
     std::vector<Quadric> q;
@@ -376,6 +404,17 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
           mine.ReadTriangles(nextT, n, reinterpret_cast<std::uint32_t*>(b.data() + at));
           nextT += n;
         }
+        if (nextV == myV && nextT == myT && nextS < myS &&
+          b.size() + sectionBytes + sizeof(PieceSample) <= share)
+        {
+          const std::size_t n = std::size_t(std::min<std::uint64_t>(
+            myS - nextS, (share - b.size() - sectionBytes) / sizeof(PieceSample)));
+          section(kSampleSection, nextS, n);
+          const std::size_t at = b.size();
+          b.resize(at + sizeof(PieceSample) * n);
+          samples.Read(nextS, n, reinterpret_cast<PieceSample*>(b.data() + at));
+          nextS += n;
+        }
       });
       rounds.Exchange();
       rounds.Local([&] {
@@ -397,16 +436,38 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
             const auto kind = Rounds::Take<std::uint8_t>(p);
             const auto first = Rounds::Take<std::uint64_t>(p);
             const auto n = Rounds::Take<std::uint64_t>(p);
-            const std::uint64_t limit = kind == kVertexSection ? sizes[2 * std::size_t(r)]
-                                                               : sizes[2 * std::size_t(r) + 1];
-            const std::size_t bytes = std::size_t(n) * (kind == kVertexSection ? vertexBytes : 12);
-            if (kind > kTriangleSection || first > limit || n > limit - first ||
-              std::size_t(end - p) < bytes)
+            if (kind > kSampleSection)
             {
               throw std::runtime_error("a malformed gather message from rank " + std::to_string(r));
             }
-            const std::uint64_t to = (kind == kVertexSection ? vFirst : tFirst)[std::size_t(r)] + first;
-            if (kind == kVertexSection)
+            const std::uint64_t limit = sizes[3 * std::size_t(r) + kind];
+            const std::size_t bytes = std::size_t(n) *
+              (kind == kVertexSection ? vertexBytes
+                                      : (kind == kTriangleSection ? 12 : sizeof(PieceSample)));
+            if (first > limit || n > limit - first || std::size_t(end - p) < bytes)
+            {
+              throw std::runtime_error("a malformed gather message from rank " + std::to_string(r));
+            }
+            const std::uint64_t to =
+              (kind == kVertexSection ? vFirst : (kind == kTriangleSection ? tFirst : sFirst))
+                [std::size_t(r)] +
+              first;
+            if (kind == kSampleSection)
+            {
+              std::vector<PieceSample> s(static_cast<std::size_t>(n));
+              std::memcpy(s.data(), p, bytes);
+              for (PieceSample& x : s)
+              {
+                if (x.vertex >= sizes[3 * std::size_t(r)])
+                {
+                  throw std::runtime_error(
+                    "a malformed gather message from rank " + std::to_string(r));
+                }
+                x.vertex += vFirst[std::size_t(r)];
+              }
+              gatheredSamples.Write(to, std::size_t(n), s.data());
+            }
+            else if (kind == kVertexSection)
             {
               xyz.resize(3 * n);
               words.resize(stride * n);
@@ -438,7 +499,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
                 reinterpret_cast<const std::uint32_t*>(p) + 3 * n);
               for (std::uint32_t& v : words)
               {
-                if (v >= sizes[2 * std::size_t(r)])
+                if (v >= sizes[3 * std::size_t(r)])
                 {
                   throw std::runtime_error(
                     "a malformed gather message from rank " + std::to_string(r));
@@ -452,10 +513,11 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
         }
         progress.Tick(double(gathered->TriangleCount()) / double(std::max<std::uint64_t>(gatheredT, 1)));
       });
-      more = rounds.Continue(nextV < myV || nextT < myT);
+      more = rounds.Continue(nextV < myV || nextT < myT || nextS < myS);
     } while (more);
     mine.Release();
     quadrics.Close();
+    samples.Close();
   }
 
   // 4. The join: vertices at one position from different pieces become the first piece's.
@@ -517,18 +579,36 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     o.origin = origin;
     o.targetTriangles = boundOnly ? 0 : target;
     o.levelsFrom = F;
-    // No final fit across ranks: its samples would be the gathered pieces' vertices, not the
-    // input's, and a fit to them raised the error (TheFitIsTheSerialRunsOnly).
-    o.fitSurface = false;
+    // The final fit to the pieces' samples of the input, each with the gathered vertex that
+    // stands for it (a vertex joined to another piece's: that one).
+    if (options.fitSurface)
+    {
+      o.initialSamples = [&gatheredSamples, gatheredS, &join](
+                           const DecimateOptions::SampleCallback& emit) {
+        constexpr std::size_t kRun = 1 << 12;
+        std::vector<PieceSample> s(kRun);
+        for (std::uint64_t first = 0; first < gatheredS; first += kRun)
+        {
+          const std::size_t n = std::size_t(std::min<std::uint64_t>(kRun, gatheredS - first));
+          gatheredSamples.Read(first, n, s.data());
+          for (std::size_t i = 0; i < n; ++i)
+          {
+            const auto it = join.find(std::uint32_t(s[i].vertex));
+            emit(s[i].p, it == join.end() ? s[i].vertex : it->second);
+          }
+        }
+      };
+    }
     o.initialQuadric = [&gatheredQuadrics](std::uint64_t v, double q[10]) {
       const Quadric Q = gatheredQuadrics.Get(v);
       std::copy(Q.q, Q.q + 10, q);
       return true;
     };
     o.initialQuadricReplacesFaces = true;
-    o.sourceConsumed = [&gathered, &gatheredQuadrics] {
+    o.sourceConsumed = [&gathered, &gatheredQuadrics, &gatheredSamples] {
       gathered->Release();
       gatheredQuadrics.Close();
+      gatheredSamples.Close();
     };
     StageProgress p2(progress, "gathered: ");
     const MeshSource source = [&gathered, &join](io::MeshSink& sink, const io::ReadOptions& ro) {

@@ -100,9 +100,38 @@ inline bool Movable(State s)
 void SampleInput(RunContext& ctx, MeshState& mesh, const std::vector<std::uint64_t>& levels)
 {
   mesh.nSamples = 0;
-  if (!ctx.opt.fitSurface || mesh.nv == 0 || levels.empty() || levels.back() >= mesh.liveFaces)
+  const bool exported = bool(ctx.opt.finalSamples);
+  if ((!ctx.opt.fitSurface && !exported) || mesh.nv == 0 || levels.empty() ||
+    (levels.back() >= mesh.liveFaces && !exported))
   {
-    return; // (no collapse will be made)
+    return; // (no fit, or no collapse will be made)
+  }
+  if (ctx.opt.initialSamples)
+  {
+    // The caller's samples, each with its input vertex (kNone when that has no faces).
+    mesh.samples = Array<FitSample>(mesh.dml, 1024);
+    mesh.BindViews();
+    std::uint64_t n = 0;
+    ctx.opt.initialSamples([&](const double p[3], std::uint64_t v) {
+      if ((n & 4095) == 0)
+      {
+        ctx.progress.Poll();
+      }
+      if (n == mesh.samples.Size())
+      {
+        mesh.samples.Resize(2 * n);
+        mesh.BindViews();
+      }
+      const bool faces = v < mesh.nv && RingLength(mesh.views, std::uint32_t(v)) > 0;
+      const FitSample s = { { float(p[0] - mesh.origin.x), float(p[1] - mesh.origin.y),
+                              float(p[2] - mesh.origin.z) },
+        faces ? std::uint32_t(v) : kNone };
+      mesh.samples.Write(n++, 1, &s);
+    });
+    mesh.nSamples = n;
+    mesh.samples.Resize(std::max<std::uint64_t>(n, 1));
+    mesh.BindViews();
+    return;
   }
   // The finest level's output, about half as many vertices as triangles (a bound alone: unknown,
   // every second vertex).
@@ -164,9 +193,33 @@ void TrackSamples(MeshState& mesh, const View<std::uint32_t>& R)
   }
 }
 
+// The samples with the output vertices that stand for them (DecimateOptions::finalSamples).
+void ExportSamples(RunContext& ctx, MeshState& mesh)
+{
+  if (!ctx.opt.finalSamples)
+  {
+    return;
+  }
+  View<FitSample> S(mesh.dml, mesh.samples);
+  for (std::uint64_t i = 0; i < mesh.nSamples; ++i)
+  {
+    if ((i & 4095) == 0)
+    {
+      ctx.progress.Poll();
+    }
+    const FitSample s = S.Get(i);
+    if (s.owner != kNone)
+    {
+      const double p[3] = { double(s.p[0]) + mesh.origin.x, double(s.p[1]) + mesh.origin.y,
+        double(s.p[2]) + mesh.origin.z };
+      ctx.opt.finalSamples(p, s.owner);
+    }
+  }
+}
+
 void Fit(RunContext& ctx, MeshState& mesh)
 {
-  if (mesh.nSamples == 0 || mesh.nv == 0)
+  if (mesh.nSamples == 0 || mesh.nv == 0 || !ctx.opt.fitSurface)
   {
     mesh.fittedValid = false;
     return;

@@ -962,6 +962,7 @@ void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink);
 // the final fit (Fit.inl)
 void SampleInput(RunContext& ctx, MeshState& mesh, const std::vector<std::uint64_t>& levels);
 void TrackSamples(MeshState& mesh, const View<std::uint32_t>& R);
+void ExportSamples(RunContext& ctx, MeshState& mesh);
 void Fit(RunContext& ctx, MeshState& mesh);
 
 // the pass schedule and the run (../Decimate.cpp)

@@ -120,6 +120,14 @@ struct DecimateOptions
   // touched, stay exactly where they are. false: the quadric-optimal positions (the
   // distributed run's first pass, whose output is not the result).
   bool fitSurface = true;
+  // The final fit's samples across ranks (decimate/Distributed.inl). finalSamples: called after
+  // the run for each sample of the input (its position, in input coordinates) with the output
+  // vertex that stands for it; samples are then taken even without fitSurface, and even when
+  // nothing collapses. initialSamples: gives the samples (positions in input coordinates, the
+  // input vertices that stand for them) instead of the input's own vertices.
+  using SampleCallback = std::function<void(const double p[3], std::uint64_t vertex)>;
+  SampleCallback finalSamples;
+  std::function<void(const SampleCallback&)> initialSamples;
   // Threads of the candidate sweep, the collapse step and the quadrics when in core (<= 0: the
   // hardware's). The result does not depend on it.
   int threads = 0;
