@@ -175,8 +175,13 @@ constexpr State kRecompute = 128;  // its candidate is unknown: evaluate its edg
 constexpr State kCollapsed = 256;  // survived a collapse of this pass
 constexpr State kComplex = 512;    // on an edge with > 2 faces, or where several fans meet
 constexpr State kPromote = 1024;   // its best partner collapsed: its second best became the best
-constexpr State kMerged = 2048;    // survived a collapse of some pass (the final fit may move it)
 constexpr State kDeferred = 2048;  // step 3: its collapse leaves its chunk, it runs after the round
+constexpr State kMerged = 4096;    // survived a collapse of some pass (the final fit may move it)
+static_assert((kRemoved | kMarked | kBoundary | kLocked | kFixed | kNeedsLegal | kSurvivor |
+                kRecompute | kCollapsed | kComplex | kPromote | kDeferred | kMerged) ==
+    kRemoved + kMarked + kBoundary + kLocked + kFixed + kNeedsLegal + kSurvivor + kRecompute +
+      kCollapsed + kComplex + kPromote + kDeferred + kMerged,
+  "one bit per state");
 // An endpoint of a collapse of this pass: its ring in the CSR is stale until Compact.
 constexpr State kBusy = kRemoved | kCollapsed;
 // Vertices evaluated by the sweep (kNeedsLegal ones take the heavy path instead).
