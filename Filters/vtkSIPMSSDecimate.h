@@ -81,7 +81,7 @@ public:
   /**
    * Fit the merged vertices to the input (default on): each moves along its normal so that the
    * output's faces pass through a sample of the input's vertices in the least-squares sense,
-   * never above the largest collapse's error. Off: the quadrics' positions.
+   * never above the largest error of a vertex. Off: the quadrics' positions.
    */
   vtkSetMacro(FitSurface, bool);
   vtkGetMacro(FitSurface, bool);

@@ -827,7 +827,7 @@ int main(int argc, char** argv)
     [&rq](std::int64_t) { rq.fitSurface = false; },
     "decimate, two-stage: keep the merged vertices at the quadrics' positions (default: a final "
     "fit moves each along its normal so that the faces pass through a sample of the input's "
-    "vertices in the least-squares sense, never above the largest collapse's error)");
+    "vertices in the least-squares sense, never above the largest error of a vertex)");
   auto* weld = boundaries->add_option("--weld", rq.weldDistance,
     "decimate, two-stage: weld input vertices closer than this distance first (default: off)");
   auto* lockArray = boundaries->add_option("--lock-array", rq.lockArray,

@@ -245,12 +245,24 @@ void Fit(RunContext& ctx, MeshState& mesh)
       ctx.progress.Poll();
     }
   };
-  // 1. The movable vertices' normals: their faces' area-weighted normals.
+  // 1. The movable vertices' normals: their faces' area-weighted normals; and the largest
+  // geometric error of a vertex (its quadric's per unit of trace: with attributes, the
+  // achieved error counts theirs too), which no move may exceed.
   bool any = false;
+  double largest = 0;
   for (std::uint64_t v = 0; v < nv; ++v)
   {
     poll(v);
     FitVertex x{};
+    {
+      const Quadric Q = w.Q.Get(v);
+      const Vec3 p = w.P.Get(v);
+      const double trace = Trace(Q);
+      if (trace > 0)
+      {
+        largest = std::max(largest, QuadricValue(Q.q, p.x, p.y, p.z) / trace);
+      }
+    }
     if (Movable(w.S.Get(v)))
     {
       Vec3 sum{ 0, 0, 0 };
@@ -437,7 +449,7 @@ void Fit(RunContext& ctx, MeshState& mesh)
     }
   }
   // 4. The fitted positions. A move that would raise the vertex's quadric error (per unit of
-  // its trace) above the largest collapse's, or above its own, is halved up to four times, else
+  // its trace) above the largest vertex's, or above its own, is halved up to four times, else
   // not made.
   for (std::uint64_t v = 0; v < nv; ++v)
   {
@@ -449,8 +461,8 @@ void Fit(RunContext& ctx, MeshState& mesh)
     {
       const Quadric Q = w.Q.Get(v);
       const double trace = Trace(Q);
-      const double limit =
-        std::max(ctx.achievedErr2 * trace, QuadricValue(Q.q, p.x, p.y, p.z));
+      const double limit = std::max(
+        std::min(ctx.achievedErr2, largest) * trace, QuadricValue(Q.q, p.x, p.y, p.z));
       double t = x.t;
       for (int halve = 0; halve <= 4; ++halve, t *= 0.5)
       {

@@ -115,9 +115,9 @@ struct DecimateOptions
   // for merged input vertices moves along its normal so that the output's faces pass through
   // a sample of the input's vertices in the least-squares sense (the quadrics place a vertex
   // on the input's planes; between the vertices a flat face then cuts a curved surface on one
-  // side only). A move never raises the vertex's quadric error above the largest collapse's
-  // (RunStats::achievedError stays true); vertices kept fixed, and vertices no collapse
-  // touched, stay exactly where they are. false: the quadric-optimal positions (the
+  // side only). A move never raises the vertex's quadric error above the largest of the
+  // output's vertices before the fit (RunStats::achievedError stays true); vertices kept fixed,
+  // and vertices no collapse touched, stay exactly where they are; point data is not changed. false: the quadric-optimal positions (the
   // distributed run's first pass, whose output is not the result).
   bool fitSurface = true;
   // The final fit's samples across ranks (decimate/Distributed.inl). finalSamples: called after
