@@ -229,6 +229,11 @@ void Fit(RunContext& ctx, MeshState& mesh)
     return; // (the last level, written again as the final output)
   }
   const std::uint64_t nv = mesh.nv;
+#if defined(__GLIBC__)
+  // The passes' freed memory (the page cache's buffers when the run moved in core, the rings'
+  // scratch) stays in the heap's arenas, resident; the fit's blocks would come on top of it.
+  ::malloc_trim(0);
+#endif
   // (every block opens before any view is bound: opening one may move the DML out of core)
   Array<FitVertex> vertsBlock(mesh.dml, nv);
   Array<FitRow> rowsBlock(mesh.dml, std::max<std::uint64_t>(mesh.nSamples, 1));

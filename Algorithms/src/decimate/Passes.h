@@ -108,6 +108,9 @@
 #include <system_error>
 #include <thread>
 #include <vector>
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
 
 namespace sipmss::algorithms
 {
