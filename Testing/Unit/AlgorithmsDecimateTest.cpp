@@ -1900,6 +1900,29 @@ TEST(AlgorithmsDecimate, SphereQuality)
 }
 
 
+// A decimation of s with and without the final fit: both outcomes and their distances to s.
+// The fit moves vertices only: the same faces, other positions.
+struct FitPair
+{
+  Outcome plain, fitted;
+  alg::CompareResult a, b;
+};
+FitPair WithAndWithoutFit(const Mesh& s, alg::DecimateOptions o, const char* what)
+{
+  FitPair r;
+  o.fitSurface = false;
+  r.plain = Simplify(MemorySource(s), o);
+  o.fitSurface = true;
+  r.fitted = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(r.fitted.out.tris == r.plain.out.tris);
+  EXPECT_FALSE(r.fitted.out.xyz == r.plain.out.xyz);
+  r.a = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(r.plain.out));
+  r.b = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(r.fitted.out));
+  std::printf("[ fit      ] %s: rms %.3e -> %.3e, hausdorff %.3e -> %.3e\n", what, r.a.rms, r.b.rms,
+    r.a.hausdorff, r.b.hausdorff);
+  return r;
+}
+
 TEST(AlgorithmsDecimate, TheFinalFitLowersTheDistanceAndMovesOnlyMergedVertices)
 {
   // The fit moves merged vertices along their normals (the faces stay the same): the distance
@@ -1908,19 +1931,11 @@ TEST(AlgorithmsDecimate, TheFinalFitLowersTheDistanceAndMovesOnlyMergedVertices)
   Mesh s = BumpySphere(5); // 20,480 triangles
   alg::DecimateOptions o;
   o.targetTriangles = 500;
-  o.fitSurface = false;
-  const Outcome plain = Simplify(MemorySource(s), o);
-  o.fitSurface = true;
-  const Outcome fitted = Simplify(MemorySource(s), o);
-  EXPECT_TRUE(fitted.out.tris == plain.out.tris);
-  EXPECT_FALSE(fitted.out.xyz == plain.out.xyz);
-  EXPECT_EQ(fitted.stats.achievedError, plain.stats.achievedError);
-  const alg::CompareResult a = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(plain.out));
-  const alg::CompareResult b = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(fitted.out));
-  std::printf("[ fit      ] rms %.3e -> %.3e, hausdorff %.3e -> %.3e\n", a.rms, b.rms, a.hausdorff,
-    b.hausdorff);
-  EXPECT_LT(b.rms, 0.95 * a.rms);
-  EXPECT_LE(b.hausdorff, a.hausdorff * 1.05);
+  const FitPair r = WithAndWithoutFit(s, o, "geometry");
+  const Outcome& fitted = r.fitted;
+  EXPECT_EQ(fitted.stats.achievedError, r.plain.stats.achievedError);
+  EXPECT_LT(r.b.rms, 0.95 * r.a.rms);
+  EXPECT_LE(r.b.hausdorff, r.a.hausdorff * 1.05);
   o.storage.policy = sipmss::storage::ModePolicy::OutOfCore;
   o.storage.memoryBudget = 256u << 10;
   const Outcome paged = Simplify(MemorySource(s), o);
@@ -1972,19 +1987,10 @@ TEST(AlgorithmsDecimate, TheFinalFitWithAttributesInTheError)
   alg::DecimateOptions o;
   o.targetTriangles = 800;
   o.attributes = { { "colors", 1.0 } };
-  o.fitSurface = false;
-  const Outcome plain = Simplify(MemorySource(s), o);
-  o.fitSurface = true;
-  const Outcome fitted = Simplify(MemorySource(s), o);
-  EXPECT_TRUE(fitted.out.tris == plain.out.tris);
-  EXPECT_TRUE(fitted.out.rgba == plain.out.rgba);
-  EXPECT_FALSE(fitted.out.xyz == plain.out.xyz);
-  const alg::CompareResult a = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(plain.out));
-  const alg::CompareResult b = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(fitted.out));
-  std::printf("[ fit      ] colors in the error: rms %.3e -> %.3e, hausdorff %.3e -> %.3e\n", a.rms,
-    b.rms, a.hausdorff, b.hausdorff);
-  EXPECT_LT(b.rms, 0.95 * a.rms);
-  EXPECT_LE(b.hausdorff, a.hausdorff * 1.05);
+  const FitPair r = WithAndWithoutFit(s, o, "colors in the error");
+  EXPECT_TRUE(r.fitted.out.rgba == r.plain.out.rgba);
+  EXPECT_LT(r.b.rms, 0.95 * r.a.rms);
+  EXPECT_LE(r.b.hausdorff, r.a.hausdorff * 1.05);
 }
 
 TEST(AlgorithmsDecimate, RingsSwitchingOutOfCoreOnTwoThreadsDoNotShareTheDML)
