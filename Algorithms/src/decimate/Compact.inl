@@ -14,6 +14,9 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   const std::uint64_t nv = mesh.nv, nf = mesh.nf;
   const std::uint64_t nf2 = mesh.liveFaces;
   const std::uint64_t total = 4 * nf + 2 * nv;
+  // (a level's fitted positions are written: the next level fits its own)
+  mesh.fitted = Array<Vec3>();
+  mesh.fittedValid = false;
   mesh.remap.Resize(std::max<std::uint64_t>(nv, 1));
   mesh.BindViews();
   View<std::uint32_t> R(mesh.dml, mesh.remap);
@@ -343,13 +346,17 @@ void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink)
     rgba.resize(4 * chunk);
   }
   raw.resize(rec * chunk);
-  const View<Vec3> fitted = mesh.fittedValid ? View<Vec3>(mesh.dml, mesh.fitted) : View<Vec3>();
   const std::uint64_t total = mesh.nv + mesh.nf;
+  std::vector<Quadric> quadrics;
   for (std::uint64_t first = 0; first < mesh.nv; first += chunk)
   {
     ctx.progress.Tick(total ? double(first) / double(total) : 1.0);
+    // (bound for each chunk: the finalQuadric callback may grow a block of the same DML, which
+    // can move it out of core)
+    mesh.BindViews();
     const std::size_t n = std::size_t(std::min<std::uint64_t>(chunk, mesh.nv - first));
-    (mesh.fittedValid ? fitted : mesh.views.P).GetRange(first, n, p.data());
+    (mesh.fittedValid ? View<Vec3>(mesh.dml, mesh.fitted) : mesh.views.P)
+      .GetRange(first, n, p.data());
     for (std::size_t i = 0; i < n; ++i)
     {
       xyz[3 * i] = float(p[i].x + mesh.origin.x);
@@ -399,15 +406,18 @@ void Emit(RunContext& ctx, MeshState& mesh, io::MeshSink& sink)
     if (ctx.opt.finalQuadric)
     {
       const double o[3] = { mesh.origin.x, mesh.origin.y, mesh.origin.z };
+      quadrics.resize(n);
+      mesh.views.Q.GetRange(first, n, quadrics.data()); // (before any callback)
       for (std::size_t i = 0; i < n; ++i)
       {
         // (local to input coordinates: E(x - origin))
-        const Quadric q = Translated(mesh.views.Q.Get(first + i), o);
+        const Quadric q = Translated(quadrics[i], o);
         ctx.opt.finalQuadric(first + i, q.q);
       }
     }
   }
   std::vector<Tri> tris(chunk);
+  mesh.BindViews();
   for (std::uint64_t first = 0; first < mesh.nf; first += chunk)
   {
     ctx.progress.Tick(total ? double(mesh.nv + first) / double(total) : 1.0);

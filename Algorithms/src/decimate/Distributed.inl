@@ -286,7 +286,12 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
           }
           samples.Set(nSamples++, PieceSample{ { p[0], p[1], p[2] }, v });
         };
-      }      o.maximumError = LevelBound(options, 0); // (the first level's, when it spaces them)
+        // (as many as the piece's share of the result needs, not its slack's)
+        o.fitSampleTriangles = std::max<std::uint64_t>(1,
+          std::uint64_t(std::ceil(firstLevel * double(count.triangles) /
+            double(std::max<std::uint64_t>(F, 1)))));
+      }
+      o.maximumError = LevelBound(options, 0); // (the first level's, when it spaces them)
       o.trianglesPerFixedVertex = kTrianglesPerBorderVertex;
       o.targetTriangles = boundOnly ? 0
                                     : std::max<std::uint64_t>(1,

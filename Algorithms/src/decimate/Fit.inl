@@ -135,7 +135,8 @@ void SampleInput(RunContext& ctx, MeshState& mesh, const std::vector<std::uint64
   }
   // The finest level's output, about half as many vertices as triangles (a bound alone: unknown,
   // every second vertex).
-  const double outV = std::max(1.0, double(levels.front() ? levels.front() : mesh.liveFaces) / 2);
+  const std::uint64_t sized = ctx.opt.fitSampleTriangles ? ctx.opt.fitSampleTriangles : levels.front();
+  const double outV = std::max(1.0, double(sized ? sized : mesh.liveFaces) / 2);
   const std::uint64_t stride = std::max<std::uint64_t>(
     2, std::uint64_t(double(mesh.nv) / (kFitSamplesPerVertex * outV)));
   const std::uint64_t cap = (mesh.nv + stride - 1) / stride;
@@ -200,21 +201,27 @@ void ExportSamples(RunContext& ctx, MeshState& mesh)
   {
     return;
   }
-  View<FitSample> S(mesh.dml, mesh.samples);
-  for (std::uint64_t i = 0; i < mesh.nSamples; ++i)
+  // (copied out a chunk at a time: the callback may grow a block of the same DML, which can move
+  // it out of core, so no view is held across it)
+  constexpr std::size_t kRun = 1 << 12;
+  std::vector<FitSample> run(kRun);
+  for (std::uint64_t first = 0; first < mesh.nSamples; first += kRun)
   {
-    if ((i & 4095) == 0)
+    ctx.progress.Poll();
+    const std::size_t n = std::size_t(std::min<std::uint64_t>(kRun, mesh.nSamples - first));
+    mesh.samples.Read(first, n, run.data());
+    for (std::size_t i = 0; i < n; ++i)
     {
-      ctx.progress.Poll();
-    }
-    const FitSample s = S.Get(i);
-    if (s.owner != kNone)
-    {
-      const double p[3] = { double(s.p[0]) + mesh.origin.x, double(s.p[1]) + mesh.origin.y,
-        double(s.p[2]) + mesh.origin.z };
-      ctx.opt.finalSamples(p, s.owner);
+      const FitSample& s = run[i];
+      if (s.owner != kNone)
+      {
+        const double p[3] = { double(s.p[0]) + mesh.origin.x, double(s.p[1]) + mesh.origin.y,
+          double(s.p[2]) + mesh.origin.z };
+        ctx.opt.finalSamples(p, s.owner);
+      }
     }
   }
+  mesh.BindViews();
 }
 
 void Fit(RunContext& ctx, MeshState& mesh)
@@ -229,6 +236,7 @@ void Fit(RunContext& ctx, MeshState& mesh)
     return; // (the last level, written again as the final output)
   }
   const std::uint64_t nv = mesh.nv;
+  mesh.fittedValid = false; // (until the new positions are all written)
 #if defined(__GLIBC__)
   // The passes' freed memory (the page cache's buffers when the run moved in core, the rings'
   // scratch) stays in the heap's arenas, resident; the fit's blocks would come on top of it.
@@ -454,18 +462,18 @@ void Fit(RunContext& ctx, MeshState& mesh)
     }
   }
   // 4. The fitted positions. A move that would raise the vertex's quadric error (per unit of
-  // its trace) above the largest vertex's, or above its own, is halved up to four times, else
-  // not made.
+  // its trace) above the larger of the largest vertex's and its own is halved up to four times,
+  // else not made.
   for (std::uint64_t v = 0; v < nv; ++v)
   {
     poll(v);
     const FitVertex x = V.Get(v);
     const Vec3 p = w.P.Get(v);
     Vec3 fitted = p;
-    if (x.d > 0 && x.t != 0 && std::isfinite(x.t))
+    const Quadric Q = w.Q.Get(v);
+    const double trace = Trace(Q);
+    if (x.d > 0 && x.t != 0 && std::isfinite(x.t) && trace > 0) // (no quadric: no limit, no move)
     {
-      const Quadric Q = w.Q.Get(v);
-      const double trace = Trace(Q);
       const double limit = std::max(
         std::min(ctx.achievedErr2, largest) * trace, QuadricValue(Q.q, p.x, p.y, p.z));
       double t = x.t;

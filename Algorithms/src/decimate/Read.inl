@@ -180,7 +180,9 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
   add("decimate.order", sizeof(std::uint32_t), V);
   add("decimate.remap", sizeof(std::uint32_t), V);
   // The final fit's samples: at most every second vertex (Fit.inl).
-  add("decimate.fitSamples", ctx.opt.fitSurface ? sizeof(FitSample) : 0, (V + 1) / 2);
+  add("decimate.fitSamples",
+    (ctx.opt.fitSurface || ctx.opt.finalSamples) && !ctx.opt.initialSamples ? sizeof(FitSample) : 0,
+    (V + 1) / 2);
   if (!ctx.opt.dml)
   {
     mesh.dml.Config(profile);

@@ -127,6 +127,9 @@ struct DecimateOptions
   // input vertices that stand for them) instead of the input's own vertices.
   using SampleCallback = std::function<void(const double p[3], std::uint64_t vertex)>;
   SampleCallback finalSamples;
+  // > 0: the samples are sized for an output of this many triangles (the distributed run's
+  // pieces: their share of the result, not of their slack); 0: the finest level's.
+  std::uint64_t fitSampleTriangles = 0;
   std::function<void(const SampleCallback&)> initialSamples;
   // Threads of the candidate sweep, the collapse step and the quadrics when in core (<= 0: the
   // hardware's). The result does not depend on it.
