@@ -474,7 +474,12 @@ double PointTriangleDistanceSquared(
 std::array<double, 3> ClosestPointBarycentric(
   const double p[3], const double a[3], const double b[3], const double c[3])
 {
-  const Vec3 P = At(p), A = At(a), B = At(b), C = At(c);
+  return ClosestPointBarycentric(At(p), At(a), At(b), At(c));
+}
+
+std::array<double, 3> ClosestPointBarycentric(
+  const Vec3& P, const Vec3& A, const Vec3& B, const Vec3& C)
+{
   const Vec3 ab = B - A, ac = C - A, ap = P - A;
   auto segment = [&](const Vec3& x, const Vec3& y) { // parameter of the nearest point on x-y
     const Vec3 e = y - x;

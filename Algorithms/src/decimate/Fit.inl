@@ -41,56 +41,6 @@ struct FitVertex
   double d, g, t, r, p, q;
 };
 
-// The barycentric coordinates of the point of triangle (a, b, c) nearest to p (Ericson,
-// Real-Time Collision Detection, 5.1.5; a degenerate triangle's regions give one of its edges
-// or corners).
-inline std::array<double, 3> Nearest(const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c)
-{
-  const Vec3 ab = b - a, ac = c - a, ap = p - a;
-  const double d1 = Dot(ab, ap), d2 = Dot(ac, ap);
-  if (d1 <= 0.0 && d2 <= 0.0)
-  {
-    return { 1, 0, 0 };
-  }
-  const Vec3 bp = p - b;
-  const double d3 = Dot(ab, bp), d4 = Dot(ac, bp);
-  if (d3 >= 0.0 && d4 <= d3)
-  {
-    return { 0, 1, 0 };
-  }
-  const double vc = d1 * d4 - d3 * d2;
-  if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0)
-  {
-    const double v = d1 / (d1 - d3);
-    return { 1 - v, v, 0 };
-  }
-  const Vec3 cp = p - c;
-  const double d5 = Dot(ab, cp), d6 = Dot(ac, cp);
-  if (d6 >= 0.0 && d5 <= d6)
-  {
-    return { 0, 0, 1 };
-  }
-  const double vb = d5 * d2 - d1 * d6;
-  if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0)
-  {
-    const double x = d2 / (d2 - d6);
-    return { 1 - x, 0, x };
-  }
-  const double va = d3 * d6 - d5 * d4;
-  if (va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0)
-  {
-    const double x = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-    return { 0, 1 - x, x };
-  }
-  const double sum = va + vb + vc;
-  if (!(sum > 0))
-  {
-    return { 1, 0, 0 }; // (degenerate: no face region)
-  }
-  const double v = vb / sum, x = vc / sum;
-  return { 1 - v - x, v, x };
-}
-
 // The vertices that may move: merged by a collapse, not fixed.
 inline bool Movable(State s)
 {
@@ -315,12 +265,12 @@ void Fit(RunContext& ctx, MeshState& mesh)
     double best = std::numeric_limits<double>::infinity();
     Tri bt{};
     std::array<double, 3> bb{};
-    Vec3 bc[3];
+    Vec3 bc[3], bd{ 0, 0, 0 }; // (the nearest face's corners, the nearest point minus p)
     for (std::uint32_t k = w.RO.Get(s.owner), e = w.RO.Get(s.owner + 1); k < e; ++k)
     {
       const Tri t = w.F.Get(w.RF.Get(k));
       const Vec3 c[3] = { w.P.Get(t.v[0]), w.P.Get(t.v[1]), w.P.Get(t.v[2]) };
-      const std::array<double, 3> bw = Nearest(p, c[0], c[1], c[2]);
+      const std::array<double, 3> bw = ClosestPointBarycentric(p, c[0], c[1], c[2]);
       const Vec3 dq = bw[0] * c[0] + bw[1] * c[1] + bw[2] * c[2] - p;
       const double d2 = Dot(dq, dq);
       if (d2 < best)
@@ -328,6 +278,7 @@ void Fit(RunContext& ctx, MeshState& mesh)
         best = d2;
         bt = t;
         bb = bw;
+        bd = dq;
         bc[0] = c[0], bc[1] = c[1], bc[2] = c[2];
       }
     }
@@ -342,9 +293,8 @@ void Fit(RunContext& ctx, MeshState& mesh)
       continue;
     }
     const Vec3 n = (1.0 / l) * n0;
-    const Vec3 q = bb[0] * bc[0] + bb[1] * bc[1] + bb[2] * bc[2];
     FitRow row;
-    row.r = float(Dot(n, q - p));
+    row.r = float(Dot(n, bd));
     bool moves = false;
     for (int c = 0; c < 3; ++c)
     {

@@ -79,6 +79,7 @@
 #pragma once
 
 #include "sipmss/algorithms/Attributes.h"
+#include "sipmss/algorithms/Compare.h"
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Placement.h"
 #include "sipmss/algorithms/Quadric.h"

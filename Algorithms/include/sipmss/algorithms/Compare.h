@@ -30,6 +30,8 @@
 // and may be queried from any number of threads.
 #pragma once
 
+#include "sipmss/algorithms/Vector.h"
+
 #include <array>
 #include <cstddef>
 #include <cstdint>
@@ -109,6 +111,8 @@ double PointTriangleDistanceSquared(
 // (Ericson's regions; a degenerate triangle: its nearest edge's).
 std::array<double, 3> ClosestPointBarycentric(
   const double p[3], const double a[3], const double b[3], const double c[3]);
+std::array<double, 3> ClosestPointBarycentric(
+  const Vec3& p, const Vec3& a, const Vec3& b, const Vec3& c);
 
 // The spatial index behind the distance queries, public for tests and other algorithms.
 class MeshDistanceIndex
