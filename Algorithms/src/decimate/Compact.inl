@@ -64,7 +64,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
       }
       if (trace > 0)
       {
-        ctx.achievedErr2 = std::max(ctx.achievedErr2, double(c.cost) / trace);
+        ctx.achievedErr2 = std::max(ctx.achievedErr2, KeyError(mesh.xSize, double(c.cost), trace));
       }
     }
     ++k;

@@ -430,7 +430,7 @@ std::uint64_t Collapse(MeshState& mesh, PassState& pass, std::uint32_t u, const 
     const double trace = Trace(Q);
     if (trace > 0)
     {
-      s.achievedErr2 = std::max(s.achievedErr2, double(c.cost) / trace);
+      s.achievedErr2 = std::max(s.achievedErr2, KeyError(mesh.xSize, double(c.cost), trace));
     }
   }
   InterpolateAttributes(mesh, u, v, double(c.t), s);

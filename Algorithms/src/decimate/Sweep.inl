@@ -563,10 +563,12 @@ void OfferEdge(RunContext& ctx, MeshState& mesh, PassState& pass,
   {
     return;
   }
-  Offer(mesh, pass, u, v, pl, false, s);
+  Placement ranked = pl;
+  ranked.cost = RankKey(mesh.xSize, pl.cost, trace);
+  Offer(mesh, pass, u, v, ranked, false, s);
   if (offerV)
   {
-    Offer(mesh, pass, v, u, pl, true, s);
+    Offer(mesh, pass, v, u, ranked, true, s);
   }
 }
 
@@ -620,7 +622,7 @@ void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, S
     }
     // (Its neighbours get this edge from their own evaluation: u is neither active nor a
     // survivor.)
-    s.edges.push_back({ pl.cost, nb.v, k, pl });
+    s.edges.push_back({ RankKey(mesh.xSize, pl.cost, trace), nb.v, k, pl });
   }
   std::sort(s.edges.begin(), s.edges.end(), [](const EdgeCand& a, const EdgeCand& b) {
     return a.cost < b.cost || (a.cost == b.cost && a.v < b.v);
