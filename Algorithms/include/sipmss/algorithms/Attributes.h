@@ -19,6 +19,9 @@
 // area-weighted sum Q(p), i.e. alpha times a mean, so the attribute error enters times alpha:
 //   cost(p) = Q(p) + alpha Qa(p) - sum_j (B_j.p + e_j)^2     (AddAttributeError),
 // a plain quadric in p that the placement minimizes as any other (the same kernel, Placement.h).
+// The decimation ranks attribute runs' collapses by this cost per unit of the geometric trace
+// (a mean squared distance plus the summed attribute error, meshoptimizer's ranking; RankKey in
+// decimate/Passes.h).
 // Channels are multiplied by their weight (colors first go to [0, 1]); equal weights mean the
 // same as meshoptimizer's. The errors the runs report (RunStats::achievedError) include the
 // attribute term; the error bound's unit stays the geometric quadric's trace.
