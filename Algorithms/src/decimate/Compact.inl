@@ -78,7 +78,6 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   const std::uint64_t nv2 = k;
   mesh.views.RO.Set(nv2, end);
   TrackSamples(mesh, R); // (the removed vertices' candidates still name their survivors)
-  ++mesh.fitGeneration;
   // 3. Vertex data, and the candidates carried to the next pass.
   // (S, C, R: access of either kind, see WithAccess)
   auto carry = [&, kTop](const auto& S, const auto& C, const auto& R, std::uint64_t v,

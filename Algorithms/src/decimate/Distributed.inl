@@ -104,6 +104,13 @@ std::uint32_t PositionBits(float f)
   return b;
 }
 
+// The vertex that vertex v of the gathered mesh joins (v itself when it joins none).
+std::uint32_t Joined(const std::unordered_map<std::uint32_t, std::uint32_t>& join, std::uint32_t v)
+{
+  const auto it = join.find(v);
+  return it == join.end() ? v : it->second;
+}
+
 // Forwards a replay with the joined vertices replaced by the vertex they join.
 class JoinSink final : public io::MeshSink
 {
@@ -120,11 +127,7 @@ public:
     this->buffer_.assign(idx, idx + 3 * n);
     for (std::uint32_t& v : this->buffer_)
     {
-      const auto it = this->join_.find(v);
-      if (it != this->join_.end())
-      {
-        v = it->second;
-      }
+      v = Joined(this->join_, v);
     }
     this->inner_.Triangles(this->buffer_.data(), n);
   }
@@ -373,6 +376,8 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     std::vector<float> xyz;
     std::vector<std::uint32_t> words;
     std::vector<Quadric> q;
+    std::vector<JoinKey> k;
+    std::vector<PieceSample> s;
     detail::PointDataBuffers buffers;
     bool more = true;
     do
@@ -459,7 +464,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
               first;
             if (kind == kSampleSection)
             {
-              std::vector<PieceSample> s(static_cast<std::size_t>(n));
+              s.resize(std::size_t(n));
               std::memcpy(s.data(), p, bytes);
               for (PieceSample& x : s)
               {
@@ -490,7 +495,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
               }
               gathered->Vertices(c);
               gatheredQuadrics.Write(to, std::size_t(n), q.data());
-              std::vector<JoinKey> k(n);
+              k.resize(std::size_t(n));
               for (std::size_t i = 0; i < n; ++i)
               {
                 k[i] = { PositionBits(xyz[3 * i]), PositionBits(xyz[3 * i + 1]),
@@ -598,8 +603,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
           gatheredSamples.Read(first, n, s.data());
           for (std::size_t i = 0; i < n; ++i)
           {
-            const auto it = join.find(std::uint32_t(s[i].vertex));
-            emit(s[i].p, it == join.end() ? s[i].vertex : it->second);
+            emit(s[i].p, Joined(join, std::uint32_t(s[i].vertex)));
           }
         }
       };

@@ -181,9 +181,9 @@ void Fit(RunContext& ctx, MeshState& mesh)
     mesh.fittedValid = false;
     return;
   }
-  if (mesh.fittedValid && mesh.fittedGeneration == mesh.fitGeneration)
+  if (mesh.fittedValid)
   {
-    return; // (the last level, written again as the final output)
+    return; // (the last level, written again as the final output; Compact clears it)
   }
   const std::uint64_t nv = mesh.nv;
   mesh.fittedValid = false; // (until the new positions are all written)
@@ -440,7 +440,6 @@ void Fit(RunContext& ctx, MeshState& mesh)
     out.Set(v, fitted);
   }
   mesh.fittedValid = true;
-  mesh.fittedGeneration = mesh.fitGeneration;
   // (the fit's blocks close here)
 }
 

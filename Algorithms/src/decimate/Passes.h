@@ -726,12 +726,11 @@ struct MeshState
 
   // The final fit (Fit.inl): a sample of the input's vertices, each with the vertex of the
   // current mesh that stands for it (Compact follows the collapses), and the fitted positions
-  // of the mesh as it was when fittedNv vertices and fittedNf faces were last fitted.
+  // of the current mesh (valid until the next Compact, which closes them).
   Array<FitSample> samples;
   std::uint64_t nSamples = 0;
   Array<Vec3> fitted;
   bool fittedValid = false;
-  std::uint64_t fitGeneration = 0, fittedGeneration = 0; // (Compact counts the generations)
 
   // The views of the blocks through the DML (BindViews after anything that opens, resizes or
   // reconfigures), and those of a worker (through its DML, within its write ranges).

@@ -117,8 +117,9 @@ struct DecimateOptions
   // on the input's planes; between the vertices a flat face then cuts a curved surface on one
   // side only). A move never raises the vertex's quadric error above the largest of the
   // output's vertices before the fit (RunStats::achievedError stays true); vertices kept fixed,
-  // and vertices no collapse touched, stay exactly where they are; point data is not changed. false: the quadric-optimal positions (the
-  // distributed run's first pass, whose output is not the result).
+  // and vertices no collapse touched, stay exactly where they are; point data is not changed.
+  // false: the quadric-optimal positions (the distributed run's first pass, whose output is not
+  // the result).
   bool fitSurface = true;
   // The final fit's samples across ranks (decimate/Distributed.inl). finalSamples: called after
   // the run for each sample of the input (its position, in input coordinates) with the output

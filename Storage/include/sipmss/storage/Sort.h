@@ -597,12 +597,13 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
     for (std::uint64_t i = 0; i < c; ++i)
     {
       // (every key is checked here, once)
-      if (keyBits < 64 && (key(buf[i]) >> keyBits) != 0)
+      const std::uint64_t k = key(buf[i]);
+      if (keyBits < 64 && (k >> keyBits) != 0)
       {
         throw std::logic_error("sipmss::storage::SortByKey: a key of more than " +
           std::to_string(keyBits) + " bits");
       }
-      ++count[rangeOf(buf[i])];
+      ++count[static_cast<std::size_t>(k >> shift)]; // (rangeOf)
     }
     tell(0.15 * double(first + c) / double(n));
   }
