@@ -289,10 +289,12 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
           }
           samples.Set(nSamples++, PieceSample{ { p[0], p[1], p[2] }, v });
         };
-        // (as many as the piece's share of the result needs, not its slack's)
-        o.fitSampleTriangles = std::max<std::uint64_t>(1,
-          std::uint64_t(std::ceil(firstLevel * double(count.triangles) /
-            double(std::max<std::uint64_t>(F, 1)))));
+        // (as many as the piece's share of the result needs, not its slack's; with a bound
+        // alone, as the serial run: SampleInput's default)
+        o.fitSampleTriangles = boundOnly ? 0
+                                         : std::max<std::uint64_t>(1,
+                                             std::uint64_t(std::ceil(firstLevel * double(count.triangles) /
+                                               double(std::max<std::uint64_t>(F, 1)))));
       }
       o.maximumError = LevelBound(options, 0); // (the first level's, when it spaces them)
       o.trianglesPerFixedVertex = kTrianglesPerBorderVertex;
@@ -378,6 +380,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
     std::vector<Quadric> q;
     std::vector<JoinKey> k;
     std::vector<PieceSample> s;
+    std::uint64_t samplesIn = 0; // (the progress counts them with the triangles)
     detail::PointDataBuffers buffers;
     bool more = true;
     do
@@ -476,6 +479,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
                 x.vertex += vFirst[std::size_t(r)];
               }
               gatheredSamples.Write(to, std::size_t(n), s.data());
+              samplesIn += n;
             }
             else if (kind == kVertexSection)
             {
@@ -521,7 +525,8 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
             p += bytes;
           }
         }
-        progress.Tick(double(gathered->TriangleCount()) / double(std::max<std::uint64_t>(gatheredT, 1)));
+        progress.Tick(double(gathered->TriangleCount() + samplesIn) /
+          double(std::max<std::uint64_t>(gatheredT + gatheredS, 1)));
       });
       more = rounds.Continue(nextV < myV || nextT < myT || nextS < myS);
     } while (more);
