@@ -120,6 +120,17 @@ Workers::Workers(DML& dml, const Phase& phase)
   {
     return;
   }
+  const Stats before = dml.GetStats();
+  ForkRecord* record = phase.record;
+  if (record && record->declinedAtFileBytes)
+  {
+    if (2 * before.fileBytes > record->declinedAtFileBytes)
+    {
+      ++record->declined;
+      return;
+    }
+    record->declinedAtFileBytes = 0; // the blocks have halved since: try the helper again
+  }
   const std::uint64_t mid = this->split_;
   std::vector<DML::Range> ranges;
   for (BlockId id : phase.writes)
@@ -138,6 +149,8 @@ Workers::Workers(DML& dml, const Phase& phase)
   if (this->fork_)
   {
     this->count_ = 2;
+    this->forkMisses_ = before.misses;
+    this->forkFileBytes_ = before.fileBytes;
   }
 }
 
@@ -195,6 +208,13 @@ void Workers::Join()
     std::unique_ptr<DML> fork = std::move(this->fork_);
     this->count_ = 1; // (the helper is gone: what is left of the phase runs on one worker)
     this->dml_.Join(*fork);
+    const std::uint64_t page = std::max<std::uint64_t>(this->dml_.PageBytes(), 1);
+    const std::uint64_t pages = (this->forkFileBytes_ + page - 1) / page;
+    const std::uint64_t misses = this->dml_.GetStats().misses - this->forkMisses_;
+    if (this->phase_.record && misses > ForkRecord::kThrash * std::max<std::uint64_t>(pages, 1))
+    {
+      this->phase_.record->declinedAtFileBytes = std::max<std::uint64_t>(this->forkFileBytes_, 1);
+    }
   }
 }
 

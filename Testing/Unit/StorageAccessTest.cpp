@@ -280,4 +280,85 @@ TEST(StorageAccess, WorkersHelperRangesAndTasks)
     ASSERT_EQ(b.Get(n + i), 2u);
   }
 }
+// A repeated phase whose helper thrashes (each half of the budget too small for the pages it
+// reads) runs on one thread from then on, until the blocks' files shrink to half their size;
+// one whose reads fit leaves its record alone.
+TEST(StorageAccess, WorkersDeclineAHelperThatThrashed)
+{
+  TempDir dir;
+  DML dml;
+  ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 256 << 10)), Mode::OutOfCore);
+  constexpr std::uint64_t n = std::uint64_t(1) << 20; // 4 MiB: far more pages than frames
+  Array<std::uint32_t> big(dml, n), small(dml, Workers::kHelperMin);
+  const std::uint64_t pages = dml.GetStats().fileBytes / dml.PageBytes();
+  ForkRecord record;
+  Phase phase;
+  phase.elements = n;
+  phase.threads = 2;
+  phase.record = &record;
+  // Reads of every 64th element's scattered partner: nearly each one a page the frames lost.
+  auto scattered = [&](Workers& workers) {
+    std::vector<std::uint64_t> sums(2, 0);
+    workers.Run([&](int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>&) {
+      View<std::uint32_t> v = workers.Bind(t, big);
+      for (std::uint64_t i = begin; i < end; i += 64)
+      {
+        sums[std::size_t(t)] += v.Get((i * 2654435761u) % n);
+      }
+    });
+    return sums[0] + sums[1];
+  };
+  auto sequential = [&](Workers& workers) {
+    workers.Run([&](int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>&) {
+      View<std::uint32_t> v = workers.Bind(t, big);
+      std::uint64_t sum = 0;
+      for (std::uint64_t i = begin; i < end; ++i)
+      {
+        sum += v.Get(i);
+      }
+      EXPECT_EQ(sum, 0u);
+    });
+  };
+  {
+    Workers workers(dml, phase);
+    ASSERT_TRUE(workers.Forked());
+    const std::uint64_t before = dml.GetStats().misses;
+    sequential(workers);
+    EXPECT_LE(dml.GetStats().misses - before, ForkRecord::kThrash * pages);
+    EXPECT_EQ(record.declinedAtFileBytes, 0u);
+  }
+  {
+    Workers workers(dml, phase);
+    ASSERT_TRUE(workers.Forked());
+    const std::uint64_t before = dml.GetStats().misses;
+    EXPECT_EQ(scattered(workers), 0u);
+    EXPECT_GT(dml.GetStats().misses - before, ForkRecord::kThrash * pages);
+    EXPECT_EQ(record.declinedAtFileBytes, dml.GetStats().fileBytes);
+  }
+  {
+    Workers workers(dml, phase);
+    EXPECT_FALSE(workers.Forked());
+    EXPECT_EQ(workers.Count(), 1);
+    EXPECT_EQ(record.declined, 1u);
+    scattered(workers); // (one thread: the record is left as it is)
+  }
+  EXPECT_NE(record.declinedAtFileBytes, 0u);
+  // Without its record a phase forks as before.
+  phase.record = nullptr;
+  EXPECT_TRUE(Workers(dml, phase).Forked());
+  phase.record = &record;
+  // The files at half their bytes then: the helper is tried again.
+  const std::uint64_t declinedAt = record.declinedAtFileBytes;
+  big.Resize(n / 2 - 1);
+  if (2 * dml.GetStats().fileBytes > declinedAt)
+  {
+    big.Close(); // (a file system that keeps the bytes of a shrunk file)
+  }
+  ASSERT_LE(2 * dml.GetStats().fileBytes, declinedAt);
+  phase.elements = Workers::kHelperMin;
+  Workers again(dml, phase);
+  EXPECT_TRUE(again.Forked());
+  EXPECT_EQ(record.declinedAtFileBytes, 0u);
+  EXPECT_EQ(record.declined, 1u);
+}
 } // namespace

@@ -250,6 +250,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     phase.helperWrites.push_back({ mesh.attr.Id(), 0, nv * rec });
   }
   phase.mainWrites = { mesh.quad.Id(), mesh.faces.Id() };
+  phase.record = &pass.compactFork;
   if (mesh.xSize)
   {
     phase.mainWrites.push_back(mesh.extra.Id());

@@ -764,6 +764,8 @@ struct PassState
   std::uint64_t splitMid = 0, splitFace = 0;
   bool splitOn = false;
   std::uint64_t stepTotal = 1; // the candidates the pass takes (the step's progress unit)
+  // Out of core, whether the helper thread pays in the phases every pass runs (Parallel.h).
+  storage::ForkRecord sweepFork, stepFork, compactFork;
   // Scratch bounded by valences and chunk sizes: [0] is the main thread's, one per sweep thread.
   std::vector<Scratch> scratch = std::vector<Scratch>(1);
   std::vector<std::uint32_t> partStart; // first vertex of each sweep thread's range

@@ -831,6 +831,7 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
   phase.helper = pass.splitOn && half > 0 && std::uint64_t(half) * size == pass.splitMid;
   phase.helperFirst = pass.splitMid;
   phase.writes = { mesh.state.Id(), mesh.pos.Id(), mesh.cand.Id() };
+  phase.record = &pass.stepFork;
   phase.helperWrites.push_back({ mesh.faces.Id(), pass.splitFace,
     mesh.faces.Size() - std::min(pass.splitFace, mesh.faces.Size()) });
   if (mesh.recSize)

@@ -7,7 +7,8 @@
 //   - in core: on up to `threads` threads sharing the blocks' memory (from `inCoreMin` elements);
 //   - out of core: on two threads when the budget can be shared: the upper half of the range on a
 //     helper thread through a DML forked from the algorithm's (DML::Fork lends it half of the
-//     budget and its declared ranges), joined when the phase ends;
+//     budget and its declared ranges), joined when the phase ends; not while the phase's
+//     ForkRecord says that its last forked run thrashed;
 //   - else on the calling thread alone.
 // Worker t reads and writes through Dml(t) with views made by Bind (restricted to its write
 // ranges: checked in builds with SIPMSS_CHECK_WRITES, Access.h). The output of a phase must not
@@ -43,6 +44,19 @@ void RethrowFirst(const std::vector<std::exception_ptr>& errors);
 using RangeBody =
   std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
 
+// What a phase that runs again and again (each pass of an algorithm) learns of its helper out
+// of core. A forked phase that misses more than kThrash times the pages of the open blocks
+// (each half budget too small for its window of pages: the two threads evict each other's
+// pages, where one thread with the whole budget would not) runs on one thread from then on,
+// until the blocks' files shrink to half the bytes they had then; it is then tried forked
+// again. Its output does not depend on it (a phase's never depends on its workers).
+struct ForkRecord
+{
+  static constexpr std::uint64_t kThrash = 8;
+  std::uint64_t declinedAtFileBytes = 0; // 0: the helper is welcome
+  std::uint64_t declined = 0;            // phases run on one thread because of it
+};
+
 // What a phase over [0, elements) needs to know to run in parallel.
 struct Phase
 {
@@ -58,6 +72,7 @@ struct Phase
   std::vector<BlockId> writes;  // blocks written, each worker within its own element range
   std::vector<DML::Range> helperWrites; // out of core: more ranges the helper writes
   std::vector<BlockId> mainWrites; // blocks only worker 0 writes (all of them), never the others
+  ForkRecord* record = nullptr;     // out of core: where a repeated phase keeps what it learned
 };
 
 class Workers
@@ -121,5 +136,7 @@ private:
   // worker could not be started: its part runs there).
   void Alone();
   std::unique_ptr<DML> fork_;
+  // Out of core with a helper: the misses and the files' bytes when it was forked (ForkRecord).
+  std::uint64_t forkMisses_ = 0, forkFileBytes_ = 0;
 };
 } // namespace sipmss::storage
