@@ -119,6 +119,7 @@ struct ClusterState
   Array<TriSlot> deferred;
   Array<EdgeRec> edges;
   Array<std::uint32_t> edgeCount;
+  Array<std::uint64_t> cellKey; // ClusterOptions::gridOrder: each cell's grid key (KeepCellKeys)
   std::uint64_t numEdges = 0;
   std::uint64_t deferredCount = 0;
   std::uint32_t numCells = 0;
@@ -142,6 +143,7 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h);
 void AddVertices(ClusterState& cluster, const io::VertexChunk& c);
 void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count);
 void EndInput(ClusterState& cluster, const io::ReadStats&);
+void KeepCellKeys(ClusterState& cluster);
 void ReleaseInputBlocks(ClusterState& cluster);
 void FinishTriangles(ClusterState& cluster);
 void FinishBoundaries(ClusterState& cluster);
@@ -429,6 +431,16 @@ void EndInput(ClusterState& cluster, const io::ReadStats&)
 }
 
 // --- after the read
+// ClusterOptions::gridOrder: each cell's grid key, kept from the cell map (which the input's
+// blocks release) for Emit.
+void KeepCellKeys(ClusterState& cluster)
+{
+  cluster.cellKey = Array<std::uint64_t>(cluster.dml, std::max<std::uint64_t>(cluster.numCells, 1));
+  cluster.cellMap.ForEach([&](std::uint64_t key, std::uint64_t cell) {
+    cluster.cellKey.Set(cell, key);
+  });
+}
+
 void ReleaseInputBlocks(ClusterState& cluster)
 {
   cluster.vertexWindow.Release();
@@ -683,6 +695,41 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
   {
     cluster.dml.Reconfigure(); // the input-sized blocks are gone: in core from here if it fits
   }
+  // ClusterOptions::gridOrder: the used cells sorted by their grid key, and ownIndex renumbered
+  // in that order.
+  struct KeyedCell
+  {
+    std::uint64_t key;
+    std::uint32_t cell, pad;
+  };
+  const bool gridOrder = !dist && cluster.cellKey.IsOpen();
+  Array<KeyedCell> byKey;
+  if (gridOrder)
+  {
+    byKey = Array<KeyedCell>(cluster.dml, std::max<std::uint32_t>(numOut, 1));
+    for (std::uint32_t c = 0; c < cluster.numCells; ++c)
+    {
+      const std::uint32_t i = ownIndex.Get(c);
+      if (i != kNoCell)
+      {
+        byKey.Set(i, KeyedCell{ cluster.cellKey.Get(c), c, 0 });
+      }
+    }
+    cluster.cellKey.Close();
+    if (numOut > 0)
+    {
+      byKey.Resize(numOut);
+    }
+    const std::uint64_t gridCells = std::uint64_t(cluster.grid.dims[0]) * cluster.grid.dims[1] *
+      cluster.grid.dims[2];
+    storage::SortByKey(
+      cluster.dml, byKey, [](const KeyedCell& a, const KeyedCell& b) { return a.key < b.key; },
+      [](const KeyedCell& a) { return a.key; }, detail::BitsFor(gridCells), {}, 1);
+    for (std::uint32_t r = 0; r < numOut; ++r)
+    {
+      ownIndex.Set(byKey.Get(r).cell, r);
+    }
+  }
 
   io::MeshHeader h;
   h.format = cluster.header.format;
@@ -713,8 +760,22 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
     first += vc.count;
     v.Clear();
   };
-  for (std::uint32_t c = 0; c < cluster.numCells; ++c)
+  // (in grid order the cells come at random: in core their records are fetched ahead)
+  const auto* keyed = gridOrder
+    ? static_cast<const KeyedCell*>(cluster.dml.BasePointer(byKey.Id()))
+    : nullptr;
+  const auto* cellBase = static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
+  for (std::uint32_t k = 0; k < (gridOrder ? numOut : cluster.numCells); ++k)
   {
+    const std::uint32_t c = gridOrder ? byKey.Get(k).cell : k;
+    if (keyed && cellBase && k + 8 < numOut)
+    {
+      const char* rec = cellBase + std::size_t(keyed[k + 8].cell) * sizeof(CellRec);
+      for (std::size_t line = 0; line < sizeof(CellRec); line += 64)
+      {
+        __builtin_prefetch(rec + line);
+      }
+    }
     const std::uint32_t index = outIndex.Get(c);
     if (index == kNoCell)
     {
@@ -741,10 +802,42 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
     if (v.Count() == chunk)
     {
       flush();
-      cluster.progress.Tick(double(numTris + cluster.numCells + c) / total);
+      cluster.progress.Tick(double(numTris + cluster.numCells + k) / total);
     }
   }
   flush();
+  if (gridOrder)
+  {
+    byKey.Close();
+    // The triangles in the new numbers, each from its lowest vertex (orientation kept), sorted.
+    Array<TriSlot> sorted(cluster.dml, std::max<std::uint64_t>(outTris, 1));
+    std::uint64_t m = 0;
+    order.ForEachChunk(0, numTris, storage::Access::Read,
+      [&](TriSlot* d, std::uint64_t, std::uint64_t n) {
+        for (std::uint64_t j = 0; j < n; ++j)
+        {
+          TriSlot t{ { 0, 0, 0 }, 1 };
+          for (int k = 0; k < 3; ++k)
+          {
+            t.v[k] = outIndex.Get(d[j].v[k]);
+          }
+          detail::LowestFirst(t);
+          sorted.Set(m++, t);
+        }
+      });
+    if (m > 0)
+    {
+      sorted.Resize(m);
+    }
+    storage::SortByKey(
+      cluster.dml, sorted,
+      [](const TriSlot& a, const TriSlot& b) {
+        return a.v[0] != b.v[0] ? a.v[0] < b.v[0]
+                                : (a.v[1] != b.v[1] ? a.v[1] < b.v[1] : a.v[2] < b.v[2]);
+      },
+      [](const TriSlot& a) { return std::uint64_t(a.v[0]); }, detail::BitsFor(numOut), {}, 1);
+    std::swap(cluster.triangles.Order(), sorted);
+  }
 
   std::vector<std::uint32_t> tri;
   tri.reserve(3 * chunk);
@@ -763,7 +856,7 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
         }
         for (int k = 0; k < 3; ++k)
         {
-          tri.push_back(outIndex.Get(d[j].v[k]));
+          tri.push_back(gridOrder ? d[j].v[k] : outIndex.Get(d[j].v[k])); // (sorted: numbered)
         }
         if (tri.size() == 3 * chunk)
         {
@@ -1541,6 +1634,10 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
       ClusterWorkAfter(cells, candidates, 0, noBoundaries));
     PhaseTimer timer(stats, dml, "boundaries");
     FinishBoundaries(cluster);
+  }
+  if (options.gridOrder)
+  {
+    KeepCellKeys(cluster);
   }
   ReleaseInputBlocks(cluster);
   {

@@ -16,6 +16,28 @@
 namespace sipmss::algorithms::detail
 {
 
+// The bits of the numbers below n (at least 1): a SortByKey key's.
+inline int BitsFor(std::uint64_t n)
+{
+  int bits = 1;
+  while (bits < 64 && ((n - 1) >> bits) != 0)
+  {
+    ++bits;
+  }
+  return bits;
+}
+
+// Rotates a triangle so that its lowest vertex comes first (its orientation is kept).
+template <class Tri>
+void LowestFirst(Tri& t)
+{
+  const int m = t.v[0] < t.v[1] ? (t.v[0] < t.v[2] ? 0 : 2) : (t.v[1] < t.v[2] ? 1 : 2);
+  const std::uint32_t a = t.v[m], b = t.v[(m + 1) % 3], c = t.v[(m + 2) % 3];
+  t.v[0] = a;
+  t.v[1] = b;
+  t.v[2] = c;
+}
+
 // Above this share of far faces an input is incoherent: scanner-ordered files measure below 1%,
 // shuffled ones above 90%.
 constexpr double kIncoherentFarFraction = 0.05;

@@ -242,6 +242,10 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     // (doubles: the second stage depends on the order of the faces anyway, and the exact sums
     // would make this stage about 1.7x slower)
     co.exactSums = false;
+    // An incoherent input read as it is (in core): the clustered mesh in grid order, which the
+    // second stage reads as it would a scanner-ordered one (the cells' first-seen order would be
+    // as incoherent as the input: Dragon-size's stage 2 took 0.35 s against 0.18 s).
+    co.gridOrder = probe.Incoherent() && !reordered;
     if (options.carryQuadrics)
     {
       co.exportQuadric = [&quadrics](std::uint64_t v, const double q[10]) {

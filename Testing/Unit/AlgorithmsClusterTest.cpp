@@ -335,6 +335,57 @@ TEST(Cluster, TheOrderOfTheInputDoesNotChangeTheResult)
   }
 }
 
+TEST(Cluster, InGridOrderTheOutputIsTheSameForAnyOrderOfTheInput)
+{
+  // ClusterOptions::gridOrder: the vertices by their cell's grid key, the triangles from their
+  // lowest vertex and sorted. With exact sums the output of a shuffled input is then the
+  // ordered input's, byte for byte (without it, the same triangles in another numbering), in
+  // core and out of core.
+  const Mesh meshes[] = { sipmss::testing::BumpyUVSphere(30),
+    sipmss::testing::BumpyUVSphere(24, { 1e4, -3e3, 2e4 }) };
+  for (const Mesh& m : meshes)
+  {
+    const Mesh shuffled = sipmss::testing::Shuffled(m, 11u);
+    for (const bool gridOrder : { false, true })
+    {
+      ClusterOptions o;
+      o.maximumGridDimension = 11;
+      o.layout = LayoutPolicy::Keep;
+      o.gridOrder = gridOrder;
+      NullProgress progress;
+      Collect a, b, c;
+      Cluster(MemorySource(m), a, o, progress);
+      Cluster(MemorySource(shuffled), b, o, progress);
+      ASSERT_GT(a.m.t.size(), 3u * 100u);
+      EXPECT_EQ(a.m.p.size(), b.m.p.size());
+      if (!gridOrder)
+      {
+        EXPECT_FALSE(a.m.t == b.m.t && a.m.p == b.m.p); // (the cells' first-seen order)
+        continue;
+      }
+      EXPECT_TRUE(a.m.p == b.m.p);
+      EXPECT_TRUE(a.m.t == b.m.t);
+      o.storage.policy = storage::ModePolicy::OutOfCore;
+      o.storage.memoryBudget = 256 << 10;
+      Cluster(MemorySource(shuffled), c, o, progress);
+      EXPECT_TRUE(a.m.p == c.m.p);
+      EXPECT_TRUE(a.m.t == c.m.t);
+      // Each triangle from its lowest vertex, the triangles in increasing order.
+      for (std::size_t i = 0; i < a.m.t.size(); i += 3)
+      {
+        ASSERT_LT(a.m.t[i], a.m.t[i + 1]);
+        ASSERT_LT(a.m.t[i], a.m.t[i + 2]);
+        if (i > 0)
+        {
+          ASSERT_TRUE(std::lexicographical_compare(a.m.t.begin() + std::ptrdiff_t(i) - 3,
+            a.m.t.begin() + std::ptrdiff_t(i), a.m.t.begin() + std::ptrdiff_t(i),
+            a.m.t.begin() + std::ptrdiff_t(i) + 3));
+        }
+      }
+    }
+  }
+}
+
 TEST(Cluster, PlainSumsGiveTheExactResultToRounding)
 {
   // ClusterOptions::exactSums off (two-stage's first stage): the same triangles, the vertices

@@ -59,6 +59,12 @@ struct ClusterOptions
   // bits with the order of the faces (two-stage's first stage, whose second stage depends on the
   // order anyway). A distributed run needs it on.
   bool exactSums = true;
+  // The output's order: false, the vertices in the order their cells were first met in the input
+  // and the triangles by their first vertex's cell; true, the vertices in grid order (by cell:
+  // x, then y, then z) and the triangles sorted by their lowest vertex, for any order of the
+  // input (two-stage's hand-off of an incoherent input, so that its second stage reads a
+  // coherent mesh). Not across ranks (`communicator`).
+  bool gridOrder = false;
   // Optional: run across the ranks of this communicator, `input` being this rank's piece of the
   // mesh and `output` receiving this rank's piece of the result (docs/architecture.md,
   // "Distributed clustering"): the union of the pieces is the serial result. Every rank calls
