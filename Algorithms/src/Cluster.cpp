@@ -702,7 +702,14 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
     std::uint64_t key;
     std::uint32_t cell, pad;
   };
-  const bool gridOrder = !dist && cluster.cellKey.IsOpen();
+  // (only while the cell records are in memory: out of core, reading them in another order than
+  // they were made would cost a page read a record)
+  const bool gridOrder = !dist && cluster.cellKey.IsOpen() &&
+    cluster.dml.BasePointer(cluster.cells.Id()) != nullptr;
+  if (cluster.cellKey.IsOpen() && !gridOrder)
+  {
+    cluster.cellKey.Close();
+  }
   Array<KeyedCell> byKey;
   if (gridOrder)
   {

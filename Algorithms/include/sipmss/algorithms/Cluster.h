@@ -63,7 +63,8 @@ struct ClusterOptions
   // and the triangles by their first vertex's cell; true, the vertices in grid order (by cell:
   // x, then y, then z) and the triangles sorted by their lowest vertex, for any order of the
   // input (two-stage's hand-off of an incoherent input, so that its second stage reads a
-  // coherent mesh). Not across ranks (`communicator`).
+  // coherent mesh). Only while the cell records are in memory when the output is written (out
+  // of core the first-seen order stays); not across ranks (`communicator`).
   bool gridOrder = false;
   // Optional: run across the ranks of this communicator, `input` being this rank's piece of the
   // mesh and `output` receiving this rank's piece of the result (docs/architecture.md,
