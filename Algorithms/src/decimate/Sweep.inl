@@ -172,17 +172,16 @@ void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
   std::vector<std::exception_ptr> errors(static_cast<std::size_t>(T));
   // Out of core, a helper whose half of the budget cannot hold its window of pages makes both
   // threads evict each other's pages (a sweep can then read its blocks hundreds of times over):
-  // each thread counts its misses, and one past ForkRecord::kThrash reads of its share of the
-  // files (plus one fill of its frames) so far, from a 16th of its range on, stops the forked
-  // sweep; it then runs on one thread from the start (the offers are idempotent, as below) and
-  // the record keeps the following passes' sweeps on one thread.
+  // each thread counts its misses, and once they pass ForkRecord::kThrash reads of its share of
+  // the files (the rate at which Workers declines the helper next time), the forked sweep stops;
+  // it then runs on one thread from the start (the offers are idempotent, as below) and the
+  // record keeps the following passes' sweeps on one thread.
   std::atomic<bool> thrash{ false };
   const bool guard = workers.Forked();
   const std::uint64_t pageBytes = guard ? std::max<std::size_t>(mesh.dml.PageBytes(), 1) : 1;
   const storage::Stats atFork = guard ? mesh.dml.GetStats() : storage::Stats();
   const double missesPerVertex = double(storage::ForkRecord::kThrash) *
     double(atFork.fileBytes / pageBytes + 1) / double(std::max<std::uint64_t>(nv, 1));
-  const std::uint64_t sideFrames = mesh.dml.GetProfile().memoryBudget / 2 / pageBytes;
   auto work = [&](int t) {
     Scratch& s = pass.scratch[std::size_t(t)];
     ScratchViews use(s, views[std::size_t(t)]);
@@ -208,11 +207,10 @@ void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
           },
           w.S, w.RO, w.RF, w.F);
         FlushEdges(ctx, mesh, pass, s); // (its offers to other threads go out at this barrier)
-        const std::uint64_t done = std::min<std::uint64_t>(s.hi - s.lo, (r + 1) * kChunk);
-        if (guard && 16 * done >= s.hi - s.lo) // (not on the first fills of its frames)
+        if (guard)
         {
           const std::uint64_t misses = workers.Dml(t).GetStats().misses - missesAtStart;
-          if (double(misses) > missesPerVertex * double(done) + double(sideFrames))
+          if (double(misses) > missesPerVertex * double(s.hi - s.lo))
           {
             thrash = true;
             stop = true;

@@ -52,7 +52,7 @@ using RangeBody =
 // again. Its output does not depend on it (a phase's never depends on its workers).
 struct ForkRecord
 {
-  static constexpr std::uint64_t kThrash = 8;
+  static constexpr std::uint64_t kThrash = 16;
   std::uint64_t declinedAtFileBytes = 0; // 0: the helper is welcome
   std::uint64_t declined = 0;            // phases run on one thread because of it
 };
