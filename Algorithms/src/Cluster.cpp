@@ -767,14 +767,14 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
     first += vc.count;
     v.Clear();
   };
-  // (in grid order the cells come at random: in core their records are fetched ahead)
-  const auto* keyed = gridOrder
-    ? static_cast<const KeyedCell*>(cluster.dml.BasePointer(byKey.Id()))
-    : nullptr;
-  const auto* cellBase = static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
   for (std::uint32_t k = 0; k < (gridOrder ? numOut : cluster.numCells); ++k)
   {
     const std::uint32_t c = gridOrder ? byKey.Get(k).cell : k;
+    // (in grid order the cells come at random: in core their records are fetched ahead; the
+    // pointers are read each time, as exportQuadric may grow a block and move the DML out of core)
+    const auto* keyed =
+      gridOrder ? static_cast<const KeyedCell*>(cluster.dml.BasePointer(byKey.Id())) : nullptr;
+    const auto* cellBase = static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
     if (keyed && cellBase && k + 8 < numOut)
     {
       const char* rec = cellBase + std::size_t(keyed[k + 8].cell) * sizeof(CellRec);
@@ -1642,9 +1642,9 @@ RunStats ClusterRun(const MeshSource& source, io::MeshSink& output, const Cluste
     PhaseTimer timer(stats, dml, "boundaries");
     FinishBoundaries(cluster);
   }
-  if (options.gridOrder)
+  if (options.gridOrder && dml.BasePointer(cluster.cells.Id()))
   {
-    KeepCellKeys(cluster);
+    KeepCellKeys(cluster); // (out of core Emit keeps the first-seen order)
   }
   ReleaseInputBlocks(cluster);
   {

@@ -6,9 +6,11 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <iterator>
+#include <map>
 #include <set>
 
 using namespace sipmss;
@@ -346,15 +348,37 @@ TEST(Cluster, InGridOrderTheOutputIsTheSameForAnyOrderOfTheInput)
   for (const Mesh& m : meshes)
   {
     const Mesh shuffled = sipmss::testing::Shuffled(m, 11u);
+    // Each output vertex's exported cell quadric by position (first-seen order's, then checked
+    // against grid order's: the index exportQuadric gets is the vertex's).
+    std::map<std::array<float, 3>, std::array<double, 10>> quadricAt;
     for (const bool gridOrder : { false, true })
     {
       ClusterOptions o;
       o.maximumGridDimension = 11;
       o.layout = LayoutPolicy::Keep;
       o.gridOrder = gridOrder;
+      std::vector<std::array<double, 10>> exported;
+      o.exportQuadric = [&exported](std::uint64_t v, const double q[10]) {
+        exported.resize(std::max<std::size_t>(exported.size(), std::size_t(v) + 1));
+        std::copy_n(q, 10, exported[std::size_t(v)].begin());
+      };
       NullProgress progress;
       Collect a, b, c;
       Cluster(MemorySource(m), a, o, progress);
+      ASSERT_EQ(exported.size() * 3, a.m.p.size());
+      for (std::size_t v = 0; v < exported.size(); ++v)
+      {
+        const std::array<float, 3> at = { a.m.p[3 * v], a.m.p[3 * v + 1], a.m.p[3 * v + 2] };
+        if (!gridOrder)
+        {
+          quadricAt[at] = exported[v];
+        }
+        else
+        {
+          ASSERT_TRUE(quadricAt.count(at) && quadricAt[at] == exported[v]) << v;
+        }
+      }
+      o.exportQuadric = nullptr;
       Cluster(MemorySource(shuffled), b, o, progress);
       ASSERT_GT(a.m.t.size(), 3u * 100u);
       EXPECT_EQ(a.m.p.size(), b.m.p.size());

@@ -173,9 +173,10 @@ void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
   // Out of core, a helper whose half of the budget cannot hold its window of pages makes both
   // threads evict each other's pages (a sweep can then read its blocks hundreds of times over):
   // each thread counts its misses, and once they pass ForkRecord::kThrash reads of its share of
-  // the files (the rate at which Workers declines the helper next time), the forked sweep stops;
-  // it then runs on one thread from the start (the offers are idempotent, as below) and the
-  // record keeps the following passes' sweeps on one thread.
+  // the files (Workers declines the helper of a phase that misses that much), the forked sweep
+  // stops. It then runs on one thread from the start (the offers are idempotent, as below;
+  // its progress starts over too) and the record keeps the following passes' sweeps on one
+  // thread.
   std::atomic<bool> thrash{ false };
   const bool guard = workers.Forked();
   const std::uint64_t pageBytes = guard ? std::max<std::size_t>(mesh.dml.PageBytes(), 1) : 1;

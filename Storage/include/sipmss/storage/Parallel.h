@@ -45,7 +45,7 @@ using RangeBody =
   std::function<void(int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>& stop)>;
 
 // What a phase that runs again and again (each pass of an algorithm) learns of its helper out
-// of core. A forked phase that misses more than kThrash times the pages of the open blocks
+// of core. A forked phase that misses more than kThrash times the pages of the block files
 // (each half budget too small for its window of pages: the two threads evict each other's
 // pages, where one thread with the whole budget would not) runs on one thread from then on,
 // until the blocks' files shrink to half the bytes they had then; it is then tried forked
