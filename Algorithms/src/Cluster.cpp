@@ -713,6 +713,7 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
   Array<KeyedCell> byKey;
   if (gridOrder)
   {
+    // (numOut elements; one, unused, when there are none)
     byKey = Array<KeyedCell>(cluster.dml, std::max<std::uint32_t>(numOut, 1));
     for (std::uint32_t c = 0; c < cluster.numCells; ++c)
     {
@@ -723,10 +724,6 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
       }
     }
     cluster.cellKey.Close();
-    if (numOut > 0)
-    {
-      byKey.Resize(numOut);
-    }
     const std::uint64_t gridCells = std::uint64_t(cluster.grid.dims[0]) * cluster.grid.dims[1] *
       cluster.grid.dims[2];
     storage::SortByKey(
@@ -817,6 +814,7 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
   {
     byKey.Close();
     // The triangles in the new numbers, each from its lowest vertex (orientation kept), sorted.
+    // (outTris = numTris elements: every triangle is written without `dist`)
     Array<TriSlot> sorted(cluster.dml, std::max<std::uint64_t>(outTris, 1));
     std::uint64_t m = 0;
     order.ForEachChunk(0, numTris, storage::Access::Read,
@@ -832,10 +830,6 @@ void Emit(ClusterState& cluster, io::MeshSink& out, RunStats& stats, Distributed
           sorted.Set(m++, t);
         }
       });
-    if (m > 0)
-    {
-      sorted.Resize(m);
-    }
     storage::SortByKey(
       cluster.dml, sorted,
       [](const TriSlot& a, const TriSlot& b) {
