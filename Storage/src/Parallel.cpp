@@ -151,6 +151,8 @@ Workers::Workers(DML& dml, const Phase& phase)
     this->count_ = 2;
     this->forkMisses_ = before.misses;
     this->forkFileBytes_ = before.fileBytes;
+    const std::uint64_t page = std::max<std::uint64_t>(dml.PageBytes(), 1);
+    this->forkPages_ = std::max<std::uint64_t>((before.fileBytes + page - 1) / page, 1);
   }
 }
 
@@ -208,13 +210,25 @@ void Workers::Join()
     std::unique_ptr<DML> fork = std::move(this->fork_);
     this->count_ = 1; // (the helper is gone: what is left of the phase runs on one worker)
     this->dml_.Join(*fork);
-    const std::uint64_t page = std::max<std::uint64_t>(this->dml_.PageBytes(), 1);
-    const std::uint64_t pages = (this->forkFileBytes_ + page - 1) / page;
     const std::uint64_t misses = this->dml_.GetStats().misses - this->forkMisses_;
-    if (this->phase_.record && misses > ForkRecord::kThrash * std::max<std::uint64_t>(pages, 1))
+    if (double(misses) > this->MissLimit(this->phase_.elements))
     {
-      this->phase_.record->declinedAtFileBytes = std::max<std::uint64_t>(this->forkFileBytes_, 1);
+      this->DeclineHelper();
     }
+  }
+}
+
+double Workers::MissLimit(std::uint64_t elements) const
+{
+  return double(ForkRecord::kThrash) * double(this->forkPages_) * double(elements) /
+    double(std::max<std::uint64_t>(this->phase_.elements, 1));
+}
+
+void Workers::DeclineHelper()
+{
+  if (this->phase_.record)
+  {
+    this->phase_.record->declinedAtFileBytes = std::max<std::uint64_t>(this->forkFileBytes_, 1);
   }
 }
 

@@ -4,6 +4,8 @@
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/Simplify.h"
 
+#include "StorageTestUtil.h"
+
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -965,11 +967,8 @@ TEST(AlgorithmsDecimate, AHelperThreadThatThrashesGivesWay)
   Mesh s = FacesByLowestVertex(SortedAlongZ(ColoredSphere(7)));
   alg::DecimateOptions o;
   Outcome a = SingleThreadReference(s, o);
-  namespace fs = std::filesystem;
-  const fs::path dir =
-    fs::temp_directory_path() / ("sipmss_decimate_thrash_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
-  o.storage.directories = { dir.string() };
+  sipmss::storage::testing::TempDir dir;
+  o.storage.directories = { dir.Path() };
   o.storage.memoryBudget = 1 << 20;
   Outcome one = Simplify(MemorySource(s), o);
   o.threads = 2;
@@ -979,8 +978,7 @@ TEST(AlgorithmsDecimate, AHelperThreadThatThrashesGivesWay)
   EXPECT_LE(two.stats.storage.misses, 3 * one.stats.storage.misses);
   ExpectSameOutput(a, one, "1 thread");
   ExpectSameOutput(a, two, "2 threads");
-  EXPECT_TRUE(fs::is_empty(dir)); // no file left behind
-  fs::remove_all(dir);
+  EXPECT_TRUE(sipmss::storage::testing::ListDir(dir.Path()).empty()); // no file left behind
 }
 
 TEST(AlgorithmsDecimate, StepChunksDoNotDependOnThreadsOrMode)

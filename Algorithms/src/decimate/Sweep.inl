@@ -179,14 +179,11 @@ void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
   // thread.
   std::atomic<bool> thrash{ false };
   const bool guard = workers.Forked();
-  const std::uint64_t pageBytes = guard ? std::max<std::size_t>(mesh.dml.PageBytes(), 1) : 1;
-  const storage::Stats atFork = guard ? mesh.dml.GetStats() : storage::Stats();
-  const double missesPerVertex = double(storage::ForkRecord::kThrash) *
-    double(atFork.fileBytes / pageBytes + 1) / double(std::max<std::uint64_t>(nv, 1));
   auto work = [&](int t) {
     Scratch& s = pass.scratch[std::size_t(t)];
     ScratchViews use(s, views[std::size_t(t)]);
     const std::uint64_t missesAtStart = guard ? workers.Dml(t).GetStats().misses : 0;
+    const double missLimit = guard ? workers.MissLimit(s.hi - s.lo) : 0.0;
     for (std::uint64_t r = 0; r < rounds; ++r)
     {
       try
@@ -211,7 +208,7 @@ void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
         if (guard)
         {
           const std::uint64_t misses = workers.Dml(t).GetStats().misses - missesAtStart;
-          if (double(misses) > missesPerVertex * double(s.hi - s.lo))
+          if (double(misses) > missLimit)
           {
             thrash = true;
             stop = true;
@@ -270,7 +267,7 @@ void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
   RethrowFirst(errors);
   if (thrash)
   {
-    pass.sweepFork.declinedAtFileBytes = std::max<std::uint64_t>(atFork.fileBytes, 1);
+    workers.DeclineHelper();
   }
   if (started < T || thrash)
   {

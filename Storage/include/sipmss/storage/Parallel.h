@@ -113,6 +113,13 @@ public:
   // phase has one worker from then on. Call once the workers are done, before the algorithm's
   // DML is used for anything else; errors throw.
   void Join();
+  // Out of core with a helper (the phase's ForkRecord): how many misses `elements` of the
+  // phase's elements may cost before the forked run counts as thrashing (kThrash reads of their
+  // share of the block files; any worker may ask), and DeclineHelper, which records a thrash so
+  // that the phase runs on one thread next time (Join records one by itself from the misses of
+  // the whole phase).
+  double MissLimit(std::uint64_t elements) const;
+  void DeclineHelper();
   // body(t, Begin(t), Begin(t + 1), stop) on each worker (0: the calling thread); the range of
   // a worker that cannot be started runs on the calling thread afterwards (after the helper is
   // joined, through the algorithm's DML, with every write allowed). With poll (e.g. a progress
@@ -136,7 +143,8 @@ private:
   // worker could not be started: its part runs there).
   void Alone();
   std::unique_ptr<DML> fork_;
-  // Out of core with a helper: the misses and the files' bytes when it was forked (ForkRecord).
-  std::uint64_t forkMisses_ = 0, forkFileBytes_ = 0;
+  // Out of core with a helper: the misses, the files' bytes and pages when it was forked
+  // (ForkRecord; MissLimit reads no DML, so any worker may call it).
+  std::uint64_t forkMisses_ = 0, forkFileBytes_ = 0, forkPages_ = 1;
 };
 } // namespace sipmss::storage
