@@ -15,6 +15,7 @@
 #include "sipmss/algorithms/Cluster.h"
 
 #include "Distributed.h"
+#include "Gather.h"
 #include "StoredMesh.h"
 
 #include "sipmss/algorithms/Prefetch.h"
@@ -27,10 +28,14 @@
 #include <Eigen/Dense>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <condition_variable>
 #include <cstddef>
 #include <cstring>
 #include <limits>
+#include <memory>
+#include <mutex>
 #include <optional>
 #include <thread>
 #include <tuple>
@@ -40,6 +45,14 @@
 
 // The structures (one translation unit with this file).
 #include "cluster/Structures.inl"
+
+namespace sipmss::algorithms
+{
+namespace
+{
+using FaceGatherer = detail::Gatherer<VertexRec>;
+} // namespace
+} // namespace sipmss::algorithms
 
 namespace sipmss::algorithms
 {
@@ -126,6 +139,11 @@ struct ClusterState
   std::uint64_t verticesSeen = 0;
   std::uint64_t expected = 0, done = 0;
   std::uint64_t expectedHint = 0; // see ExpectSizes
+  // In core, faces out of spatial order: the helper thread that gathers their vertex records
+  // (Gather.h; started at the first such chunk, with more than one thread; last, so that it
+  // stops first).
+  bool gatherTried = false;
+  std::unique_ptr<FaceGatherer> gatherer;
 };
 
 // A vertex record's position, and n / len (componentwise).
@@ -164,6 +182,8 @@ void AddBoundaryPlane(ClusterState& cluster, const EdgeRec& e);
 template <class F>
 void UpdateCell(ClusterState& cluster, std::uint32_t cell, F&& f);
 void AddTriangle(ClusterState& cluster, const std::uint32_t* f);
+void AddTriangleRecords(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
+  const VertexRec& b, const VertexRec& c);
 void AddCandidate(ClusterState& cluster, const VertexRec& a, const VertexRec& b, const VertexRec& c);
 void AddTrianglePlain(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
   const VertexRec& b, const VertexRec& c);
@@ -226,6 +246,7 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
 
 void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
 {
+  
   if (c.first + c.count > cluster.vertices.Size())
   {
     cluster.vertexWindow.Release();
@@ -337,7 +358,46 @@ bool ComeInOrder(const std::uint32_t* idx, std::size_t count)
   return 4 * far <= n;
 }
 
-void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count)
+// The bytes of a cell record that a face's update touches: the sums, and the smallest corner
+// for the sampled-vertex fallback.
+std::size_t CellUpdateBytes(const ClusterState& cluster)
+{
+  return cluster.options.fallback == ClusterFallback::SampledVertex
+    ? sizeof(CellRec)
+    : (cluster.options.exactSums ? offsetof(CellRec, first) : kPlainBytes);
+}
+
+// Fetches every cache line of the cell records that a face over the vertex records r[0..2]
+// will update (each distinct cell once). Always inlined: GCC 12 takes a function whose only
+// effect is a prefetch for one without effects and drops the calls (no prefetch was left).
+__attribute__((always_inline)) inline void PrefetchCells(
+  const ClusterState& cluster, const char* cellBase, std::size_t cellBytes, const VertexRec* r)
+{
+  for (int k = 0; k < 3; ++k)
+  {
+    const std::uint32_t cell = r[k].cell;
+    if (cell < cluster.numCells && (k == 0 || cell != r[0].cell) && (k < 2 || cell != r[1].cell))
+    {
+      const std::uintptr_t first =
+        reinterpret_cast<std::uintptr_t>(cellBase + std::size_t(cell) * sizeof(CellRec));
+      for (std::uintptr_t line = first & ~std::uintptr_t(63); line < first + cellBytes; line += 64)
+      {
+        __builtin_prefetch(reinterpret_cast<const void*>(line), 1);
+      }
+    }
+  }
+}
+
+inline bool Deferred(const ClusterState& cluster, const std::uint32_t* f)
+{
+  return f[0] >= cluster.verticesSeen || f[1] >= cluster.verticesSeen ||
+    f[2] >= cluster.verticesSeen;
+}
+
+// Adds faces idx[0, count), the first of them face `done` of the chunk (for the progress), on
+// this thread alone.
+void AddTrianglesHere(
+  ClusterState& cluster, const std::uint32_t* idx, std::size_t count, std::size_t done)
 {
   // In core, the vertex records of the face kAhead faces ahead are fetched while this one is
   // added, and (from those records, by then in the cache) the cell records of the face
@@ -350,16 +410,12 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
     ? nullptr
     : static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
   constexpr std::size_t kAhead = 16, kCellAhead = 8;
-  // (the record's part a face's update touches: the sums, and the smallest corner for the
-  // sampled-vertex fallback)
-  const std::size_t cellBytes = cluster.options.fallback == ClusterFallback::SampledVertex
-    ? sizeof(CellRec)
-    : (cluster.options.exactSums ? offsetof(CellRec, first) : kPlainBytes);
+  const std::size_t cellBytes = CellUpdateBytes(cluster);
   for (std::size_t t = 0; t < count; ++t)
   {
-    if ((t & 4095) == 4095)
+    if (((done + t) & 4095) == 4095)
     {
-      Tick(cluster, t);
+      Tick(cluster, done + t);
     }
     const std::uint32_t* f = idx + 3 * t;
     if (base && t + kAhead < count)
@@ -376,35 +432,124 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
     if (base && cellBase && t + kCellAhead < count)
     {
       const std::uint32_t* g = f + 3 * kCellAhead;
-      std::uint32_t seen[3] = { kNoCell, kNoCell, kNoCell };
-      for (int k = 0; k < 3; ++k)
+      if (!Deferred(cluster, g))
       {
-        if (g[k] < cluster.verticesSeen)
-        {
-          const std::uint32_t cell = base[g[k]].cell;
-          seen[k] = cell;
-          if (cell < cluster.numCells && (k == 0 || cell != seen[0]) && (k < 2 || cell != seen[1]))
-          {
-            // (every cache line the update touches)
-            const std::uintptr_t first =
-              reinterpret_cast<std::uintptr_t>(cellBase + std::size_t(cell) * sizeof(CellRec));
-            for (std::uintptr_t line = first & ~std::uintptr_t(63); line < first + cellBytes;
-                 line += 64)
-            {
-              __builtin_prefetch(reinterpret_cast<const void*>(line), 1);
-            }
-          }
-        }
+        const VertexRec r[3] = { base[g[0]], base[g[1]], base[g[2]] };
+        PrefetchCells(cluster, cellBase, cellBytes, r);
       }
     }
-    if (f[0] >= cluster.verticesSeen || f[1] >= cluster.verticesSeen ||
-      f[2] >= cluster.verticesSeen)
+    if (Deferred(cluster, f))
     {
       // faces before their vertices (e.g. a PLY with the face element first): keep for End()
       Defer(cluster, f);
+      // (a resize, which may move the blocks or take the DML out of core)
+      base = static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id()));
+      cellBase = cellBase ? static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()))
+                          : nullptr;
       continue;
     }
     AddTriangle(cluster, f);
+  }
+}
+
+// Adds faces idx[0, count) (at most FaceGatherer::kMaxFaces; the first is face `done` of the
+// chunk) with the records gathered by the helper. Returns how many it added: fewer at a face
+// before its vertices, which the caller then adds.
+std::size_t AddTrianglesGathered(
+  ClusterState& cluster, const std::uint32_t* idx, std::size_t count, std::size_t done)
+{
+  constexpr std::size_t kBlock = FaceGatherer::kBlock, kCellAhead = 16;
+  FaceGatherer& g = *cluster.gatherer;
+  const auto* cellBase = static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
+  const std::size_t cellBytes = CellUpdateBytes(cluster);
+  g.Post(static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id())),
+    cluster.verticesSeen, idx, count);
+  struct StopOnExit // (also on a throw: the helper reads the caller's faces)
+  {
+    FaceGatherer& g;
+    ~StopOnExit() { this->g.Stop(); }
+  } stop{ g };
+  std::size_t taken = 0;   // faces [0, taken) are copied, and this thread knows it
+  std::size_t horizon = 0; // the same, looked at without waiting (for the cell prefetch)
+  for (std::size_t t = 0; t < count; ++t)
+  {
+    if (((done + t) & 4095) == 4095)
+    {
+      Tick(cluster, done + t);
+    }
+    if (t == taken)
+    {
+      g.Take(t / kBlock);
+      taken = std::min(count, t + kBlock);
+      horizon = std::max(horizon, taken);
+    }
+    const std::size_t u = t + kCellAhead;
+    if (u < count)
+    {
+      if (u >= horizon && horizon < count && g.Ready(horizon / kBlock))
+      {
+        horizon = std::min(count, horizon + kBlock);
+      }
+      if (u < horizon && !Deferred(cluster, idx + 3 * u))
+      {
+        PrefetchCells(cluster, cellBase, cellBytes, g.Records(u));
+      }
+    }
+    const std::uint32_t* f = idx + 3 * t;
+    if (Deferred(cluster, f))
+    {
+      return t; // (Defer resizes a block: not while the helper reads)
+    }
+    const VertexRec* r = g.Records(t);
+    AddTriangleRecords(cluster, f, r[0], r[1], r[2]);
+  }
+  return count;
+}
+
+void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count)
+{
+  if (cluster.dml.BasePointer(cluster.vertices.Id()))
+  {
+    // In core, room for a candidate per face first: the loops below keep the blocks' base
+    // pointers (and the helper reads the vertex block), and a resize may move a block or take
+    // the DML out of core.
+    cluster.triangles.Reserve(count);
+  }
+  // In core, faces out of spatial order, more than one thread: the vertex records are gathered
+  // by a helper (Gather.h). Not with boundary quadrics or attributes, whose per-face work
+  // reads and resizes blocks of their own.
+  const bool gather = cluster.dml.BasePointer(cluster.vertices.Id()) &&
+    !cluster.options.boundaryQuadrics && !cluster.xSize && count > FaceGatherer::kBlock &&
+    !ComeInOrder(idx, count);
+  if (gather && !cluster.gatherTried)
+  {
+    cluster.gatherTried = true;
+    if (storage::ResolveThreads(cluster.options.threads) > 1)
+    {
+      try
+      {
+        cluster.gatherer = std::make_unique<FaceGatherer>();
+      }
+      catch (const std::system_error&)
+      {
+        // (no thread to be had: the faces are added on this one)
+      }
+    }
+  }
+  std::size_t t = 0;
+  while (t < count)
+  {
+    const std::size_t n = std::min(count - t, FaceGatherer::kMaxFaces);
+    std::size_t added = 0;
+    if (gather && cluster.gatherer && cluster.dml.BasePointer(cluster.vertices.Id()))
+    {
+      added = AddTrianglesGathered(cluster, idx + 3 * t, n, t);
+    }
+    if (added < n)
+    {
+      AddTrianglesHere(cluster, idx + 3 * (t + added), n - added, t + added);
+    }
+    t += n;
   }
   cluster.done += count;
   Tick(cluster);
@@ -1170,6 +1315,13 @@ void AddTriangle(ClusterState& cluster, const std::uint32_t* f)
   const VertexRec a = cluster.vertexWindow.At(vid, f[0]);
   const VertexRec b = cluster.vertexWindow.At(vid, f[1]);
   const VertexRec c = cluster.vertexWindow.At(vid, f[2]);
+  AddTriangleRecords(cluster, f, a, b, c);
+}
+
+// A face from its vertex records (the boundary edges appended by the caller).
+void AddTriangleRecords(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
+  const VertexRec& b, const VertexRec& c)
+{
   if (!cluster.options.exactSums)
   {
     AddTrianglePlain(cluster, f, a, b, c);

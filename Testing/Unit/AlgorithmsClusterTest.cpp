@@ -4,6 +4,8 @@
 
 #include "AlgorithmsTestUtil.h"
 
+#include "../../Algorithms/src/Gather.h"
+
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -11,6 +13,7 @@
 #include <filesystem>
 #include <iterator>
 #include <map>
+#include <random>
 #include <set>
 
 using namespace sipmss;
@@ -407,6 +410,121 @@ TEST(Cluster, InGridOrderTheOutputIsTheSameForAnyOrderOfTheInput)
             a.m.t.begin() + std::ptrdiff_t(i) + 3));
         }
       }
+    }
+  }
+}
+
+TEST(Cluster, TheGatherHelperCopiesEachFacesRecords)
+{
+  // detail::Gatherer (the clustering of faces out of spatial order in core): whoever copies a
+  // block, Records(t) are the records of face t's vertices, Rec{} for a vertex at or past
+  // `seen`; a post stopped part way leaves the blocks taken so far, and the next post starts
+  // over.
+  struct Rec
+  {
+    float x = -1;
+    std::uint32_t id = ~0u;
+  };
+  std::vector<Rec> base(5000);
+  for (std::uint32_t i = 0; i < base.size(); ++i)
+  {
+    base[i] = Rec{ float(i) * 0.5f, i };
+  }
+  std::mt19937 rng(7);
+  detail::Gatherer<Rec> g;
+  using G = detail::Gatherer<Rec>;
+  for (const std::size_t count : { std::size_t(1), G::kBlock - 1, G::kBlock, G::kBlock + 1,
+         std::size_t(1000), G::kMaxFaces, G::kMaxFaces, std::size_t(77) })
+  {
+    std::vector<std::uint32_t> idx(3 * count);
+    for (auto& v : idx)
+    {
+      v = std::uint32_t(rng() % 5200); // (some at or past `seen`)
+    }
+    const std::uint64_t seen = 4900;
+    g.Post(base.data(), seen, idx.data(), count);
+    const bool stopEarly = count == 1000;
+    for (std::size_t t = 0; t < count; ++t)
+    {
+      if (t % G::kBlock == 0)
+      {
+        if (stopEarly && t == 5 * G::kBlock)
+        {
+          g.Stop(); // (then only the blocks taken are read)
+          break;
+        }
+        g.Take(t / G::kBlock);
+      }
+      const Rec* r = g.Records(t);
+      for (int k = 0; k < 3; ++k)
+      {
+        const std::uint32_t v = idx[3 * t + std::size_t(k)];
+        ASSERT_EQ(r[k].id, v < seen ? v : ~0u) << count << " " << t;
+        ASSERT_EQ(r[k].x, v < seen ? float(v) * 0.5f : -1.f);
+      }
+    }
+  }
+  // (destroyed with a post in flight: it stops and joins)
+  std::vector<std::uint32_t> idx(3 * G::kMaxFaces, 3);
+  g.Post(base.data(), base.size(), idx.data(), G::kMaxFaces);
+}
+
+TEST(Cluster, ShuffledFacesGiveTheSameOutputWithTheGatherHelper)
+{
+  // In core, faces out of spatial order on two threads: their vertex records are copied by a
+  // helper (Gather.h) and the faces added in the same order, so the output is the one-thread
+  // run's, bit for bit, with exact and with plain sums; also when some faces come before their
+  // vertices (deferred part way through a post).
+  const Mesh m = sipmss::testing::Shuffled(sipmss::testing::BumpyUVSphere(120, { 3, -1, 2 }), 5u);
+  ASSERT_GT(m.t.size() / 3, 3 * 8192u); // (several posts)
+  // The vertices in two chunks, the faces between them: the faces that use a vertex of the
+  // second chunk wait for it.
+  auto split = [&m](io::MeshSink& sink, const io::ReadOptions&) {
+    io::MeshHeader h;
+    h.vertexCount = m.p.size() / 3;
+    h.faceCount = m.t.size() / 3;
+    sink.Begin(h);
+    const std::size_t half = h.vertexCount / 2;
+    io::VertexChunk c;
+    c.count = half;
+    c.xyz = m.p.data();
+    sink.Vertices(c);
+    sink.Triangles(m.t.data(), m.t.size() / 3);
+    c.first = half;
+    c.count = h.vertexCount - half;
+    c.xyz = m.p.data() + 3 * half;
+    sink.Vertices(c);
+    io::ReadStats s;
+    s.vertices = h.vertexCount;
+    s.triangles = h.faceCount;
+    sink.End(s);
+    return s;
+  };
+  for (const bool exact : { true, false })
+  {
+    for (const bool deferred : { false, true })
+    {
+      Collect outs[2];
+      for (int t = 1; t <= 2; ++t)
+      {
+        ClusterOptions o;
+        o.maximumGridDimension = 40;
+        o.exactSums = exact;
+        o.layout = LayoutPolicy::Keep;
+        o.threads = t;
+        NullProgress progress;
+        if (deferred)
+        {
+          Cluster(split, outs[t - 1], o, progress);
+        }
+        else
+        {
+          Cluster(MemorySource(m), outs[t - 1], o, progress);
+        }
+      }
+      EXPECT_GT(outs[0].m.t.size(), 3000u);
+      EXPECT_TRUE(outs[0].m.p == outs[1].m.p) << exact << deferred;
+      EXPECT_TRUE(outs[0].m.t == outs[1].m.t) << exact << deferred;
     }
   }
 }
