@@ -330,7 +330,7 @@ inline void SumExtension(const View<double>& X, std::size_t n, std::uint64_t u, 
 // Fetches the cache lines of element *p: its first and its last byte (a quadric spans two lines,
 // a position or a face straddles two at some indices).
 template <class T>
-inline void Prefetch(const T* p)
+SIPMSS_ALWAYS_INLINE void Prefetch(const T* p)
 {
 #if defined(__GNUC__)
   __builtin_prefetch(static_cast<const void*>(p));
@@ -347,7 +347,7 @@ inline void Prefetch(const T* p)
 // is computed as an integer (no pointer past the array) and never dereferenced; a prefetch does
 // not fault. Cheaper than testing which faces are dead (random, a mispredicted branch).
 template <class T>
-inline void PrefetchAt(const T* base, std::uint32_t i)
+SIPMSS_ALWAYS_INLINE void PrefetchAt(const T* base, std::uint32_t i)
 {
   Prefetch(reinterpret_cast<const T*>(
     reinterpret_cast<std::uintptr_t>(base) + std::uintptr_t(i) * sizeof(T)));
@@ -877,9 +877,10 @@ inline std::uint32_t RingLength(const Views& w, std::uint32_t x)
   return w.RO.Get(x + 1) - w.RO.Get(x);
 }
 // In core: the faces of an active vertex kAhead ahead in the sweep (out of core there is
-// nothing to prefetch: a template over the access kind, see WithAccess).
+// nothing to prefetch: a template over the access kind, see WithAccess). Always inlined: GCC
+// takes a function whose only effect is a prefetch for one without effects, and drops the calls.
 template <class SA, class ROA, class RFA, class FA>
-void PrefetchSweep(
+SIPMSS_ALWAYS_INLINE void PrefetchSweep(
   const SA& S, const ROA& RO, const RFA& RF, const FA& F, std::uint64_t u, std::uint64_t end)
 {
   if constexpr (SA::kInCore)
