@@ -28,15 +28,13 @@
 #include <Eigen/Dense>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
-#include <condition_variable>
 #include <cstddef>
 #include <cstring>
 #include <limits>
 #include <memory>
-#include <mutex>
 #include <optional>
+#include <system_error>
 #include <thread>
 #include <tuple>
 #ifdef __SSE2__
@@ -51,13 +49,7 @@ namespace sipmss::algorithms
 namespace
 {
 using FaceGatherer = detail::Gatherer<VertexRec>;
-} // namespace
-} // namespace sipmss::algorithms
 
-namespace sipmss::algorithms
-{
-namespace
-{
 // The clustering pass: vertices to cells, faces to quadrics and output triangles. Its state is
 // one struct (the grid, the run's options and progress, its blocks in the DML); its steps are
 // free functions over it, called by the reader's sink (ClusterSink) and then by ClusterRun.
@@ -246,7 +238,6 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
 
 void AddVertices(ClusterState& cluster, const io::VertexChunk& c)
 {
-  
   if (c.first + c.count > cluster.vertices.Size())
   {
     cluster.vertexWindow.Release();
@@ -508,13 +499,6 @@ std::size_t AddTrianglesGathered(
 
 void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t count)
 {
-  if (cluster.dml.BasePointer(cluster.vertices.Id()))
-  {
-    // In core, room for a candidate per face first: the loops below keep the blocks' base
-    // pointers (and the helper reads the vertex block), and a resize may move a block or take
-    // the DML out of core.
-    cluster.triangles.Reserve(count);
-  }
   // In core, faces out of spatial order, more than one thread: the vertex records are gathered
   // by a helper (Gather.h). Not with boundary quadrics or attributes, whose per-face work
   // reads and resizes blocks of their own.
@@ -536,10 +520,17 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
       }
     }
   }
+  // In parts of at most kMaxFaces faces, each with room for a candidate per face first (in
+  // core): the loops below keep the blocks' base pointers (and the helper reads the vertex
+  // block), and a resize may move a block or take the DML out of core.
   std::size_t t = 0;
   while (t < count)
   {
     const std::size_t n = std::min(count - t, FaceGatherer::kMaxFaces);
+    if (cluster.dml.BasePointer(cluster.vertices.Id()))
+    {
+      cluster.triangles.Reserve(n);
+    }
     std::size_t added = 0;
     if (gather && cluster.gatherer && cluster.dml.BasePointer(cluster.vertices.Id()))
     {

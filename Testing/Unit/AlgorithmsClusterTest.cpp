@@ -529,6 +529,28 @@ TEST(Cluster, ShuffledFacesGiveTheSameOutputWithTheGatherHelper)
   }
 }
 
+TEST(Cluster, FacesInOneLargeCallHoldNoMoreThanTheirCandidates)
+{
+  // A source may hand all faces in one call (MemorySource, a caller's): the room reserved for
+  // candidates ahead of the loops is per part of at most FaceGatherer::kMaxFaces faces, not per
+  // call. 180,000 faces over about 100 cells: the DML's peak is the vertex records and little
+  // more, not 16 bytes a face.
+  const Mesh plane = sipmss::testing::Shuffled(Plane(300), 3u);
+  for (int threads : { 1, 2 })
+  {
+    ClusterOptions o;
+    o.maximumGridDimension = 10;
+    o.threads = threads;
+    o.layout = LayoutPolicy::Keep;
+    Collect out;
+    NullProgress progress;
+    const RunStats s = Cluster(MemorySource(plane), out, o, progress);
+    const std::uint64_t vertexBytes = 16 * (plane.p.size() / 3);
+    EXPECT_GT(out.m.t.size(), 0u);
+    EXPECT_LT(s.storage.peakBytes, vertexBytes + (1u << 20)) << threads;
+  }
+}
+
 TEST(Cluster, PlainSumsGiveTheExactResultToRounding)
 {
   // ClusterOptions::exactSums off (two-stage's first stage): the same triangles, the vertices
