@@ -33,6 +33,7 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <new>
 #include <optional>
 #include <system_error>
 #include <thread>
@@ -402,6 +403,13 @@ void AddTrianglesHere(
     : static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
   constexpr std::size_t kAhead = 16, kCellAhead = 8;
   const std::size_t cellBytes = CellUpdateBytes(cluster);
+  // (with boundary quadrics or attributes a face appends to blocks of their own, which may grow)
+  const bool faceGrows = cluster.options.boundaryQuadrics || cluster.xSize;
+  auto bases = [&] {
+    base = static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id()));
+    cellBase =
+      cellBase ? static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id())) : nullptr;
+  };
   for (std::size_t t = 0; t < count; ++t)
   {
     if (((done + t) & 4095) == 4095)
@@ -433,19 +441,22 @@ void AddTrianglesHere(
     {
       // faces before their vertices (e.g. a PLY with the face element first): keep for End()
       Defer(cluster, f);
-      // (a resize, which may move the blocks or take the DML out of core)
-      base = static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id()));
-      cellBase = cellBase ? static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()))
-                          : nullptr;
+      bases(); // (a resize, which may move the blocks or take the DML out of core)
       continue;
     }
+    const bool grows = faceGrows || cluster.triangles.Full();
     AddTriangle(cluster, f);
+    if (grows)
+    {
+      bases();
+    }
   }
 }
 
 // Adds faces idx[0, count) (at most FaceGatherer::kMaxFaces; the first is face `done` of the
 // chunk) with the records gathered by the helper. Returns how many it added: fewer at a face
-// before its vertices, which the caller then adds.
+// before its vertices, or when the candidates' block is full (its resize may move the vertex
+// block, which the helper reads), and the caller then adds the rest.
 std::size_t AddTrianglesGathered(
   ClusterState& cluster, const std::uint32_t* idx, std::size_t count, std::size_t done)
 {
@@ -487,9 +498,9 @@ std::size_t AddTrianglesGathered(
       }
     }
     const std::uint32_t* f = idx + 3 * t;
-    if (Deferred(cluster, f))
+    if (Deferred(cluster, f) || cluster.triangles.Full())
     {
-      return t; // (Defer resizes a block: not while the helper reads)
+      return t; // (Defer, or a candidate's Append, resizes a block: not while the helper reads)
     }
     const VertexRec* r = g.Records(t);
     AddTriangleRecords(cluster, f, r[0], r[1], r[2]);
@@ -518,19 +529,20 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
       {
         // (no thread to be had: the faces are added on this one)
       }
+      catch (const std::bad_alloc&)
+      {
+        // (nor its buffer)
+      }
     }
   }
-  // In parts of at most kMaxFaces faces, each with room for a candidate per face first (in
-  // core): the loops below keep the blocks' base pointers (and the helper reads the vertex
-  // block), and a resize may move a block or take the DML out of core.
+  // In parts of at most kMaxFaces faces. The loops below keep the blocks' base pointers (and
+  // the helper reads the vertex block): a call that may resize a block (which may move it, or
+  // take the DML out of core) is followed by a fresh look at them, or not made while the helper
+  // runs.
   std::size_t t = 0;
   while (t < count)
   {
     const std::size_t n = std::min(count - t, FaceGatherer::kMaxFaces);
-    if (cluster.dml.BasePointer(cluster.vertices.Id()))
-    {
-      cluster.triangles.Reserve(n);
-    }
     std::size_t added = 0;
     if (gather && cluster.gatherer && cluster.dml.BasePointer(cluster.vertices.Id()))
     {

@@ -12,8 +12,9 @@
 // The records are the same whoever copies them, and the clustering thread adds the faces in the
 // input's order as before: the output does not depend on the helper. Blocks are claimed in
 // order, by either thread. The clustering thread copies the block it needs when the helper has
-// not claimed it yet, so it never waits for a helper that is not running (a busy machine); while
-// the helper copies it, it copies the next blocks not yet claimed. The helper reads the vertex block through its base pointer, which stays valid only
+// not claimed it yet, so a helper that is not running (a busy machine) holds nothing up but a
+// block it has begun; while it waits for such a block, the clustering thread copies the next
+// blocks not yet claimed. The helper reads the vertex block through its base pointer, which stays valid only
 // while the clustering thread makes no call that may resize a block (a resize may switch the
 // DML out of core): the caller reserves the candidates first and Stop()s the helper before any
 // other such call (a deferred face).
@@ -25,6 +26,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <mutex>
+#include <stdexcept>
 #include <thread>
 #include <vector>
 #ifdef __SSE2__
@@ -33,6 +35,13 @@
 
 namespace sipmss::algorithms::detail
 {
+// Posts made to any Gatherer in this process (a count for tests: whether a run used one).
+inline std::atomic<std::uint64_t>& GatherPosts()
+{
+  static std::atomic<std::uint64_t> posts{ 0 };
+  return posts;
+}
+
 // Rec: a vertex record, trivially copyable; Rec{} stands for a vertex not read.
 template <class Rec>
 class Gatherer
@@ -42,6 +51,7 @@ public:
   static constexpr std::size_t kMaxFaces = 8192; // faces per Post (3 records each)
   static constexpr std::size_t kAheadBlocks = 4; // how far ahead Take copies while it waits
 
+  // Starts the helper thread (std::system_error if it cannot).
   Gatherer()
     : records_(3 * kMaxFaces)
     , ready_(kMaxFaces / kBlock)
@@ -70,7 +80,12 @@ public:
   // copying first.
   void Post(const Rec* base, std::uint64_t seen, const std::uint32_t* idx, std::size_t count)
   {
+    if (count > kMaxFaces)
+    {
+      throw std::length_error("Gatherer::Post: more than kMaxFaces faces");
+    }
     this->Stop();
+    GatherPosts().fetch_add(1, std::memory_order_relaxed);
     {
       std::lock_guard<std::mutex> lock(this->mutex_);
       this->base_ = base;
@@ -80,7 +95,7 @@ public:
       this->blocks_ = (count + kBlock - 1) / kBlock;
       ++this->generation_; // (the blocks' ready marks of earlier posts no longer count)
       this->next_.store(0, std::memory_order_relaxed);
-      this->busy_.store(true, std::memory_order_relaxed);
+      this->state_.store(kPosted, std::memory_order_relaxed);
       this->posts_.store(this->generation_, std::memory_order_release);
     }
     this->posted_.notify_one();
@@ -113,12 +128,18 @@ public:
     }
   }
 
-  // Stops the helper's copying of this post (the blocks copied so far stay) and waits until it
-  // is idle: from then on only this thread reads the buffer and the blocks.
+  // Stops the helper's copying of this post (the blocks copied so far stay): from then on only
+  // this thread reads the buffer and the blocks. Waits only if the helper has begun this post
+  // (it then ends with the block it is copying); a post it has not begun is withdrawn.
   void Stop()
   {
     this->next_.store(this->blocks_, std::memory_order_relaxed);
-    for (unsigned spins = 0; this->busy_.load(std::memory_order_acquire); ++spins)
+    int posted = kPosted;
+    if (this->state_.compare_exchange_strong(posted, kIdle, std::memory_order_acq_rel))
+    {
+      return;
+    }
+    for (unsigned spins = 0; this->state_.load(std::memory_order_acquire) != kIdle; ++spins)
     {
       Pause(spins);
     }
@@ -191,6 +212,13 @@ private:
           return;
         }
         done = this->generation_;
+        // (under the lock: no new post between reading this one and beginning it; Stop may
+        // have withdrawn it)
+        int posted = kPosted;
+        if (!this->state_.compare_exchange_strong(posted, kRunning, std::memory_order_acq_rel))
+        {
+          continue;
+        }
       }
       for (;;)
       {
@@ -201,7 +229,7 @@ private:
         }
         this->Copy(b);
       }
-      this->busy_.store(false, std::memory_order_release);
+      this->state_.store(kIdle, std::memory_order_release);
     }
   }
 
@@ -215,7 +243,10 @@ private:
   std::uint64_t generation_ = 0;
   bool quit_ = false;
   alignas(64) std::atomic<std::size_t> next_{ 0 }; // the next block to claim
-  alignas(64) std::atomic<bool> busy_{ false };    // the helper has not finished this post
+  // The post's state: kPosted until the helper begins it (or Stop withdraws it), kRunning until
+  // it ends it, else kIdle.
+  static constexpr int kIdle = 0, kPosted = 1, kRunning = 2;
+  alignas(64) std::atomic<int> state_{ kIdle };
   std::atomic<std::uint64_t> posts_{ 0 };          // generation_, for the helper's spin
   std::mutex mutex_;
   std::condition_variable posted_;

@@ -431,12 +431,21 @@ TEST(Cluster, TheGatherHelperCopiesEachFacesRecords)
     base[i] = Rec{ float(i) * 0.5f, i };
   }
   std::mt19937 rng(7);
-  detail::Gatherer<Rec> g;
   using G = detail::Gatherer<Rec>;
+  // (the faces outlive the gatherer: its helper may read them until it stops)
+  std::vector<std::uint32_t> last(3 * G::kMaxFaces, 3);
+  std::vector<std::uint32_t> idx;
+  G g;
+  struct StopAtExit // (also when an assertion returns early)
+  {
+    G& g;
+    ~StopAtExit() { this->g.Stop(); }
+  };
   for (const std::size_t count : { std::size_t(1), G::kBlock - 1, G::kBlock, G::kBlock + 1,
          std::size_t(1000), G::kMaxFaces, G::kMaxFaces, std::size_t(77) })
   {
-    std::vector<std::uint32_t> idx(3 * count);
+    StopAtExit stopAtExit{ g };
+    idx.assign(3 * count, 0);
     for (auto& v : idx)
     {
       v = std::uint32_t(rng() % 5200); // (some at or past `seen`)
@@ -464,9 +473,13 @@ TEST(Cluster, TheGatherHelperCopiesEachFacesRecords)
       }
     }
   }
-  // (destroyed with a post in flight: it stops and joins)
-  std::vector<std::uint32_t> idx(3 * G::kMaxFaces, 3);
-  g.Post(base.data(), base.size(), idx.data(), G::kMaxFaces);
+  // A post that was stopped before the helper began it is withdrawn (Stop returns at once);
+  // destroyed with a post in flight, it stops and joins.
+  g.Post(base.data(), base.size(), last.data(), G::kMaxFaces);
+  g.Stop();
+  g.Post(base.data(), base.size(), last.data(), G::kMaxFaces);
+  EXPECT_THROW(g.Post(base.data(), base.size(), last.data(), G::kMaxFaces + 1), std::length_error);
+  g.Post(base.data(), base.size(), last.data(), G::kMaxFaces);
 }
 
 TEST(Cluster, ShuffledFacesGiveTheSameOutputWithTheGatherHelper)
@@ -507,6 +520,7 @@ TEST(Cluster, ShuffledFacesGiveTheSameOutputWithTheGatherHelper)
       Collect outs[2];
       for (int t = 1; t <= 2; ++t)
       {
+        const std::uint64_t posts = detail::GatherPosts().load();
         ClusterOptions o;
         o.maximumGridDimension = 40;
         o.exactSums = exact;
@@ -521,12 +535,57 @@ TEST(Cluster, ShuffledFacesGiveTheSameOutputWithTheGatherHelper)
         {
           Cluster(MemorySource(m), outs[t - 1], o, progress);
         }
+        // (the helper's posts: none on one thread; on two, some even where faces are deferred)
+        if (t == 1)
+        {
+          EXPECT_EQ(detail::GatherPosts().load(), posts);
+        }
+        else
+        {
+          EXPECT_GT(detail::GatherPosts().load(), posts + (deferred ? 0 : 2));
+        }
       }
       EXPECT_GT(outs[0].m.t.size(), 3000u);
       EXPECT_TRUE(outs[0].m.p == outs[1].m.p) << exact << deferred;
       EXPECT_TRUE(outs[0].m.t == outs[1].m.t) << exact << deferred;
     }
   }
+}
+
+TEST(Cluster, ShuffledFacesGoingOutOfCoreMidChunkGiveTheSameOutput)
+{
+  // Faces out of spatial order, in core at first: with boundary quadrics each face appends its
+  // edges to a block of their own, whose growth takes the DML out of core part way through the
+  // faces (the faces' loop then looks at the blocks' base pointers again). The output is the
+  // one of a run in core, for every budget tried; some of them switch.
+  const Mesh m = sipmss::testing::Shuffled(sipmss::testing::BumpyUVSphere(90, { 1, 2, 3 }), 9u);
+  auto run = [&m](std::uint64_t budget, int threads, RunStats* stats) {
+    ClusterOptions o;
+    o.maximumGridDimension = 30;
+    o.boundaryQuadrics = true;
+    o.boundaryWeight = 1.0;
+    o.layout = LayoutPolicy::Keep;
+    o.threads = threads;
+    o.storage.memoryBudget = budget;
+    Collect out;
+    NullProgress progress;
+    const RunStats s = Cluster(MemorySource(m), out, o, progress);
+    if (stats)
+    {
+      *stats = s;
+    }
+    return out;
+  };
+  const Collect inCore = run(0, 1, nullptr);
+  int switched = 0;
+  for (std::uint64_t budget = 512 << 10; budget <= (6u << 20); budget += 256 << 10)
+  {
+    RunStats s;
+    const Collect out = run(budget, 2, &s);
+    switched += s.storage.usedInCore && s.storage.usedOutOfCore;
+    EXPECT_TRUE(out.m.p == inCore.m.p && out.m.t == inCore.m.t) << budget;
+  }
+  EXPECT_GT(switched, 0);
 }
 
 TEST(Cluster, FacesInOneLargeCallHoldNoMoreThanTheirCandidates)

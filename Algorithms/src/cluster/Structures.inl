@@ -385,19 +385,8 @@ public:
     }
     this->candidates_.Set(this->numCandidates_++, TriSlot{ { a, b, c }, 1 });
   }
-  // Room for `more` appends without a resize (doubling, as Append would).
-  void Reserve(std::uint64_t more)
-  {
-    std::uint64_t size = this->candidates_.Size();
-    while (size - this->numCandidates_ < more)
-    {
-      size *= 2;
-    }
-    if (size != this->candidates_.Size())
-    {
-      this->candidates_.Resize(size);
-    }
-  }
+  // Whether the next Append resizes the block.
+  bool Full() const { return this->numCandidates_ == this->candidates_.Size(); }
 
   // cells[i].triangles holds the number of candidates whose smallest cell is i. Fills Order()
   // with the distinct triangles, sorted by (smallest cell, second, third).
