@@ -590,10 +590,10 @@ TEST(Cluster, ShuffledFacesGoingOutOfCoreMidChunkGiveTheSameOutput)
 
 TEST(Cluster, FacesInOneLargeCallHoldNoMoreThanTheirCandidates)
 {
-  // A source may hand all faces in one call (MemorySource, a caller's): the room reserved for
-  // candidates ahead of the loops is per part of at most FaceGatherer::kMaxFaces faces, not per
-  // call. 180,000 faces over about 100 cells: the DML's peak is the vertex records and little
-  // more, not 16 bytes a face.
+  // A source may hand all faces in one call (MemorySource, a caller's): the candidates' block
+  // grows with the candidates, never with the faces of a call (no room is reserved ahead for
+  // the helper). 180,000 faces over about 100 cells: the DML's peak is the vertex records and
+  // little more, not 16 bytes a face.
   const Mesh plane = sipmss::testing::Shuffled(Plane(300), 3u);
   for (int threads : { 1, 2 })
   {
