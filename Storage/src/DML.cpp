@@ -1045,38 +1045,41 @@ void DML::Impl::Transfer(BlockId id, Block& b, std::uint64_t off, std::uint64_t 
   this->EnsureCache();
   const std::uint64_t pb = this->PageBytes(b);
   const std::uint64_t end = off + n;
+  // A bulk transfer (a sixteenth of a page or more) reads and writes the pages that are not
+  // cached straight from and to the file, whole or in part (the file is authoritative for
+  // them): streaming does not flush the cache, and a range that starts or ends inside a page (a
+  // bucket's buffer, a sorter's segment) would otherwise read that whole page into the cache,
+  // to write back part of it, or to read it again for the neighbouring range (the shuffled
+  // Lucy-size layout step read 1.6 times its bytes).
+  const bool bulk = n >= pb / 16;
   while (off < end)
   {
     const std::uint64_t page = off / pb;
     const std::uint64_t pageEnd = (page + 1) * pb;
-    const bool full = off == page * pb && end >= pageEnd;
-    if (full && this->Lookup(id, page) < 0)
+    if (bulk && this->Lookup(id, page) < 0)
     {
-      // Runs of at least two whole pages that are not cached go straight to the file: streaming
-      // does not flush the cache, and the file is authoritative for pages that are not cached.
-      std::uint64_t last = page + 1;
-      while ((last + 1) * pb <= end && this->Lookup(id, last) < 0)
+      std::uint64_t stop = std::min(end, pageEnd), last = page + 1;
+      while (stop < end && this->Lookup(id, last) < 0)
       {
+        stop = std::min(end, (last + 1) * pb);
         ++last;
       }
-      if (last - page >= 2)
+      if (write)
       {
-        const std::uint64_t bytes = (last - page) * pb;
-        if (write)
-        {
-          this->BackendWrite(b, buf, bytes, off);
-        }
-        else
-        {
-          this->BackendRead(b, buf, bytes, off);
-        }
-        this->stats.misses += last - page;
-        off += bytes;
-        buf += bytes;
-        continue;
+        this->BackendWrite(b, buf, stop - off, off);
       }
+      else
+      {
+        this->BackendRead(b, buf, stop - off, off);
+      }
+      this->stats.misses += last - page;
+      buf += stop - off;
+      off = stop;
+      continue;
     }
+    // (a cached page; or a small transfer, whose page is cached for the accesses around it)
     const std::uint64_t chunk = std::min(end, pageEnd) - off;
+    const bool full = off == page * pb && end >= pageEnd;
     unsigned char* data = this->PageFor(id, b, page, write, !(write && full)) + (off - page * pb);
     if (write)
     {
