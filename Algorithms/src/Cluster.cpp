@@ -362,7 +362,7 @@ std::size_t CellUpdateBytes(const ClusterState& cluster)
 // Fetches every cache line of the cell records that a face over the vertex records r[0..2]
 // will update (each distinct cell once). Always inlined: GCC 12 takes a function whose only
 // effect is a prefetch for one without effects and drops the calls (no prefetch was left).
-__attribute__((always_inline)) inline void PrefetchCells(
+SIPMSS_ALWAYS_INLINE void PrefetchCells(
   const ClusterState& cluster, const char* cellBase, std::size_t cellBytes, const VertexRec* r)
 {
   for (int k = 0; k < 3; ++k)
@@ -387,9 +387,9 @@ inline bool Deferred(const ClusterState& cluster, const std::uint32_t* f)
 }
 
 // Adds faces idx[0, count), the first of them face `done` of the chunk (for the progress), on
-// this thread alone.
-void AddTrianglesHere(
-  ClusterState& cluster, const std::uint32_t* idx, std::size_t count, std::size_t done)
+// this thread alone; `inOrder`: the chunk's faces come in spatial order (ComeInOrder).
+void AddTrianglesHere(ClusterState& cluster, const std::uint32_t* idx, std::size_t count,
+  std::size_t done, bool inOrder)
 {
   // In core, the vertex records of the face kAhead faces ahead are fetched while this one is
   // added, and (from those records, by then in the cache) the cell records of the face
@@ -398,9 +398,8 @@ void AddTrianglesHere(
   const auto* base = static_cast<const VertexRec*>(cluster.dml.BasePointer(cluster.vertices.Id()));
   // (cell records only for faces out of spatial order: in scanner order they are in the cache
   // already, and fetching them cost 5% of the Lucy-size clustering)
-  const auto* cellBase = ComeInOrder(idx, count)
-    ? nullptr
-    : static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
+  const auto* cellBase =
+    inOrder ? nullptr : static_cast<const char*>(cluster.dml.BasePointer(cluster.cells.Id()));
   constexpr std::size_t kAhead = 16, kCellAhead = 8;
   const std::size_t cellBytes = CellUpdateBytes(cluster);
   // (with boundary quadrics or attributes a face appends to blocks of their own, which may grow)
@@ -492,7 +491,7 @@ std::size_t AddTrianglesGathered(
       {
         horizon = std::min(count, horizon + kBlock);
       }
-      if (u < horizon && !Deferred(cluster, idx + 3 * u))
+      if (u < horizon) // (a vertex not read, of a face deferred, has cell 0: a harmless fetch)
       {
         PrefetchCells(cluster, cellBase, cellBytes, g.Records(u));
       }
@@ -513,9 +512,10 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
   // In core, faces out of spatial order, more than one thread: the vertex records are gathered
   // by a helper (Gather.h). Not with boundary quadrics or attributes, whose per-face work
   // reads and resizes blocks of their own.
+  const bool inOrder = ComeInOrder(idx, count);
   const bool gather = cluster.dml.BasePointer(cluster.vertices.Id()) &&
     !cluster.options.boundaryQuadrics && !cluster.xSize && count > FaceGatherer::kBlock &&
-    !ComeInOrder(idx, count);
+    !inOrder;
   if (gather && !cluster.gatherTried)
   {
     cluster.gatherTried = true;
@@ -550,7 +550,7 @@ void AddTriangles(ClusterState& cluster, const std::uint32_t* idx, std::size_t c
     }
     if (added < n)
     {
-      AddTrianglesHere(cluster, idx + 3 * (t + added), n - added, t + added);
+      AddTrianglesHere(cluster, idx + 3 * (t + added), n - added, t + added, inOrder);
     }
     t += n;
   }
