@@ -434,6 +434,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     : bucketLength >= kBucketMin ? Renumbering::Slices
                                  : Renumbering::SortedCorners;
   this->slices_ = path == Renumbering::Slices ? slices : 0;
+  const Divider32 sliceOf(sliceLength);
   // Progress: each sort and scan's share by the bytes it moves.
   const std::size_t groups = (this->stride_ + 15) / 16;
   const double faceBytes = path == Renumbering::InMemory ? 0.0
@@ -521,7 +522,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         }
         else if (dist)
         {
-          dist->Add(static_cast<std::size_t>(r[i].old / sliceLength), map[i]);
+          dist->Add(static_cast<std::size_t>(sliceOf(r[i].old)), map[i]);
         }
       }
       this->points_.Write(first, n, pts.data());
@@ -538,20 +539,26 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
   // 2. The inverse: for each old index (in order) its new one.
   if (path == Renumbering::Slices)
   {
-    // (each slice holds its own old indices: put in place in memory, by following cycles)
+    // (each slice holds its own old indices: put in place in memory, the new numbers scattered
+    // to their old index's place, then the pairs rebuilt in order; independent stores, where
+    // following the permutation's cycles waited on each swap's cache miss)
     storage::CountedBuffer<OldNew> slice(this->dml_, static_cast<std::size_t>(sliceLength));
+    storage::CountedBuffer<std::uint32_t> nowOf(this->dml_, static_cast<std::size_t>(sliceLength));
     auto done2 = step(2.0 * double(V) * sizeof(OldNew));
     for (std::uint64_t lo = 0; lo < V; lo += sliceLength)
     {
       progress.Poll();
       const std::uint64_t n = std::min(sliceLength, V - lo);
       inverse.Read(lo, n, slice.Data());
+      OldNew* const pairs = slice.Data();
+      std::uint32_t* const now = nowOf.Data();
       for (std::uint64_t i = 0; i < n; ++i)
       {
-        while (slice[i].old - lo != i)
-        {
-          std::swap(slice[i], slice[slice[i].old - lo]);
-        }
+        now[pairs[i].old - lo] = pairs[i].now;
+      }
+      for (std::uint64_t i = 0; i < n; ++i)
+      {
+        pairs[i] = OldNew{ static_cast<std::uint32_t>(lo + i), now[i] };
       }
       inverse.Write(lo, n, slice.Data());
       done2(double(lo + n) / double(V));
@@ -682,7 +689,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     // buckets hand them out in the order they went in.
     std::vector<std::uint64_t> begin(static_cast<std::size_t>(slices) + 1, 0);
     std::vector<Triangle> tris;
-    auto bucketOf = [sliceLength](std::uint32_t v) { return std::size_t(v / sliceLength); };
+    auto bucketOf = [sliceOf](std::uint32_t v) { return std::size_t(sliceOf(v)); };
     {
       auto done1 = step(double(T) * sizeof(Triangle));
       Scan(this->triangles_, T, tris, [&](const Triangle* t, std::uint64_t first, std::uint64_t n) {
@@ -760,21 +767,32 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       Scan(this->triangles_, T, tris, [&](const Triangle* t, std::uint64_t first, std::uint64_t n) {
         tick(first);
         dst.resize(static_cast<std::size_t>(n));
+        // (locals, kept in registers across the refills' calls)
+        Triangle* const d = dst.data();
+        std::uint32_t* const held0 = buf.Data();
+        std::size_t* const nextOf = next.data();
+        std::size_t* const heldOf = held.data();
+        auto take = [&](std::uint32_t v) {
+          const std::size_t b = bucketOf(v);
+          if (nextOf[b] == heldOf[b])
+          {
+            heldOf[b] = static_cast<std::size_t>(std::min<std::uint64_t>(per, begin[b + 1] - at[b]));
+            refs.Read(at[b], heldOf[b], held0 + b * per);
+            at[b] += heldOf[b];
+            nextOf[b] = 0;
+          }
+          return held0[b * per + nextOf[b]++];
+        };
         for (std::uint64_t i = 0; i < n; ++i)
         {
-          for (int k = 0; k < 3; ++k)
-          {
-            const std::size_t b = bucketOf(t[i].v[k]);
-            if (next[b] == held[b])
-            {
-              held[b] = static_cast<std::size_t>(std::min<std::uint64_t>(per, begin[b + 1] - at[b]));
-              refs.Read(at[b], held[b], buf.Data() + b * per);
-              at[b] += held[b];
-              next[b] = 0;
-            }
-            dst[i].v[k] = buf[b * per + next[b]++];
-          }
-          LowestFirst(dst[i]);
+          // (built in registers and stored whole: three stores read back as one load would
+          // stall on store forwarding)
+          Triangle r;
+          r.v[0] = take(t[i].v[0]);
+          r.v[1] = take(t[i].v[1]);
+          r.v[2] = take(t[i].v[2]);
+          LowestFirst(r);
+          d[i] = r;
         }
         if (sorter)
         {

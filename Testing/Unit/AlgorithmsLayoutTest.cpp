@@ -190,6 +190,74 @@ void CheckReorderKeepsTheMesh(std::uint64_t budget, std::uint64_t announcedFaces
   EXPECT_LT(meter.FarFraction(), detail::kIncoherentFarFraction) << meter.FarFraction();
 }
 
+// The slices path's one-multiplication division gives the quotient of every 32-bit number:
+// exhaustive near the ends and near multiples of the divisor, random elsewhere, for divisors
+// small and large, powers of two and not.
+TEST(AlgorithmsLayout, Divider32GivesTheQuotientOfEvery32BitNumber)
+{
+  std::mt19937_64 rng(7);
+  std::vector<std::uint64_t> divisors = { 2, 3, 7, 1024, 1025, 375000, 524288, 1u << 31,
+    (1u << 31) + 1, 0xffffffffu, std::uint64_t(1) << 32, (std::uint64_t(1) << 32) + 5 };
+  for (int i = 0; i < 200; ++i)
+  {
+    divisors.push_back(2 + rng() % 0xffffffffu);
+  }
+  for (const std::uint64_t d : divisors)
+  {
+    const detail::Divider32 div(d);
+    auto check = [&](std::uint64_t n) {
+      const auto v = static_cast<std::uint32_t>(n);
+      ASSERT_EQ(div(v), std::uint64_t(v) / d) << v << " / " << d;
+    };
+    for (std::uint64_t n = 0; n < 4096; ++n)
+    {
+      check(n);
+      check(0xffffffffu - n);
+    }
+    for (std::uint64_t m = d; m <= 0xffffffffu && m < 64 * d; m += d)
+    {
+      for (std::uint64_t n = m - 1; n <= std::min<std::uint64_t>(m + 1, 0xffffffffu); ++n)
+      {
+        check(n);
+      }
+    }
+    for (int i = 0; i < 20000; ++i)
+    {
+      check(rng() & 0xffffffffu);
+    }
+  }
+  EXPECT_THROW(detail::Divider32(1), std::invalid_argument);
+}
+
+// A face rotated to start at its lowest vertex keeps its cyclic order; with a repeated lowest
+// vertex the rotation is fixed (the first of the order 0, 2, 1 that is lowest by strict
+// comparisons), which the sorts and the byte-identical outputs rely on.
+TEST(AlgorithmsLayout, LowestFirstRotatesToTheLowestVertex)
+{
+  struct Tri
+  {
+    std::uint32_t v[3];
+  };
+  for (std::uint32_t a = 0; a < 3; ++a)
+  {
+    for (std::uint32_t b = 0; b < 3; ++b)
+    {
+      for (std::uint32_t c = 0; c < 3; ++c)
+      {
+        Tri t{ { a, b, c } };
+        detail::LowestFirst(t);
+        const int m = a < b ? (a < c ? 0 : 2) : (b < c ? 1 : 2);
+        const std::uint32_t in[3] = { a, b, c };
+        for (int k = 0; k < 3; ++k)
+        {
+          EXPECT_EQ(t.v[k], in[(m + k) % 3]) << a << " " << b << " " << c;
+        }
+        EXPECT_EQ(t.v[0], std::min({ a, b, c }));
+      }
+    }
+  }
+}
+
 TEST(AlgorithmsLayout, ReorderKeepsTheMeshInCore)
 {
   CheckReorderKeepsTheMesh(0);
