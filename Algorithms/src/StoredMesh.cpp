@@ -877,7 +877,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
   //    out of core the sorter's buckets, in core a radix sort in place (storage::SortByKey).
   if (sorter)
   {
-    sorter->Finish(this->triangles_, step(2.0 * double(T) * sizeof(Triangle)));
+    sorter->Finish(this->triangles_, step(2.0 * double(T) * sizeof(Triangle)), threads);
     sorter.reset();
   }
   else

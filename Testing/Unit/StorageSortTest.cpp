@@ -621,7 +621,7 @@ TEST(StorageSortByKey, RadixSortInMemoryEqualsStdSort)
 // keys and with keys crowded into one bucket (that bucket sorted out of core on its own).
 std::vector<Face> SortByBuckets(const std::vector<Face>& in, std::uint64_t keyEnd,
   std::uint64_t budget, const std::string& dir, std::size_t* buckets = nullptr,
-  bool* oneBucket = nullptr)
+  bool* oneBucket = nullptr, int threads = 1)
 {
   Profile p;
   p.directories = { dir };
@@ -652,7 +652,7 @@ std::vector<Face> SortByBuckets(const std::vector<Face>& in, std::uint64_t keyEn
     sorter.Finish(out, [&](double f) {
       monotone = monotone && f >= last && f <= 1.0 + 1e-12;
       last = f;
-    });
+    }, threads);
     EXPECT_TRUE(monotone);
     EXPECT_NEAR(last, 1.0, 1e-9);
   }
@@ -689,6 +689,13 @@ TEST(StorageBucketSorter, EqualsStdSortSpreadAndCrowded)
       const auto out = SortByBuckets(in, 100000, budget, tmp.Path(), &buckets, &one);
       EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0)
         << kind << " budget " << budget << " buckets " << buckets;
+      if (budget == (8u << 20))
+      {
+        // (a bucket of 2^17 elements or more sorts in memory on two threads: the same order)
+        const auto two = SortByBuckets(in, 100000, budget, tmp.Path(), nullptr, nullptr, 2);
+        EXPECT_EQ(std::memcmp(two.data(), expect.data(), n * sizeof(Face)), 0)
+          << kind << " on two threads";
+      }
       if (budget == (1u << 20))
       {
         EXPECT_GT(buckets, 1u) << "3.6 MB in 1 MiB: several buckets";

@@ -464,9 +464,12 @@ void RadixSortLevel(T* data, std::size_t n, Key& key, Less& less, std::uint64_t 
 }
 
 // The whole sort. From 2^16 elements the first level's 256 ranges are sorted one by one with a
-// poll after each; from 2^20 with two threads (ResolveThreads) by both threads, each taking the
-// next range, the calling thread polling between its ranges (a throw stops the helper at its
-// next range; the data stay a permutation).
+// poll after each; from 2^17 (kRadixTwoThreadsFrom) with two threads (ResolveThreads) by both
+// threads, each taking the next range, the calling thread polling between its ranges (a throw
+// stops the helper at its next range; the data stay a permutation). (2^17 elements take
+// milliseconds, a thread's start tens of microseconds: the out-of-core sorts' buckets, a few
+// hundred thousand elements at 8 MB, sort on both cores.)
+constexpr std::uint64_t kRadixTwoThreadsFrom = std::uint64_t(1) << 17;
 template <class T, class Key, class Less>
 void RadixSortByKey(
   T* data, std::uint64_t n, Key& key, Less& less, const SortPoll& poll = {}, int threads = 1)
@@ -503,8 +506,8 @@ void RadixSortByKey(
     return;
   }
   // (larger: the first level here, then its ranges with a poll after each, on two threads from
-  // 2^20 elements)
-  const bool two = n >= (std::uint64_t(1) << 20) && ResolveThreads(threads) >= 2;
+  // kRadixTwoThreadsFrom elements)
+  const bool two = n >= kRadixTwoThreadsFrom && ResolveThreads(threads) >= 2;
   std::size_t ends[256];
   RadixPartition(data, static_cast<std::size_t>(n), key, lo, shift, ends);
   std::atomic<std::size_t> next{ 0 };
@@ -705,7 +708,7 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
 // Sort with a key: key(x) is a number below 2^keyBits that never decreases along `less`
 // (less(a, b) implies key(a) <= key(b)), e.g. an element's leading field. The result is Sort's
 // (docs/architecture.md, "Sorting").
-// - In core: an in-place radix sort on the key (detail::RadixSortByKey; two threads from 2^20
+// - In core: an in-place radix sort on the key (detail::RadixSortByKey; two threads from 2^17
 //   elements), ties of the key ordered by `less`.
 // - Out of core, when the key spreads the elements, a distribution instead of Sort's merges:
 //   1. one read counts the elements of each of up to 2^16 equal ranges of the key;
@@ -830,7 +833,8 @@ public:
   }
 
   // Writes the elements, sorted, to out[0, n) (out may be the producer's input, once read).
-  void Finish(Array<T>& out, const SortPoll& poll = {})
+  // `threads` sorts each bucket in memory on as many (RadixSortByKey's rule).
+  void Finish(Array<T>& out, const SortPoll& poll = {}, int threads = 1)
   {
     if (this->received_ != this->n_)
     {
@@ -866,7 +870,7 @@ public:
           this->segments_.Read(this->SegStart()[s], this->SegLength()[s], data + filled);
           filled += this->SegLength()[s];
         }
-        detail::RadixSortByKey(data, count, this->key_, this->less_, SortPoll(), 1);
+        detail::RadixSortByKey(data, count, this->key_, this->less_, SortPoll(), threads);
         out.Write(at, count, data);
       }
       else
