@@ -410,7 +410,7 @@ TEST(StorageSortByKey, EqualsStdSortAtEveryBudget)
 }
 
 // Keys that spread are distributed: a count, a distribution and the buckets' sorts are three
-// reads and two writes of the data; keys crowded into one range of the key fall back to merging.
+// reads and two writes of the data; keys all in one range of the count fall back to merging.
 TEST(StorageSortByKey, DistributesSpreadKeysAndMergesCrowdedOnes)
 {
   TempDir tmp;
@@ -452,8 +452,82 @@ TEST(StorageSortByKey, DistributesSpreadKeysAndMergesCrowdedOnes)
   // Buckets whose write buffers hold less than a page (partial pages: read first, then written):
   // still distributed. 16 MB at 256 KiB.
   check(Keys("random", 2000000, 4), 256 << 10, SortMethod::Distribution, "partial pages");
-  // Too many buckets for 1/16 of a page of write buffer each: merged. 32 MB at 64 KiB.
-  check(Keys("random", 4000000, 3), 64 << 10, SortMethod::Merge, "too many buckets");
+  // 32 MB at 64 KiB: every range of the count holds more than the memory; each is a bucket of
+  // its own, distributed again on its lower bits.
+  check(Keys("random", 4000000, 3), 64 << 10, SortMethod::Distribution, "every range crowded");
+}
+
+// Keys that crowd into a few ranges of the count with their lower bits spread (spatial keys: a
+// surface fills few cells of the top levels of a Morton order) are distributed, the crowded ranges
+// again on their lower bits: the result is std::sort's, within the budget, in a bounded number of
+// passes; an abort inside a crowded range's sort leaves the array as it was and holds nothing.
+TEST(StorageSortByKey, CrowdedRangesAreDistributedOnTheirLowerBits)
+{
+  TempDir tmp;
+  const std::uint64_t n = 600000; // 4.8 MB
+  std::mt19937_64 rng(21);
+  std::vector<std::uint64_t> in(n);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    // (90% in three ranges of the top 12 bits, the rest anywhere)
+    static const std::uint64_t tops[3] = { 0x123, 0x7ff, 0xa00 };
+    const std::uint64_t low = rng() & ((std::uint64_t(1) << 52) - 1);
+    in[i] = rng() % 10 < 9 ? (tops[rng() % 3] << 52 | low) : rng();
+  }
+  auto expect = in;
+  std::sort(expect.begin(), expect.end());
+  for (std::uint64_t budget : { std::uint64_t(256) << 10, std::uint64_t(1) << 20 })
+  {
+    const std::string what = "budget " + std::to_string(budget);
+    const KeyedRun r = SortByKeyWithBudget(in, budget, tmp.Path());
+    EXPECT_EQ(r.method, SortMethod::Distribution) << what;
+    EXPECT_TRUE(r.run.out == expect) << what;
+    EXPECT_LE(r.run.stats.peakBytes, budget) << what;
+    EXPECT_EQ(r.run.stats.fileBytes, r.run.fileBytesBefore) << what;
+    // (top: a count, a distribution; a crowded range: its count, distribution and buckets; the
+    // rest: their buckets. At most about 5 reads and 3 writes; a merge needs more at this size)
+    const double read = double(r.run.stats.bytesRead) / double(r.run.blockBytes);
+    const double written = double(r.run.stats.bytesWritten) / double(r.run.blockBytes);
+    EXPECT_LE(read, 5.5) << what;
+    EXPECT_LE(written, 3.5) << what;
+    EXPECT_GE(read, 3.5) << what << ": the crowded ranges were distributed again";
+  }
+  // An abort at every tenth of the progress calls, inside the crowded ranges' sorts too.
+  int total = 0;
+  {
+    KeysInDml k(in, 1 << 20, tmp.Path());
+    SortByKey(
+      k.dml, k.a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+      [](std::uint64_t x) { return x; }, 64, [&](double) { ++total; });
+  }
+  ASSERT_GT(total, 10);
+  for (int stopAt = total / 10; stopAt < total; stopAt += total / 10)
+  {
+    KeysInDml k(in, 1 << 20, tmp.Path());
+    const Stats before = k.dml.GetStats();
+    const std::uint64_t spareBefore = k.dml.SpareMemory(4);
+    int calls = 0;
+    double last = 0;
+    bool monotone = true;
+    EXPECT_THROW(SortByKey(
+                   k.dml, k.a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+                   [](std::uint64_t x) { return x; }, 64,
+                   [&](double f) {
+                     monotone = monotone && f >= last && f <= 1.0;
+                     last = f;
+                     if (++calls == stopAt)
+                     {
+                       throw std::runtime_error("stop");
+                     }
+                   }),
+      std::runtime_error);
+    EXPECT_TRUE(monotone) << stopAt;
+    EXPECT_EQ(k.dml.GetStats().fileBytes, before.fileBytes) << stopAt;
+    EXPECT_EQ(k.dml.SpareMemory(4), spareBefore) << stopAt;
+    std::vector<std::uint64_t> out(n);
+    k.a.Read(0, n, out.data());
+    EXPECT_TRUE(out == in) << "the array changed: stop at " << stopAt << " of " << total;
+  }
 }
 
 // A key that is a prefix of the order (faces by their first vertex): the same bytes as std::sort
@@ -465,7 +539,7 @@ TEST(StorageSortByKey, SameBytesAsSortWithAPrefixKey)
   const std::vector<Face> in = RandomFaces(n, 13);
   auto expect = in;
   std::sort(expect.begin(), expect.end(), FaceLess);
-  // (at 96 KiB the buckets are too many: merged)
+  // (at 96 KiB every range of the count is crowded: each distributed again on its lower bits)
   for (std::uint64_t budget : { std::uint64_t(0), std::uint64_t(96) << 10, std::uint64_t(2) << 20 })
   {
     DML dml;
@@ -475,7 +549,7 @@ TEST(StorageSortByKey, SameBytesAsSortWithAPrefixKey)
     const SortMethod m = SortByKey(dml, a, FaceLess, [](const Face& f) { return f.a; }, 13);
     EXPECT_EQ(m,
       budget == 0 ? SortMethod::InMemory
-                  : (budget < (1 << 20) ? SortMethod::Merge : SortMethod::Distribution))
+                  : SortMethod::Distribution)
       << budget;
     std::vector<Face> out(n);
     a.Read(0, n, out.data());

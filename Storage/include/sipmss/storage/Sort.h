@@ -548,13 +548,51 @@ void RadixSortByKey(
   }
 }
 
-// SortByKey's distribution (out of core); false, with nothing changed and nothing held, when the
-// keys are too crowded or the data too large for one distribution within the working memory.
+// SortByKey's distribution (out of core) of src[srcFirst, srcFirst + n); false, with nothing
+// changed and nothing held, when all the keys fall in one range of the count, or the data are too
+// large for one distribution within the working memory.
+// - At the top (`out` null, the whole array): the buckets are sorted in place in a second block,
+//   which then becomes the array (an abort leaves the array as it was).
+// - A range that holds more than the working memory (crowded keys: a range of the count is a
+//   range of the key, and spatial keys crowd) is a bucket of its own, sorted by the same
+//   distribution on the key's lower bits (`keyBits` = the range's shift; `masked`: the keys are
+//   taken below those bits) from its place in the second block into the same place (`out`,
+//   `outFirst`): no copy. Where that cannot distribute either, the bucket is merged (Sort) in a
+//   block of its own. Every level holds its table (1/16 of the memory) and gives its buffer back
+//   while a bucket below it sorts.
 template <class T, class Less, class Key>
-bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int keyBits,
+bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n,
+  Array<T>* out, std::uint64_t outFirst, Less& less, Key& key, int keyBits, bool masked,
+  const SortPoll& poll, int threads, double& told);
+
+// Sorts src[srcFirst, srcFirst + n) into out[outFirst, outFirst + n) by merging (Sort) in a block
+// of its own: the crowded bucket that the distribution cannot split.
+template <class T, class Less>
+void MergeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n, Array<T>& out,
+  std::uint64_t outFirst, Less& less, const SortPoll& poll, int threads)
+{
+  Array<T> part(dml, n);
+  const std::uint64_t chunk =
+    std::max<std::uint64_t>(1, std::min<std::uint64_t>(n, dml.PageBytes() / sizeof(T)));
+  auto copy = [&](Array<T>& from, std::uint64_t fromFirst, Array<T>& to, std::uint64_t toFirst) {
+    CountedBuffer<T> buf(dml, static_cast<std::size_t>(chunk));
+    for (std::uint64_t i = 0; i < n; i += chunk)
+    {
+      const std::uint64_t c = std::min(chunk, n - i);
+      from.Read(fromFirst + i, c, buf.Data());
+      to.Write(toFirst + i, c, buf.Data());
+    }
+  };
+  copy(src, srcFirst, part, 0);
+  Sort(dml, part, less, poll, threads);
+  copy(part, 0, out, outFirst);
+}
+
+template <class T, class Less, class Key>
+bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n,
+  Array<T>* out, std::uint64_t outFirst, Less& less, Key& key, int keyBits, bool masked,
   const SortPoll& poll, int threads, double& told)
 {
-  const std::uint64_t n = array.Size();
   const std::uint64_t pageElements = std::max<std::uint64_t>(1, dml.PageBytes() / sizeof(T));
   Array<T> other(dml, n); // (opened before the memory is taken, as Sort's)
   // The table: 2^binBits counts of equal ranges of the key (then each range's bucket) and three
@@ -567,6 +605,7 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
   }
   const int shift = keyBits - binBits;
   const std::size_t bins = std::size_t(1) << binBits;
+  const std::uint64_t mask = masked && keyBits < 64 ? (std::uint64_t(1) << keyBits) - 1 : ~std::uint64_t(0);
   CountedBuffer<std::uint64_t> table(dml, 4 * bins + 1);
   std::uint64_t* count = table.Data(); // per range; later its bucket
   std::uint64_t* start = count + bins; // per bucket (and the end)
@@ -577,10 +616,10 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
   {
     return false;
   }
-  CountedBuffer<T> buffer(dml, static_cast<std::size_t>(spare));
-  T* buf = buffer.Data();
+  std::optional<CountedBuffer<T>> buffer(std::in_place, dml, static_cast<std::size_t>(spare));
+  T* buf = buffer->Data();
   // (shift < 64: binBits >= 1)
-  auto rangeOf = [&](const T& x) { return static_cast<std::size_t>(key(x) >> shift); };
+  auto rangeOf = [&](const T& x) { return static_cast<std::size_t>((key(x) & mask) >> shift); };
   // Progress: the count is one read, the distribution a read and a write, the buckets a read, a
   // sort and a write.
   auto tell = [&poll, &told](double f) {
@@ -596,12 +635,12 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
   for (std::uint64_t first = 0; first < n; first += spare)
   {
     const std::uint64_t c = std::min(spare, n - first);
-    array.Read(first, c, buf);
+    src.Read(srcFirst + first, c, buf);
     for (std::uint64_t i = 0; i < c; ++i)
     {
-      // (every key is checked here, once)
-      const std::uint64_t k = key(buf[i]);
-      if (keyBits < 64 && (k >> keyBits) != 0)
+      // (every key is checked here, once, at the top)
+      const std::uint64_t k = key(buf[i]) & mask;
+      if (!masked && keyBits < 64 && (k >> keyBits) != 0)
       {
         throw std::logic_error("sipmss::storage::SortByKey: a key of more than " +
           std::to_string(keyBits) + " bits");
@@ -610,17 +649,18 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
     }
     tell(0.15 * double(first + c) / double(n));
   }
-  // 2. Buckets: runs of consecutive ranges that fit the buffer, each range in one bucket.
+  // 2. Buckets: runs of consecutive ranges that fit the buffer, each range in one bucket; a
+  //    range larger than the buffer is a bucket of its own (unless it is all of them).
   std::size_t buckets = 0; // (closed so far)
   start[0] = 0;
   std::uint64_t held = 0; // (in the open bucket)
   for (std::size_t r = 0; r < bins; ++r)
   {
-    if (count[r] > spare)
+    if (count[r] == n && n > spare)
     {
-      return false; // (crowded keys)
+      return false; // (one range: nothing to distribute)
     }
-    if (held + count[r] > spare)
+    if (held > 0 && held + count[r] > spare)
     {
       start[buckets + 1] = start[buckets] + held;
       ++buckets;
@@ -641,7 +681,7 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
     return false;
   }
 
-  // 3. Distribution into `other`: each bucket's elements in their order in the array.
+  // 3. Distribution into `other`: each bucket's elements in their order in the range.
   T* in = buf + buckets * per;
   for (std::size_t b = 0; b < buckets; ++b)
   {
@@ -671,7 +711,7 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
   for (std::uint64_t first = 0; first < n; first += readElements)
   {
     const std::uint64_t c = std::min(readElements, n - first);
-    array.Read(first, c, in);
+    src.Read(srcFirst + first, c, in);
     for (std::uint64_t i = 0; i < c; ++i)
     {
       const std::size_t b = static_cast<std::size_t>(count[rangeOf(in[i])]);
@@ -688,20 +728,54 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
     flush(b, true);
   }
 
-  // 4. Each bucket sorted in memory, in place in `other`.
+  // 4. Each bucket sorted: in memory, in place in `other` at the top, else into `out`; a
+  //    crowded one by the distribution below this range's bits (the buffer given back meanwhile).
+  Array<T>& dst = out ? *out : other;
+  const std::uint64_t dstFirst = out ? outFirst : 0;
   for (std::size_t b = 0; b < buckets; ++b)
   {
     const std::uint64_t c = start[b + 1] - start[b];
-    if (c > 0)
+    const double from = 0.5 + 0.5 * double(start[b]) / double(n);
+    const double to = 0.5 + 0.5 * double(start[b + 1]) / double(n);
+    if (c > spare)
+    {
+      buffer.reset();
+      SortPoll inner;
+      if (poll)
+      {
+        inner = [&poll, from, to](double f) { poll(from + (to - from) * f); };
+      }
+      double innerTold = 0;
+      if (shift == 0 ||
+        !DistributeRange(dml, other, start[b], c, &dst, dstFirst + start[b], less, key, shift, true,
+          inner, threads, innerTold))
+      {
+        MergeRange(dml, other, start[b], c, dst, dstFirst + start[b], less, inner, threads);
+      }
+      buffer.emplace(dml, static_cast<std::size_t>(spare));
+      buf = buffer->Data();
+    }
+    else if (c > 0)
     {
       other.Read(start[b], c, buf);
       RadixSortByKey(buf, c, key, less, SortPoll(), threads);
-      other.Write(start[b], c, buf);
+      dst.Write(dstFirst + start[b], c, buf);
     }
-    tell(0.5 + 0.5 * double(start[b + 1]) / double(n));
+    tell(to);
   }
-  array.Swap(other); // (the old order closes with `other`)
+  if (!out)
+  {
+    src.Swap(other); // (the old order closes with `other`)
+  }
   return true;
+}
+
+template <class T, class Less, class Key>
+bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int keyBits,
+  const SortPoll& poll, int threads, double& told)
+{
+  return DistributeRange(dml, array, 0, array.Size(), static_cast<Array<T>*>(nullptr), 0, less,
+    key, keyBits, false, poll, threads, told);
 }
 } // namespace detail
 
