@@ -783,6 +783,30 @@ TEST(StorageBucketSorter, EqualsStdSortSpreadAndCrowded)
   }
 }
 
+// Many elements for the memory (36 MB at 512 KiB): the segments' records go to a block and are
+// sorted by bucket, so the key's range is still cut into 123 buckets (with a table of them in
+// memory it could not be: one bucket); the result is std::sort's, within the budget.
+TEST(StorageBucketSorter, ManySegmentsForTheMemoryStillCutTheKeyRange)
+{
+  TempDir tmp;
+  std::mt19937 rng(31);
+  const std::uint64_t n = 3000000;
+  std::vector<Face> in(n);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    in[i] = { static_cast<std::uint32_t>(rng() % 1000000), static_cast<std::uint32_t>(rng() % 7),
+      static_cast<std::uint32_t>(rng()) };
+  }
+  auto expect = in;
+  std::sort(expect.begin(), expect.end(), FaceLess);
+  std::size_t buckets = 0;
+  bool one = true;
+  const auto out = SortByBuckets(in, 1000000, 512 << 10, tmp.Path(), &buckets, &one);
+  EXPECT_FALSE(one);
+  EXPECT_GT(buckets, 100u);
+  EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0);
+}
+
 TEST(StorageBucketSorter, WrongCountsAndKeysAreErrors)
 {
   TempDir tmp;

@@ -861,25 +861,23 @@ public:
       ++this->shift_;
     }
     this->buckets_ = static_cast<std::size_t>(((keys - 1) >> this->shift_) + 1);
-    // Write buffers in 3/4 of it; the table of segments (24 bytes each) within 1/8. Else one
-    // bucket (its segments are contiguous: one), sorted out of core at the end when large.
+    // Write buffers in 3/4 of it, of at least 64 elements each. Else one bucket (its segments
+    // are contiguous: one), sorted out of core at the end when large.
     this->per_ = static_cast<std::size_t>(spare * 3 / 4 / this->buckets_);
-    if (this->buckets_ > 1 &&
-      (this->per_ < 64 || 24 * (n / this->per_ + 2 * this->buckets_) > spareBytes / 8))
+    if (this->buckets_ > 1 && this->per_ < 64)
     {
       this->buckets_ = 1;
       this->shift_ = -1;
       this->per_ = static_cast<std::size_t>(std::max<std::uint64_t>(1, spare * 3 / 4));
     }
-    // Per bucket: its fill, its element count and its last segment; per segment: its start, its
-    // length and the bucket's previous segment (full buffers, and one partial each at the end).
-    this->maxSegments_ = static_cast<std::size_t>(n / this->per_) + this->buckets_;
-    this->table_.emplace(dml, 3 * this->buckets_ + 3 * this->maxSegments_);
-    std::fill(this->table_->Data(), this->table_->Data() + 3 * this->buckets_, 0);
-    for (std::size_t b = 0; b < this->buckets_; ++b)
-    {
-      this->Last()[b] = kNone;
-    }
+    // Per bucket: its fill, its element count and its open segment (start, length); the closed
+    // segments (bucket, start, length: full buffers, and one partial each at the end) go to a
+    // block as they close, which Finish sorts by bucket. In memory, a table of the segments had
+    // grown as n^2 / spare^2 and had not fitted 8 MB from 100M faces on.
+    this->maxSegments_ = n / this->per_ + this->buckets_;
+    this->records_ = Array<Segment>(dml, this->maxSegments_);
+    this->table_.emplace(dml, 4 * this->buckets_);
+    std::fill(this->table_->Data(), this->table_->Data() + 4 * this->buckets_, 0);
     this->buffer_.emplace(dml, this->buckets_ * this->per_);
   }
   BucketSorter(const BucketSorter&) = delete;
@@ -918,8 +916,39 @@ public:
     for (std::size_t b = 0; b < this->buckets_; ++b)
     {
       this->Flush(b);
+      this->CloseSegment(b);
     }
     this->buffer_.reset(); // (the write buffers go; the sort's buffer takes what is spare)
+    // The segments by bucket, each bucket's newest first (the order in which a chain of them
+    // was followed: the same elements in the same order go to each bucket's sort).
+    this->records_.Resize(std::max<std::uint64_t>(this->recordCount_, 1));
+    if (this->recordCount_ > 1)
+    {
+      int bucketBits = 1;
+      while (bucketBits < 64 && ((this->buckets_ - 1) >> bucketBits) != 0)
+      {
+        ++bucketBits;
+      }
+      SortByKey(
+        this->dml_, this->records_,
+        [](const Segment& x, const Segment& y) {
+          return x.bucket != y.bucket ? x.bucket < y.bucket : x.start > y.start;
+        },
+        [](const Segment& x) { return x.bucket; }, bucketBits, SortPoll(), threads);
+    }
+    std::uint64_t next = 0; // (the next segment record)
+    auto segmentsOf = [&](std::size_t b, auto&& f) {
+      for (; next < this->recordCount_; ++next)
+      {
+        Segment r;
+        this->records_.Read(next, 1, &r);
+        if (r.bucket != b)
+        {
+          break;
+        }
+        f(r);
+      }
+    };
     const std::uint64_t capacity = std::min<std::uint64_t>(
       std::max<std::uint64_t>(this->n_, 1), dml_.SpareMemory(4) / 8 * 7 / sizeof(T));
     std::optional<CountedBuffer<T>> sortBuf;
@@ -939,11 +968,10 @@ public:
         }
         T* data = sortBuf->Data();
         std::uint64_t filled = 0;
-        for (std::uint64_t s = this->Last()[b]; s != kNone; s = this->SegPrev()[s])
-        {
-          this->segments_.Read(this->SegStart()[s], this->SegLength()[s], data + filled);
-          filled += this->SegLength()[s];
-        }
+        segmentsOf(b, [&](const Segment& r) {
+          this->segments_.Read(r.start, r.length, data + filled);
+          filled += r.length;
+        });
         detail::RadixSortByKey(data, count, this->key_, this->less_, SortPoll(), threads);
         out.Write(at, count, data);
       }
@@ -960,16 +988,15 @@ public:
         {
           CountedBuffer<T> chunk(this->dml_, chunkSize());
           std::uint64_t filled = 0;
-          for (std::uint64_t s = this->Last()[b]; s != kNone; s = this->SegPrev()[s])
-          {
-            for (std::uint64_t o = 0; o < this->SegLength()[s]; o += chunk.Size())
+          segmentsOf(b, [&](const Segment& r) {
+            for (std::uint64_t o = 0; o < r.length; o += chunk.Size())
             {
-              const std::uint64_t c = std::min<std::uint64_t>(chunk.Size(), this->SegLength()[s] - o);
-              this->segments_.Read(this->SegStart()[s] + o, c, chunk.Data());
+              const std::uint64_t c = std::min<std::uint64_t>(chunk.Size(), r.length - o);
+              this->segments_.Read(r.start + o, c, chunk.Data());
               alone.Write(filled, c, chunk.Data());
               filled += c;
             }
-          }
+          });
         }
         const double from = double(at) / double(this->n_), span = double(count) / double(this->n_);
         Sort(this->dml_, alone, this->less_, poll ? SortPoll([&poll, from, span](double f) {
@@ -990,22 +1017,40 @@ public:
       }
     }
     this->segments_.Close();
+    this->records_.Close();
   }
 
   std::size_t Buckets() const { return this->buckets_; }
-  // Whether the key's range could not be cut (a table of segments for that many buckets would not
-  // fit the memory): one bucket, sorted at the end by Sort when larger than the memory. A
-  // producer that can write its elements in place and sort them itself does better then.
+  // Whether the key's range could not be cut (a write buffer for each of that many buckets would
+  // hold fewer than 64 elements): one bucket, sorted at the end by Sort when larger than the
+  // memory. A producer that can write its elements in place and sort them itself does better
+  // then.
   bool OneBucket() const { return this->shift_ < 0; }
 
 private:
-  static constexpr std::uint64_t kNone = ~std::uint64_t(0);
+  struct Segment
+  {
+    std::uint64_t bucket, start, length;
+  };
   std::uint64_t* Fill() { return this->table_->Data(); }
   std::uint64_t* Count() { return this->table_->Data() + this->buckets_; }
-  std::uint64_t* Last() { return this->table_->Data() + 2 * this->buckets_; }
-  std::uint64_t* SegStart() { return this->table_->Data() + 3 * this->buckets_; }
-  std::uint64_t* SegLength() { return this->SegStart() + this->maxSegments_; }
-  std::uint64_t* SegPrev() { return this->SegLength() + this->maxSegments_; }
+  std::uint64_t* OpenStart() { return this->table_->Data() + 2 * this->buckets_; }
+  std::uint64_t* OpenLength() { return this->table_->Data() + 3 * this->buckets_; }
+  // Bucket b's open segment goes to the records.
+  void CloseSegment(std::size_t b)
+  {
+    if (this->OpenLength()[b] == 0)
+    {
+      return;
+    }
+    if (this->recordCount_ == this->maxSegments_)
+    {
+      throw std::logic_error("sipmss::storage::BucketSorter: the table of segments is full");
+    }
+    const Segment r{ b, this->OpenStart()[b], this->OpenLength()[b] };
+    this->records_.Write(this->recordCount_++, 1, &r);
+    this->OpenLength()[b] = 0;
+  }
   void Flush(std::size_t b)
   {
     const std::uint64_t c = this->Fill()[b];
@@ -1018,22 +1063,15 @@ private:
       throw std::logic_error("sipmss::storage::BucketSorter: more elements than announced");
     }
     this->segments_.Write(this->added_, c, this->buffer_->Data() + b * this->per_);
-    const std::uint64_t last = this->Last()[b];
-    if (last != kNone && this->SegStart()[last] + this->SegLength()[last] == this->added_)
+    if (this->OpenLength()[b] > 0 && this->OpenStart()[b] + this->OpenLength()[b] == this->added_)
     {
-      this->SegLength()[last] += c; // (right after the bucket's last segment: it grows)
+      this->OpenLength()[b] += c; // (right after the bucket's last segment: it grows)
     }
     else
     {
-      if (this->segmentCount_ == this->maxSegments_)
-      {
-        throw std::logic_error("sipmss::storage::BucketSorter: the table of segments is full");
-      }
-      const std::size_t s = this->segmentCount_++;
-      this->SegStart()[s] = this->added_;
-      this->SegLength()[s] = c;
-      this->SegPrev()[s] = last;
-      this->Last()[b] = s;
+      this->CloseSegment(b);
+      this->OpenStart()[b] = this->added_;
+      this->OpenLength()[b] = c;
     }
     this->Count()[b] += c;
     this->added_ += c;
@@ -1045,7 +1083,9 @@ private:
   Key key_;
   Less less_;
   Array<T> segments_;
-  std::size_t buckets_ = 1, per_ = 1, maxSegments_ = 0, segmentCount_ = 0;
+  Array<Segment> records_;
+  std::size_t buckets_ = 1, per_ = 1;
+  std::uint64_t maxSegments_ = 0, recordCount_ = 0;
   int shift_ = 0;
   std::uint64_t added_ = 0, received_ = 0; // (written to segments; handed to Add)
   std::optional<CountedBuffer<std::uint64_t>> table_;
