@@ -792,9 +792,11 @@ bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int key
 //      is smaller than a page, down to 1/16 of one);
 //   4. each bucket is read, radix-sorted in memory and written back; the blocks are exchanged.
 //   Three reads and two writes of the data, no merge (whose heap compares an element of a
-//   Lucy-size array about 28 times). When one range alone holds more than the working memory
-//   (crowded keys), or the buckets are too many for 1/16 of a page of write buffer each (an array
-//   larger than about 16 spare^2 / page bytes), it sorts as Sort does, after the count.
+//   Lucy-size array about 28 times). A range that alone holds more than the working memory
+//   (crowded keys) is a bucket of its own, sorted by the same distribution on the key's lower
+//   bits (DistributeRange). When all keys fall in one range, or the buckets are too many for
+//   1/16 of a page of write buffer each (an array larger than about 16 spare^2 / page bytes), it
+//   sorts as Sort does, after the count.
 // An abort (the poll throws) leaves the array a permutation of its elements (out of core: as it
 // was) and every temporary block closed.
 template <class T, class Less, class Key>
