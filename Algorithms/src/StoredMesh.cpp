@@ -165,11 +165,13 @@ void AddLayoutStructures(
       profile.structures.push_back(storage::StructureSpec{ name, size, count, 0.0 });
     }
   };
-  // (an upper bound: every block the step may open, each sort's second block as large as the first)
+  // (every block the step may open, each sort's second block as large as the first, and the
+  // keys' third for a range of crowded Morton keys distributed again: storage::SortByKey; a
+  // range crowded again below it, or one that must be merged, adds up to its own size more)
   add("layout.points", 12, V);
   add("layout.pointData", 4 * stride, V);
   add("layout.triangles", 12, F);
-  add("layout.keys", sizeof(KeyRec), 2 * V);
+  add("layout.keys", sizeof(KeyRec), 3 * V);
   add("layout.inverse", sizeof(OldNew), 2 * V);
   add("layout.corners", sizeof(Corner), 2 * 3 * F);
 }

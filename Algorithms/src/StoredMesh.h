@@ -37,12 +37,8 @@ class Divider32
 {
 public:
   explicit Divider32(std::uint64_t d)
-    : c_(~std::uint64_t(0) / d + 1)
+    : c_(~std::uint64_t(0) / Checked(d) + 1)
   {
-    if (d < 2)
-    {
-      throw std::invalid_argument("Divider32: the divisor must be at least 2");
-    }
   }
   std::uint64_t operator()(std::uint32_t n) const
   {
@@ -50,6 +46,14 @@ public:
   }
 
 private:
+  static std::uint64_t Checked(std::uint64_t d)
+  {
+    if (d < 2)
+    {
+      throw std::invalid_argument("Divider32: the divisor must be at least 2");
+    }
+    return d;
+  }
   std::uint64_t c_;
 };
 

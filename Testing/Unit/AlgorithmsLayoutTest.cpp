@@ -227,11 +227,13 @@ TEST(AlgorithmsLayout, Divider32GivesTheQuotientOfEvery32BitNumber)
     }
   }
   EXPECT_THROW(detail::Divider32(1), std::invalid_argument);
+  EXPECT_THROW(detail::Divider32(0), std::invalid_argument);
 }
 
 // A face rotated to start at its lowest vertex keeps its cyclic order; with a repeated lowest
-// vertex the rotation is fixed (the first of the order 0, 2, 1 that is lowest by strict
-// comparisons), which the sorts and the byte-identical outputs rely on.
+// vertex the rotation is fixed (the last of the positions 0, 1, 2 that holds the lowest, by the
+// strict comparisons of the code before it was written without an index), which the sorts and
+// the byte-identical outputs rely on.
 TEST(AlgorithmsLayout, LowestFirstRotatesToTheLowestVertex)
 {
   struct Tri

@@ -777,10 +777,44 @@ TEST(StorageBucketSorter, EqualsStdSortSpreadAndCrowded)
       }
       if (budget == (64u << 10))
       {
-        EXPECT_TRUE(one) << "64 KiB: no room for a table of segments";
+        EXPECT_TRUE(one) << "64 KiB: fewer than 64 elements of write buffer per bucket";
       }
     }
   }
+}
+
+// A crowded range whose keys also fall in one range of its own count (32 constant bits below the
+// top ones) is merged in a block of its own: the result is still std::sort's within the budget,
+// nothing is left behind, and the progress goes on from the count it had reported.
+TEST(StorageSortByKey, ACrowdedRangeThatCannotBeDistributedAgainIsMerged)
+{
+  TempDir tmp;
+  const std::uint64_t n = 600000;
+  std::mt19937_64 rng(23);
+  std::vector<std::uint64_t> in(n);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    const std::uint64_t crowded = std::uint64_t(0x123) << 52 | std::uint64_t(0x9e3779b9) << 20 |
+      (rng() & 0xfffff);
+    in[i] = rng() % 10 < 9 ? crowded : rng();
+  }
+  auto expect = in;
+  std::sort(expect.begin(), expect.end());
+  double last = 0;
+  bool monotone = true;
+  int calls = 0;
+  const KeyedRun r = SortByKeyWithBudget(in, 1 << 20, tmp.Path(), 64, [&](double f) {
+    monotone = monotone && f >= last && f <= 1.0 + 1e-12;
+    last = f;
+    ++calls;
+  });
+  EXPECT_EQ(r.method, SortMethod::Distribution);
+  EXPECT_TRUE(r.run.out == expect);
+  EXPECT_LE(r.run.stats.peakBytes, std::uint64_t(1) << 20);
+  EXPECT_EQ(r.run.stats.fileBytes, r.run.fileBytesBefore);
+  EXPECT_TRUE(monotone);
+  EXPECT_NEAR(last, 1.0, 1e-9);
+  EXPECT_GT(calls, 3);
 }
 
 // Many elements for the memory (36 MB at 512 KiB): the segments' records go to a block and are

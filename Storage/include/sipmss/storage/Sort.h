@@ -750,7 +750,13 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
         !DistributeRange(dml, other, start[b], c, &dst, dstFirst + start[b], less, key, shift, true,
           inner, threads, innerTold))
       {
-        MergeRange(dml, other, start[b], c, dst, dstFirst + start[b], less, inner, threads);
+        // (progress on from where the distribution's count left it)
+        SortPoll rest;
+        if (inner)
+        {
+          rest = [&inner, innerTold](double f) { inner(innerTold + (1.0 - innerTold) * f); };
+        }
+        MergeRange(dml, other, start[b], c, dst, dstFirst + start[b], less, rest, threads);
       }
       buffer.emplace(dml, static_cast<std::size_t>(spare));
       buf = buffer->Data();
