@@ -99,6 +99,27 @@ struct KeysInDml
   }
 };
 
+// A progress callback that checks its values rise within [0, 1] and throws at its stopAt-th
+// call (an abort).
+struct StoppingPoll
+{
+  int stopAt;
+  int calls = 0;
+  double last = 0;
+  bool monotone = true;
+  SortPoll Poll()
+  {
+    return [this](double f) {
+      this->monotone = this->monotone && f >= this->last && f <= 1.0;
+      this->last = f;
+      if (++this->calls == this->stopAt)
+      {
+        throw std::runtime_error("stop");
+      }
+    };
+  }
+};
+
 struct SortRun
 {
   std::vector<std::uint64_t> out;
@@ -276,20 +297,11 @@ TEST(StorageSort, AbortLeavesAPermutationAndNothingHeld)
       Array<std::uint64_t>& a = k.a;
       const Stats before = dml.GetStats();
       const std::uint64_t spareBefore = dml.SpareMemory(4);
-      int calls = 0;
-      double last = 0;
-      bool monotone = true;
-      EXPECT_THROW(Sort(dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
-                     [&](double f) {
-                       monotone = monotone && f >= last && f <= 1.0;
-                       last = f;
-                       if (++calls == stopAt)
-                       {
-                         throw std::runtime_error("stop");
-                       }
-                     }),
+      StoppingPoll stop{ stopAt };
+      EXPECT_THROW(
+        Sort(dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; }, stop.Poll()),
         std::runtime_error);
-      EXPECT_TRUE(monotone);
+      EXPECT_TRUE(stop.monotone);
       const Stats after = dml.GetStats();
       EXPECT_EQ(after.fileBytes, before.fileBytes);
           std::vector<std::uint64_t> out(n);
@@ -506,22 +518,12 @@ TEST(StorageSortByKey, CrowdedRangesAreDistributedOnTheirLowerBits)
     KeysInDml k(in, 1 << 20, tmp.Path());
     const Stats before = k.dml.GetStats();
     const std::uint64_t spareBefore = k.dml.SpareMemory(4);
-    int calls = 0;
-    double last = 0;
-    bool monotone = true;
+    StoppingPoll stop{ stopAt };
     EXPECT_THROW(SortByKey(
                    k.dml, k.a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
-                   [](std::uint64_t x) { return x; }, 64,
-                   [&](double f) {
-                     monotone = monotone && f >= last && f <= 1.0;
-                     last = f;
-                     if (++calls == stopAt)
-                     {
-                       throw std::runtime_error("stop");
-                     }
-                   }),
+                   [](std::uint64_t x) { return x; }, 64, stop.Poll()),
       std::runtime_error);
-    EXPECT_TRUE(monotone) << stopAt;
+    EXPECT_TRUE(stop.monotone) << stopAt;
     EXPECT_EQ(k.dml.GetStats().fileBytes, before.fileBytes) << stopAt;
     EXPECT_EQ(k.dml.SpareMemory(4), spareBefore) << stopAt;
     std::vector<std::uint64_t> out(n);
@@ -573,23 +575,14 @@ TEST(StorageSortByKey, AbortAndProgress)
         KeysInDml k(in, budget, tmp.Path());
         const Stats before = k.dml.GetStats();
         const std::uint64_t spareBefore = k.dml.SpareMemory(4);
-        int calls = 0;
-        double last = 0;
-        bool monotone = true;
+        StoppingPoll stop{ stopAt };
         bool stopped = false;
         SortMethod method = SortMethod::InMemory;
         try
         {
           method = SortByKey(
             k.dml, k.a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
-            [](std::uint64_t x) { return x; }, 64, [&](double f) {
-              monotone = monotone && f >= last && f <= 1.0;
-              last = f;
-              if (++calls == stopAt)
-              {
-                throw std::runtime_error("stop");
-              }
-            });
+            [](std::uint64_t x) { return x; }, 64, stop.Poll());
         }
         catch (const std::runtime_error&)
         {
@@ -597,7 +590,7 @@ TEST(StorageSortByKey, AbortAndProgress)
         }
         const std::string what = std::string(kind) + " budget " + std::to_string(budget) +
           " stop " + std::to_string(stopAt);
-        EXPECT_TRUE(monotone) << what;
+        EXPECT_TRUE(stop.monotone) << what;
         EXPECT_EQ(k.dml.GetStats().fileBytes, before.fileBytes) << what;
         EXPECT_EQ(k.dml.SpareMemory(4), spareBefore) << what;
         std::vector<std::uint64_t> out(n);
@@ -611,7 +604,7 @@ TEST(StorageSortByKey, AbortAndProgress)
                         : (std::string(kind) == "random" ? SortMethod::Distribution
                                                          : SortMethod::Merge))
             << what;
-          EXPECT_NEAR(last, 1.0, 1e-9) << what;
+          EXPECT_NEAR(stop.last, 1.0, 1e-9) << what;
           EXPECT_TRUE(out == sorted) << what;
           continue;
         }
