@@ -14,10 +14,10 @@
 // order, by either thread. The clustering thread copies the block it needs when the helper has
 // not claimed it yet, so a helper that is not running (a busy machine) holds nothing up but a
 // block it has begun; while it waits for such a block, the clustering thread copies the next
-// blocks not yet claimed. The helper reads the vertex block through its base pointer, which stays valid only
-// while the clustering thread makes no call that may resize a block (a resize may switch the
-// DML out of core): the caller reserves the candidates first and Stop()s the helper before any
-// other such call (a deferred face).
+// blocks not yet claimed. The helper reads the vertex block through its base pointer, which
+// stays valid only while the clustering thread makes no call that may resize a block (a resize
+// may switch the DML out of core): the caller Stop()s the helper before any such call (a
+// deferred face, an append to a full block of candidates).
 #pragma once
 
 #include <algorithm>

@@ -567,25 +567,33 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
 
 // Sorts src[srcFirst, srcFirst + n) into out[outFirst, outFirst + n) by merging (Sort) in a block
 // of its own: the crowded bucket that the distribution cannot split.
+// Copies from[fromFirst, fromFirst + n) to to[toFirst, toFirst + n) through `buf`.
+template <class T>
+void CopyRange(Array<T>& from, std::uint64_t fromFirst, Array<T>& to, std::uint64_t toFirst,
+  std::uint64_t n, CountedBuffer<T>& buf)
+{
+  for (std::uint64_t i = 0; i < n; i += buf.Size())
+  {
+    const std::uint64_t c = std::min<std::uint64_t>(buf.Size(), n - i);
+    from.Read(fromFirst + i, c, buf.Data());
+    to.Write(toFirst + i, c, buf.Data());
+  }
+}
+
 template <class T, class Less>
 void MergeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n, Array<T>& out,
   std::uint64_t outFirst, Less& less, const SortPoll& poll, int threads)
 {
   Array<T> part(dml, n);
-  const std::uint64_t chunk =
-    std::max<std::uint64_t>(1, std::min<std::uint64_t>(n, dml.PageBytes() / sizeof(T)));
-  auto copy = [&](Array<T>& from, std::uint64_t fromFirst, Array<T>& to, std::uint64_t toFirst) {
-    CountedBuffer<T> buf(dml, static_cast<std::size_t>(chunk));
-    for (std::uint64_t i = 0; i < n; i += chunk)
-    {
-      const std::uint64_t c = std::min(chunk, n - i);
-      from.Read(fromFirst + i, c, buf.Data());
-      to.Write(toFirst + i, c, buf.Data());
-    }
-  };
-  copy(src, srcFirst, part, 0);
+  const auto chunk = static_cast<std::size_t>(
+    std::max<std::uint64_t>(1, std::min<std::uint64_t>(n, dml.PageBytes() / sizeof(T))));
+  {
+    CountedBuffer<T> buf(dml, chunk);
+    CopyRange(src, srcFirst, part, 0, n, buf);
+  }
   Sort(dml, part, less, poll, threads);
-  copy(part, 0, out, outFirst);
+  CountedBuffer<T> buf(dml, chunk);
+  CopyRange(part, 0, out, outFirst, n, buf);
 }
 
 template <class T, class Less, class Key>
@@ -997,13 +1005,8 @@ public:
           CountedBuffer<T> chunk(this->dml_, chunkSize());
           std::uint64_t filled = 0;
           segmentsOf(b, [&](const Segment& r) {
-            for (std::uint64_t o = 0; o < r.length; o += chunk.Size())
-            {
-              const std::uint64_t c = std::min<std::uint64_t>(chunk.Size(), r.length - o);
-              this->segments_.Read(r.start + o, c, chunk.Data());
-              alone.Write(filled, c, chunk.Data());
-              filled += c;
-            }
+            detail::CopyRange(this->segments_, r.start, alone, filled, r.length, chunk);
+            filled += r.length;
           });
         }
         const double from = double(at) / double(this->n_), span = double(count) / double(this->n_);
@@ -1011,12 +1014,7 @@ public:
           poll(from + span * f);
         }) : SortPoll());
         CountedBuffer<T> chunk(this->dml_, chunkSize());
-        for (std::uint64_t o = 0; o < count; o += chunk.Size())
-        {
-          const std::uint64_t c = std::min<std::uint64_t>(chunk.Size(), count - o);
-          alone.Read(o, c, chunk.Data());
-          out.Write(at + o, c, chunk.Data());
-        }
+        detail::CopyRange(alone, 0, out, at, count, chunk);
       }
       at += count;
       if (poll)
