@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # sipmss-meshgen subdivide within a memory budget: the same bytes at 64 KiB (out of core, block
 # files and external sorts) as unbounded (in core); a closed input stays closed (V = 2 + F / 2)
-# with 16x its triangles after two levels; the shuffled order is the same surface; no temporary
-# file is left behind.
+# with 16x its triangles after two levels; the shuffled order is the same surface, the same bytes
+# at every budget, and sorted within the budget too (its peak memory that of the scanner order,
+# not the mesh's); no temporary file is left behind.
 #   meshgen-subdivide.sh SIPMSS SIPMSS_MESHGEN
 set -euo pipefail
 sipmss="$1" meshgen="$2"
@@ -15,6 +16,16 @@ paged="$("$meshgen" subdivide "$tmp/in.ply" "$tmp/paged.ply" --levels 2 --memory
   --tmpdir "$tmp/blocks")"
 "$meshgen" subdivide "$tmp/in.ply" "$tmp/shuffled.ply" --levels 2 --order shuffled --memory-mb 0.0625 \
   --tmpdir "$tmp/blocks" >/dev/null
+"$meshgen" subdivide "$tmp/in.ply" "$tmp/shuffled-core.ply" --levels 2 --order shuffled \
+  --memory-mb 0 >/dev/null
+# Peak RSS (KiB) of both orders at 64 KiB, on a larger mesh (1.3M triangles: 15 MB as arrays).
+peak() {
+  /usr/bin/time -f "%M" -o "$tmp/peak.txt" "$meshgen" subdivide "$tmp/in.ply" "$tmp/big.ply" \
+    --levels 3 --order "$1" --memory-mb 0.0625 --tmpdir "$tmp/blocks" >/dev/null
+  cat "$tmp/peak.txt"
+}
+peak_scanner="$(peak scanner)" peak_shuffled="$(peak shuffled)"
+rm -f "$tmp/big.ply"
 # Many vertices and few faces (the budget's estimate must count the vertices too).
 /usr/bin/python3 - "$tmp/few.ply" <<'PY'
 import struct, sys
@@ -35,6 +46,11 @@ cmp "$tmp/few-core.ply" "$tmp/few-2mb.ply" || fail "many vertices: in core and a
 case "$core" in *"(in core"*) ;; *) fail "unbounded did not run in core: $core" ;; esac
 case "$paged" in *"(out of core"*) ;; *) fail "64 KiB did not run out of core: $paged" ;; esac
 cmp "$tmp/core.ply" "$tmp/paged.ply" || fail "in core and out of core differ"
+cmp "$tmp/shuffled-core.ply" "$tmp/shuffled.ply" || fail "shuffled: in core and out of core differ"
+cmp -s "$tmp/core.ply" "$tmp/shuffled.ply" && fail "the shuffled output is in scanner order"
+[ "$peak_shuffled" -le $((peak_scanner + 4096)) ] ||
+  fail "shuffled peak RSS ${peak_shuffled} KiB, scanner order ${peak_scanner} KiB (over 4 MiB more)"
+echo "peak RSS at 64 KiB, 1.3M triangles: scanner ${peak_scanner} KiB, shuffled ${peak_shuffled} KiB"
 [ -z "$(ls -A "$tmp/blocks")" ] || fail "temporary files left: $(ls -A "$tmp/blocks")"
 # The input is never its own output (also through a symbolic link): an error, the file intact.
 cp "$tmp/in.ply" "$tmp/keep.ply"

@@ -7,6 +7,8 @@
 // vertices are numbered in the order the faces first reach their edges, each draws its
 // displacement from one random sequence in that order, and the scanner order sorts the vertices
 // along the longest axis (ties by index) and the faces by their lowest vertex (ties by index).
+// The shuffled order sorts both by keys that a fixed bijection of their index gives
+// (ShuffleKey), so it too is the same at every budget.
 #include "Subdivide.h"
 
 #include "sipmss/io/MeshIO.h"
@@ -59,13 +61,34 @@ struct AxisRec
   std::uint32_t index;
   P3 p;
 };
-// A face by its lowest vertex, then its index.
+// A vertex by a random key (the shuffled order), with its index and position.
+struct KeyRec
+{
+  std::uint32_t key;
+  std::uint32_t index;
+  P3 p;
+};
+// A face by its key (its lowest vertex, or a random key), then its index.
 struct FaceRec
 {
-  std::uint32_t low;
+  std::uint32_t key;
   std::uint32_t index;
   Tri t;
 };
+
+// The shuffled order's keys: murmur3's finalizer of index ^ seed, a bijection of the 32-bit
+// numbers, so the keys of distinct indices differ and sorting by them is a random-looking
+// permutation, the same whatever the budget.
+inline std::uint32_t ShuffleKey(std::uint32_t index, std::uint32_t seed)
+{
+  std::uint32_t h = index ^ seed;
+  h ^= h >> 16;
+  h *= 0x85ebca6bu;
+  h ^= h >> 13;
+  h *= 0xc2b2ae35u;
+  h ^= h >> 16;
+  return h;
+}
 
 constexpr std::size_t kChunk = 1 << 16;
 
@@ -289,11 +312,48 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
   T = std::move(T2);
 }
 
+// The vertices' records A sorted into their new order: P in that order, each old index's rank
+// (R), then the faces renumbered through R and sorted by faceKey(f, renumbered face) (ties by
+// index). A is closed.
+template <class Rec, class FaceKey>
+void Renumber(DML& dml, Array<Rec>& A, Array<P3>& P, Array<Tri>& T, FaceKey faceKey)
+{
+  const std::uint64_t nv = P.Size(), nf = T.Size();
+  Array<std::uint32_t> R(dml, std::max<std::uint64_t>(nv, 1));
+  {
+    View<std::uint32_t> r(dml, R);
+    MapChunks(dml, A, nv, P, 1, [&r](std::uint64_t i, const Rec& x, std::vector<P3>& out) {
+      out.push_back(x.p);
+      r.Set(x.index, std::uint32_t(i));
+    });
+  }
+  A.Close();
+  Array<FaceRec> FA(dml, std::max<std::uint64_t>(nf, 1));
+  {
+    const View<std::uint32_t> r(dml, R);
+    MapChunks(dml, T, nf, FA, 1,
+      [&r, &faceKey](std::uint64_t f, const Tri& t, std::vector<FaceRec>& out) {
+        const Tri x = { { r.Get(t.v[0]), r.Get(t.v[1]), r.Get(t.v[2]) } };
+        out.push_back({ faceKey(f, x), std::uint32_t(f), x });
+      });
+  }
+  R.Close();
+  if (nf == 0)
+  {
+    FA.Resize(0);
+  }
+  storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) {
+    return x.key < y.key || (x.key == y.key && x.index < y.index);
+  });
+  MapChunks(dml, FA, nf, T, 1,
+    [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
+}
+
 // Scanner order: vertices along the longest axis (ties by index), faces by their lowest vertex
 // (ties by index), both by external sorts.
 void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
 {
-  const std::uint64_t nv = P.Size(), nf = T.Size();
+  const std::uint64_t nv = P.Size();
   float lo[3] = { 1e30f, 1e30f, 1e30f }, hi[3] = { -1e30f, -1e30f, -1e30f };
   ForChunks(dml, P, nv, [&](std::uint64_t, const P3* in, std::size_t m) {
     for (std::size_t i = 0; i < m; ++i)
@@ -324,47 +384,41 @@ void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
   storage::Sort(dml, A, [](const AxisRec& x, const AxisRec& y) {
     return x.c < y.c || (!(y.c < x.c) && x.index < y.index);
   });
-  // The positions in that order, and each old index's rank.
-  Array<std::uint32_t> R(dml, std::max<std::uint64_t>(nv, 1));
-  {
-    View<std::uint32_t> r(dml, R);
-    MapChunks(dml, A, nv, P, 1, [&r](std::uint64_t i, const AxisRec& x, std::vector<P3>& out) {
-      out.push_back(x.p);
-      r.Set(x.index, std::uint32_t(i));
-    });
-  }
-  A.Close();
-  // The faces renumbered, then by their lowest vertex.
-  Array<FaceRec> FA(dml, std::max<std::uint64_t>(nf, 1));
-  {
-    const View<std::uint32_t> r(dml, R);
-    MapChunks(dml, T, nf, FA, 1, [&r](std::uint64_t f, const Tri& t, std::vector<FaceRec>& out) {
-      const Tri x = { { r.Get(t.v[0]), r.Get(t.v[1]), r.Get(t.v[2]) } };
-      out.push_back({ std::min({ x.v[0], x.v[1], x.v[2] }), std::uint32_t(f), x });
-    });
-  }
-  R.Close();
-  if (nf == 0)
-  {
-    FA.Resize(0);
-  }
-  storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) {
-    return x.low < y.low || (x.low == y.low && x.index < y.index);
+  Renumber(dml, A, P, T, [](std::uint64_t, const Tri& x) {
+    return std::min({ x.v[0], x.v[1], x.v[2] });
   });
-  MapChunks(dml, FA, nf, T, 1,
-    [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
+}
+
+// Shuffled order: the vertices and the faces by random keys (ShuffleKey), by external sorts in
+// the same bounded memory as the scanner order (the tool's former shuffle held the whole mesh in
+// memory: 4.8 GB at 100M triangles).
+void ShuffledOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
+{
+  const std::uint64_t nv = P.Size();
+  Array<KeyRec> A(dml, std::max<std::uint64_t>(nv, 1));
+  MapChunks(dml, P, nv, A, 1, [](std::uint64_t i, const P3& q, std::vector<KeyRec>& out) {
+    out.push_back({ ShuffleKey(std::uint32_t(i), 0x9e3779b9u), std::uint32_t(i), q });
+  });
+  if (nv == 0)
+  {
+    A.Resize(0);
+  }
+  storage::Sort(dml, A, [](const KeyRec& x, const KeyRec& y) {
+    return x.key < y.key || (x.key == y.key && x.index < y.index);
+  });
+  Renumber(dml, A, P, T,
+    [](std::uint64_t f, const Tri&) { return ShuffleKey(std::uint32_t(f), 0x7f4a7c15u); });
 }
 } // namespace
 
 SubdivideStats SubdivideFile(const std::string& input, const std::string& output, int levels,
-  double displace, bool scannerOrder, std::uint64_t memoryBudget,
-  const std::vector<std::string>& directories,
-  const std::function<void(std::vector<float>&, std::vector<std::uint32_t>&)>& inMemoryOrder)
+  double displace, Order order, std::uint64_t memoryBudget,
+  const std::vector<std::string>& directories)
 {
   // The mode is chosen once, from an upper bound of the blocks of the last level (no switch in
   // the middle of a step: its views keep their pointers): with V vertices and F faces, a level
   // holds at most 24 V + 40 E + 120 F bytes, E <= 3 F edges, and makes V + E vertices and 4 F
-  // faces; the scanner order 40 V + 32 F. Inputs of unknown size (no counts in the header) go
+  // faces; either order 40 V + 32 F. Inputs of unknown size (no counts in the header) go
   // out of core whenever there is a budget.
   DML dml;
   Array<P3> P;
@@ -398,19 +452,13 @@ SubdivideStats SubdivideFile(const std::string& input, const std::string& output
   {
     SubdivideOnce(dml, P, T, displace);
   }
-  if (scannerOrder)
+  if (order == Order::Scanner)
   {
     ScannerOrder(dml, P, T);
   }
-  if (inMemoryOrder)
+  else
   {
-    std::vector<float> points(3 * P.Size());
-    std::vector<std::uint32_t> triangles(3 * T.Size());
-    View<P3>(dml, P).GetRange(0, P.Size(), reinterpret_cast<P3*>(points.data()));
-    View<Tri>(dml, T).GetRange(0, T.Size(), reinterpret_cast<Tri*>(triangles.data()));
-    inMemoryOrder(points, triangles);
-    View<P3>(dml, P).SetRange(0, P.Size(), reinterpret_cast<const P3*>(points.data()));
-    View<Tri>(dml, T).SetRange(0, T.Size(), reinterpret_cast<const Tri*>(triangles.data()));
+    ShuffledOrder(dml, P, T);
   }
   // The output, streamed from the blocks.
   const std::uint64_t nv = P.Size(), nf = T.Size();

@@ -349,7 +349,7 @@ int main(int argc, char** argv)
   std::vector<std::string> tmpdirs;
   sub->add_option("--memory-mb", memoryMB,
        "memory budget of the mesh and its sorts in MiB (default 512; 0: unbounded); beyond it "
-       "they go to temporary files (--order shuffled holds the result in memory once)")
+       "they go to temporary files")
     ->check(CLI::Range(0.0625, 1e9) | CLI::IsMember({ "0" }));
   sub->add_option("--tmpdir", tmpdirs, "directory for the temporary files (repeatable)")
     ->expected(1)
@@ -398,18 +398,9 @@ int main(int argc, char** argv)
         throw std::runtime_error(out + ": is the input file " + in +
           " (the same file); choose another output path");
       }
-      std::function<void(std::vector<float>&, std::vector<std::uint32_t>&)> shuffle;
-      if (order == "shuffled")
-      {
-        shuffle = [&order](std::vector<float>& p, std::vector<std::uint32_t>& t) {
-          Mesh m{ std::move(p), std::move(t) };
-          Order(m, order);
-          p = std::move(m.p);
-          t = std::move(m.t);
-        };
-      }
       const meshgen::SubdivideStats s = meshgen::SubdivideFile(in, out, levels, displace,
-        order == "scanner", std::uint64_t(memoryMB * 1048576.0), tmpdirs, shuffle);
+        order == "scanner" ? meshgen::Order::Scanner : meshgen::Order::Shuffled,
+        std::uint64_t(memoryMB * 1048576.0), tmpdirs);
       std::printf("sipmss-meshgen: wrote %s: %llu vertices, %llu triangles (%s, %.1f MB of blocks"
                   " in memory at most, %.1f MB of temporary files)\n",
         out.c_str(), (unsigned long long)s.vertices, (unsigned long long)s.triangles,
