@@ -7,8 +7,8 @@
 // vertices are numbered in the order the faces first reach their edges, each draws its
 // displacement from one random sequence in that order, and the scanner order sorts the vertices
 // along the longest axis (ties by index) and the faces by their lowest vertex (ties by index).
-// The shuffled order sorts both by keys that a fixed bijection of their index gives
-// (ShuffleKey), so it too is the same at every budget.
+// The shuffled order sends the vertices and the faces to their images by fixed permutations
+// (Permutation), so it too is the same at every budget.
 #include "Subdivide.h"
 
 #include "sipmss/io/MeshIO.h"
@@ -61,14 +61,14 @@ struct AxisRec
   std::uint32_t index;
   P3 p;
 };
-// A vertex by a random key (the shuffled order), with its index and position.
+// A vertex by its new index in the shuffled order, with its old index and position.
 struct KeyRec
 {
   std::uint32_t key;
   std::uint32_t index;
   P3 p;
 };
-// A face by its key (its lowest vertex, or a random key), then its index.
+// A face by its key (its lowest vertex, or its new index in the shuffled order), then its index.
 struct FaceRec
 {
   std::uint32_t key;
@@ -76,19 +76,61 @@ struct FaceRec
   Tri t;
 };
 
-// The shuffled order's keys: murmur3's finalizer of index ^ seed, a bijection of the 32-bit
-// numbers, so the keys of distinct indices differ and sorting by them is a random-looking
-// permutation, the same whatever the budget.
-inline std::uint32_t ShuffleKey(std::uint32_t index, std::uint32_t seed)
+// A random-looking permutation of [0, n), computed element by element (no table): a 4-round
+// Feistel network on the smallest even number of bits that holds n (a bijection of that range,
+// rounds keyed by murmur3's finalizer), cycle-walked until the result is below n (a bijection of
+// [0, n); fewer than 4 steps on average). The shuffled order sends each vertex and each face to
+// its image, so that renumbering the corners needs no lookup and the sorts read and write in
+// sequence: within the budget whatever the size.
+class Permutation
 {
-  std::uint32_t h = index ^ seed;
-  h ^= h >> 16;
-  h *= 0x85ebca6bu;
-  h ^= h >> 13;
-  h *= 0xc2b2ae35u;
-  h ^= h >> 16;
-  return h;
-}
+public:
+  Permutation(std::uint64_t n, std::uint32_t seed)
+    : n_(n)
+    , seed_(seed)
+  {
+    while ((std::uint64_t(1) << (2 * this->half_)) < n)
+    {
+      ++this->half_;
+    }
+    this->mask_ = (std::uint64_t(1) << this->half_) - 1;
+  }
+  std::uint32_t operator()(std::uint64_t x) const
+  {
+    do
+    {
+      x = this->Round(x);
+    } while (x >= this->n_);
+    return std::uint32_t(x);
+  }
+
+private:
+  static std::uint32_t Mix(std::uint32_t h)
+  {
+    h ^= h >> 16;
+    h *= 0x85ebca6bu;
+    h ^= h >> 13;
+    h *= 0xc2b2ae35u;
+    h ^= h >> 16;
+    return h;
+  }
+  std::uint64_t Round(std::uint64_t x) const
+  {
+    std::uint64_t l = x >> this->half_, r = x & this->mask_;
+    for (std::uint32_t k = 0; k < 4; ++k)
+    {
+      const std::uint64_t f = Mix(std::uint32_t(r) ^ Mix(this->seed_ + k)) & this->mask_;
+      const std::uint64_t next = l ^ f;
+      l = r;
+      r = next;
+    }
+    return (l << this->half_) | r;
+  }
+  std::uint64_t n_;
+  std::uint32_t seed_;
+  int half_ = 0;
+  std::uint64_t mask_ = 0;
+};
 
 constexpr std::size_t kChunk = 1 << 16;
 
@@ -389,25 +431,36 @@ void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
   });
 }
 
-// Shuffled order: the vertices and the faces by random keys (ShuffleKey), by external sorts in
-// the same bounded memory as the scanner order (the tool's former shuffle held the whole mesh in
-// memory: 4.8 GB at 100M triangles).
+// Shuffled order: each vertex and each face to its image by a Permutation (one for each), by
+// external sorts in the same bounded memory as the scanner order (the tool's former shuffle held
+// the whole mesh in memory: 4.8 GB at 100M triangles).
 void ShuffledOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
 {
-  const std::uint64_t nv = P.Size();
+  const std::uint64_t nv = P.Size(), nf = T.Size();
+  const Permutation pv(nv, 0x9e3779b9u), pf(nf, 0x7f4a7c15u);
   Array<KeyRec> A(dml, std::max<std::uint64_t>(nv, 1));
-  MapChunks(dml, P, nv, A, 1, [](std::uint64_t i, const P3& q, std::vector<KeyRec>& out) {
-    out.push_back({ ShuffleKey(std::uint32_t(i), 0x9e3779b9u), std::uint32_t(i), q });
+  MapChunks(dml, P, nv, A, 1, [&pv](std::uint64_t i, const P3& q, std::vector<KeyRec>& out) {
+    out.push_back({ pv(i), std::uint32_t(i), q });
   });
   if (nv == 0)
   {
     A.Resize(0);
   }
-  storage::Sort(dml, A, [](const KeyRec& x, const KeyRec& y) {
-    return x.key < y.key || (x.key == y.key && x.index < y.index);
+  storage::Sort(dml, A, [](const KeyRec& x, const KeyRec& y) { return x.key < y.key; });
+  MapChunks(dml, A, nv, P, 1,
+    [](std::uint64_t, const KeyRec& x, std::vector<P3>& out) { out.push_back(x.p); });
+  A.Close();
+  Array<FaceRec> FA(dml, std::max<std::uint64_t>(nf, 1));
+  MapChunks(dml, T, nf, FA, 1, [&](std::uint64_t f, const Tri& t, std::vector<FaceRec>& out) {
+    out.push_back({ pf(f), std::uint32_t(f), { { pv(t.v[0]), pv(t.v[1]), pv(t.v[2]) } } });
   });
-  Renumber(dml, A, P, T,
-    [](std::uint64_t f, const Tri&) { return ShuffleKey(std::uint32_t(f), 0x7f4a7c15u); });
+  if (nf == 0)
+  {
+    FA.Resize(0);
+  }
+  storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) { return x.key < y.key; });
+  MapChunks(dml, FA, nf, T, 1,
+    [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
 }
 } // namespace
 
