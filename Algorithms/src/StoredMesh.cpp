@@ -423,17 +423,22 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     newOf.emplace(this->dml_, static_cast<std::size_t>(V));
   }
   // Else, when the inverse is read in slices of what the spare memory holds and every slice's
-  // bucket of corners gets a buffer of kBucketMin corners in the other half, the faces are
+  // bucket of corners gets a buffer of bucketMin corners in the other half, the faces are
   // renumbered by distributing their corners to the slices' buckets (linear, no comparisons,
   // nine sequential passes of 4 bytes a corner for any number of slices); else by sorting their
-  // corners (n log n, for any size).
+  // corners (n log n, for any size; 12 bytes a corner sorted twice). bucketMin: 1,024 corners,
+  // and at least 1/16 of a page (a bucket's transfers then go straight to and from the file,
+  // docs/storage.md). At 8 MB a 397M-triangle file's 199M vertices leave about 2,100 corners a
+  // bucket (434 slices); sorting its 14.3 GB of corners instead (beyond what SortByKey
+  // distributes at 8 MB) made its layout step 760 s against 172 s (docs/benchmarks.md).
   const std::uint64_t spare = this->dml_.SpareMemory(8);
   const std::uint64_t sliceLength = std::max<std::uint64_t>(1024, spare / 2 / sizeof(OldNew));
   const std::uint64_t slices = newOf ? 0 : (V + sliceLength - 1) / sliceLength;
-  constexpr std::uint64_t kBucketMin = 4096;
+  const std::uint64_t bucketMin =
+    std::max<std::uint64_t>(1024, this->dml_.PageBytes() / 16 / sizeof(std::uint32_t));
   const std::uint64_t bucketLength = slices ? spare / 2 / sizeof(std::uint32_t) / slices : 0;
   const Renumbering path = newOf ? Renumbering::InMemory
-    : bucketLength >= kBucketMin ? Renumbering::Slices
+    : bucketLength >= bucketMin ? Renumbering::Slices
                                  : Renumbering::SortedCorners;
   this->slices_ = path == Renumbering::Slices ? slices : 0;
   const Divider32 sliceOf(sliceLength);
