@@ -5,6 +5,7 @@
 
 #include "sipmss/algorithms/Common.h"
 #include "sipmss/algorithms/Communicator.h"
+#include "sipmss/storage/Hash.h"
 
 #include <algorithm>
 #include <chrono>
@@ -17,16 +18,7 @@
 
 namespace sipmss::algorithms::detail
 {
-// A 64-bit finalizer (MurmurHash3's): spreads keys over hash slots and owner ranks.
-inline std::uint64_t Mix(std::uint64_t k)
-{
-  k ^= k >> 33;
-  k *= 0xff51afd7ed558ccdULL;
-  k ^= k >> 33;
-  k *= 0xc4ceb9fe1a85ec53ULL;
-  k ^= k >> 33;
-  return k;
-}
+using storage::Mix; // (sipmss/storage/Hash.h: hash slots and owner ranks)
 
 // The exchanges of a distributed run, counted and timed.
 class Rounds

@@ -14,6 +14,7 @@
 #include "sipmss/io/MeshIO.h"
 #include "sipmss/storage/Access.h"
 #include "sipmss/storage/DML.h"
+#include "sipmss/storage/Hash.h"
 #include "sipmss/storage/Sort.h"
 
 #include <algorithm>
@@ -78,7 +79,7 @@ struct FaceRec
 
 // A random-looking permutation of [0, n), computed element by element (no table): a 4-round
 // Feistel network on the smallest even number of bits that holds n (a bijection of that range,
-// rounds keyed by murmur3's finalizer), cycle-walked until the result is below n (a bijection of
+// rounds keyed by storage::Mix), cycle-walked until the result is below n (a bijection of
 // [0, n); fewer than 4 steps on average). The shuffled order sends each vertex and each face to
 // its image, so that renumbering the corners needs no lookup and the sorts read and write in
 // sequence: within the budget whatever the size.
@@ -105,21 +106,12 @@ public:
   }
 
 private:
-  static std::uint32_t Mix(std::uint32_t h)
-  {
-    h ^= h >> 16;
-    h *= 0x85ebca6bu;
-    h ^= h >> 13;
-    h *= 0xc2b2ae35u;
-    h ^= h >> 16;
-    return h;
-  }
   std::uint64_t Round(std::uint64_t x) const
   {
     std::uint64_t l = x >> this->half_, r = x & this->mask_;
     for (std::uint32_t k = 0; k < 4; ++k)
     {
-      const std::uint64_t f = Mix(std::uint32_t(r) ^ Mix(this->seed_ + k)) & this->mask_;
+      const std::uint64_t f = storage::Mix(r ^ storage::Mix(this->seed_ + k)) & this->mask_;
       const std::uint64_t next = l ^ f;
       l = r;
       r = next;
