@@ -346,9 +346,26 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
   T = std::move(T2);
 }
 
+// The faces' records FA (one per face of T, opened with at least one element) sorted by key
+// (ties by index) into T; FA is closed.
+void FacesInOrder(DML& dml, Array<FaceRec>& FA, Array<Tri>& T)
+{
+  const std::uint64_t nf = T.Size();
+  if (nf == 0)
+  {
+    FA.Resize(0);
+  }
+  storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) {
+    return x.key < y.key || (x.key == y.key && x.index < y.index);
+  });
+  MapChunks(dml, FA, nf, T, 1,
+    [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
+  FA.Close();
+}
+
 // The vertices' records A sorted into their new order: P in that order, each old index's rank
-// (R), then the faces renumbered through R and sorted by faceKey(f, renumbered face) (ties by
-// index). A is closed.
+// (R), then the faces renumbered through R and sorted by faceKey(f, renumbered face)
+// (FacesInOrder). A is closed.
 template <class Rec, class FaceKey>
 void Renumber(DML& dml, Array<Rec>& A, Array<P3>& P, Array<Tri>& T, FaceKey faceKey)
 {
@@ -372,15 +389,7 @@ void Renumber(DML& dml, Array<Rec>& A, Array<P3>& P, Array<Tri>& T, FaceKey face
       });
   }
   R.Close();
-  if (nf == 0)
-  {
-    FA.Resize(0);
-  }
-  storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) {
-    return x.key < y.key || (x.key == y.key && x.index < y.index);
-  });
-  MapChunks(dml, FA, nf, T, 1,
-    [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
+  FacesInOrder(dml, FA, T);
 }
 
 // Scanner order: vertices along the longest axis (ties by index), faces by their lowest vertex
@@ -446,13 +455,7 @@ void ShuffledOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
   MapChunks(dml, T, nf, FA, 1, [&](std::uint64_t f, const Tri& t, std::vector<FaceRec>& out) {
     out.push_back({ pf(f), std::uint32_t(f), { { pv(t.v[0]), pv(t.v[1]), pv(t.v[2]) } } });
   });
-  if (nf == 0)
-  {
-    FA.Resize(0);
-  }
-  storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) { return x.key < y.key; });
-  MapChunks(dml, FA, nf, T, 1,
-    [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
+  FacesInOrder(dml, FA, T);
 }
 } // namespace
 

@@ -565,8 +565,6 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
   Array<T>* out, std::uint64_t outFirst, Less& less, Key& key, int keyBits, bool masked,
   const SortPoll& poll, int threads, double& told);
 
-// Sorts src[srcFirst, srcFirst + n) into out[outFirst, outFirst + n) by merging (Sort) in a block
-// of its own: the crowded bucket that the distribution cannot split.
 // Copies from[fromFirst, fromFirst + n) to to[toFirst, toFirst + n) through `buf`.
 template <class T>
 void CopyRange(Array<T>& from, std::uint64_t fromFirst, Array<T>& to, std::uint64_t toFirst,
@@ -580,6 +578,8 @@ void CopyRange(Array<T>& from, std::uint64_t fromFirst, Array<T>& to, std::uint6
   }
 }
 
+// Sorts src[srcFirst, srcFirst + n) into out[outFirst, outFirst + n) by merging (Sort) in a block
+// of its own: the crowded bucket that the distribution cannot split.
 template <class T, class Less>
 void MergeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n, Array<T>& out,
   std::uint64_t outFirst, Less& less, const SortPoll& poll, int threads)
