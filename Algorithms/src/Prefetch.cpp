@@ -1,5 +1,7 @@
 #include "sipmss/algorithms/Prefetch.h"
 
+#include "sipmss/storage/DML.h"
+
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
@@ -11,53 +13,25 @@
 #include <thread>
 #include <vector>
 
-#include <sys/mman.h>
-
 namespace sipmss::algorithms
 {
 namespace
 {
 
-// The chunks' buffers come from mmap when they are large (as glibc would do at first, before its
-// threshold rises), so that a freed buffer leaves the process at once: the reader thread's
-// allocations would otherwise stay resident in a malloc arena of its own, about 1 MB more peak
-// RSS under a small budget.
+// The chunks' buffers are returnable (storage::AllocateReturnable: mapped when large) so that a
+// freed buffer leaves the process at once: the reader thread's allocations would otherwise stay
+// resident in a malloc arena of its own, about 1 MB more peak RSS under a small budget.
 template <class T>
 struct MappedAllocator
 {
   using value_type = T;
-  static constexpr std::size_t kMapBytes = std::size_t(64) << 10;
   MappedAllocator() = default;
   template <class U>
   MappedAllocator(const MappedAllocator<U>&) noexcept
   {
   }
-  T* allocate(std::size_t n)
-  {
-    const std::size_t bytes = n * sizeof(T);
-    if (bytes < kMapBytes)
-    {
-      return static_cast<T*>(::operator new(bytes));
-    }
-    void* p = ::mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-    if (p == MAP_FAILED)
-    {
-      throw std::bad_alloc();
-    }
-    return static_cast<T*>(p);
-  }
-  void deallocate(T* p, std::size_t n) noexcept
-  {
-    const std::size_t bytes = n * sizeof(T);
-    if (bytes < kMapBytes)
-    {
-      ::operator delete(p);
-    }
-    else
-    {
-      ::munmap(p, bytes);
-    }
-  }
+  T* allocate(std::size_t n) { return static_cast<T*>(storage::AllocateReturnable(n * sizeof(T))); }
+  void deallocate(T* p, std::size_t n) noexcept { storage::FreeReturnable(p, n * sizeof(T)); }
   template <class U>
   bool operator==(const MappedAllocator<U>&) const noexcept
   {

@@ -9,12 +9,14 @@
 // BasePointer() in core mode are safe while no other call runs.
 #pragma once
 
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -459,11 +461,27 @@ private:
   BlockId id_ = -1;
 };
 
-// A heap buffer of n elements counted against a DML's budget (ChargeMemory) for its lifetime:
-// the working memory of a phase that is not a block (a sort's runs, a merge's heads).
+// Working memory that leaves the process as soon as it is freed, whichever thread allocated or
+// frees it. glibc serves a freed block below its mmap threshold again from the same arena, and
+// that threshold rises to the size of every mapped block freed (up to 32 MiB): buffers of a few
+// MiB allocated and freed in turn (a sort's runs, the layout step's slices) would stay resident
+// in the heap beside the next one, and a thread's own arena keeps what it freed from the others.
+// Blocks of at least kReturnableMapBytes are mapped (mmap) and unmapped when freed; smaller ones
+// come from operator new. AllocateReturnable throws std::bad_alloc; FreeReturnable takes the
+// size that was allocated.
+constexpr std::size_t kReturnableMapBytes = std::size_t(64) << 10;
+void* AllocateReturnable(std::size_t bytes);
+void FreeReturnable(void* p, std::size_t bytes) noexcept;
+
+// A buffer of n elements counted against a DML's budget (ChargeMemory) for its lifetime: the
+// working memory of a phase that is not a block (a sort's runs, a merge's heads). Its memory is
+// returnable (Memory.h): freed, it leaves the process at once. The elements are not initialized.
 template <class T>
 class CountedBuffer
 {
+  static_assert(std::is_trivially_default_constructible_v<T> && std::is_trivially_destructible_v<T>,
+    "CountedBuffer holds plain records");
+
 public:
   CountedBuffer(DML& dml, std::size_t n)
     : dml_(&dml)
@@ -472,7 +490,7 @@ public:
     dml.ChargeMemory(this->bytes_);
     try
     {
-      this->data_.reset(new T[n]);
+      this->data_ = static_cast<T*>(AllocateReturnable(std::max<std::size_t>(n, 1) * sizeof(T)));
     }
     catch (...)
     {
@@ -483,19 +501,19 @@ public:
   }
   ~CountedBuffer()
   {
-    this->data_.reset();
+    FreeReturnable(this->data_, std::max<std::size_t>(this->size_, 1) * sizeof(T));
     this->dml_->ReleaseMemory(this->bytes_);
   }
   CountedBuffer(const CountedBuffer&) = delete;
   CountedBuffer& operator=(const CountedBuffer&) = delete;
-  T* Data() { return this->data_.get(); }
+  T* Data() { return this->data_; }
   std::size_t Size() const { return this->size_; }
   T& operator[](std::size_t i) { return this->data_[i]; }
 
 private:
   DML* dml_;
   std::uint64_t bytes_;
-  std::unique_ptr<T[]> data_;
+  T* data_ = nullptr;
   std::size_t size_ = 0;
 };
 

@@ -25,6 +25,9 @@ struct DMLTestAccess
   static std::uint32_t FrameSlots(const DML& dml);  // frame slots of the page cache
   static std::uint64_t FileBytes(const DML& dml, BlockId id); // st_size of the block's file
   static std::uint64_t InlineHits(const DML& dml); // element accesses served inline (Read/Write)
+  // Called with +bytes after AllocateReturnable maps a block and -bytes after FreeReturnable
+  // unmaps one (nullptr: none), so that a test counting the heap sees those blocks too.
+  static void SetMappedHook(void (*hook)(std::int64_t bytes));
 };
 
 namespace detail
