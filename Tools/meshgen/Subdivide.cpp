@@ -126,6 +126,20 @@ private:
 
 constexpr std::size_t kChunk = 1 << 16;
 
+// The run's stopRequested (SubdivideFile sets it for its duration; the passes ask it per chunk).
+const std::function<bool()>* gStopRequested = nullptr;
+
+void CheckStop()
+{
+  if (gStopRequested && *gStopRequested && (*gStopRequested)())
+  {
+    throw Interrupted();
+  }
+}
+
+// The sorts' poll: asks the same between their rounds.
+const storage::SortPoll kSortPoll = [](double) { CheckStop(); };
+
 // Calls f(first, elements, m) for the consecutive chunks [first, first + m) of a's first n
 // elements (read in order, through a buffer).
 template <class T, class F>
@@ -135,6 +149,7 @@ void ForChunks(DML& dml, const Array<T>& a, std::uint64_t n, F&& f)
   std::vector<T> in(std::size_t(std::min<std::uint64_t>(kChunk, n)));
   for (std::uint64_t first = 0; first < n; first += kChunk)
   {
+    CheckStop();
     const std::size_t m = std::size_t(std::min<std::uint64_t>(kChunk, n - first));
     view.GetRange(first, m, in.data());
     f(first, in.data(), m);
@@ -201,6 +216,10 @@ public:
     this->p_.Resize(this->nv_);
     this->t_.Resize(this->nf_);
   }
+  bool AbortRequested() override
+  {
+    return gStopRequested && *gStopRequested && (*gStopRequested)();
+  }
 
 private:
   DML& dml_;
@@ -221,6 +240,10 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
   View<P3> n(dml, N);
   for (std::uint64_t f = 0; f < nf; ++f)
   {
+    if (f % kChunk == 0)
+    {
+      CheckStop();
+    }
     const Tri tri = t.Get(f);
     const P3 a = p.Get(tri.v[0]), b = p.Get(tri.v[1]), c = p.Get(tri.v[2]);
     const float u[3] = { b.x[0] - a.x[0], b.x[1] - a.x[1], b.x[2] - a.x[2] };
@@ -253,7 +276,7 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
   }
   storage::Sort(dml, E, [](const EdgeRec& a, const EdgeRec& b) {
     return a.key < b.key || (a.key == b.key && a.corner < b.corner);
-  });
+  }, kSortPoll);
   // Each corner's edge number, and each edge's first corner.
   Array<std::uint32_t> G(dml, std::max<std::uint64_t>(3 * nf, 1));
   Array<FirstRec> FR(dml, 1);
@@ -283,7 +306,8 @@ void SubdivideOnce(DML& dml, Array<P3>& P, Array<Tri>& T, double displace)
     throw std::runtime_error("the subdivided mesh would have more than 2^32 - 1 vertices");
   }
   FR.Resize(edges);
-  storage::Sort(dml, FR, [](const FirstRec& a, const FirstRec& b) { return a.corner < b.corner; });
+  storage::Sort(
+    dml, FR, [](const FirstRec& a, const FirstRec& b) { return a.corner < b.corner; }, kSortPoll);
   // The new vertices in the order the faces first reach their edges: positions, and each edge's
   // vertex number.
   P.Resize(nv + edges);
@@ -357,7 +381,7 @@ void FacesInOrder(DML& dml, Array<FaceRec>& FA, Array<Tri>& T)
   }
   storage::Sort(dml, FA, [](const FaceRec& x, const FaceRec& y) {
     return x.key < y.key || (x.key == y.key && x.index < y.index);
-  });
+  }, kSortPoll);
   MapChunks(dml, FA, nf, T, 1,
     [](std::uint64_t, const FaceRec& x, std::vector<Tri>& out) { out.push_back(x.t); });
   FA.Close();
@@ -426,7 +450,7 @@ void ScannerOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
   }
   storage::Sort(dml, A, [](const AxisRec& x, const AxisRec& y) {
     return x.c < y.c || (!(y.c < x.c) && x.index < y.index);
-  });
+  }, kSortPoll);
   Renumber(dml, A, P, T, [](std::uint64_t, const Tri& x) {
     return std::min({ x.v[0], x.v[1], x.v[2] });
   });
@@ -447,7 +471,8 @@ void ShuffledOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
   {
     A.Resize(0);
   }
-  storage::Sort(dml, A, [](const KeyRec& x, const KeyRec& y) { return x.key < y.key; });
+  storage::Sort(
+    dml, A, [](const KeyRec& x, const KeyRec& y) { return x.key < y.key; }, kSortPoll);
   MapChunks(dml, A, nv, P, 1,
     [](std::uint64_t, const KeyRec& x, std::vector<P3>& out) { out.push_back(x.p); });
   A.Close();
@@ -461,8 +486,13 @@ void ShuffledOrder(DML& dml, Array<P3>& P, Array<Tri>& T)
 
 SubdivideStats SubdivideFile(const std::string& input, const std::string& output, int levels,
   double displace, Order order, std::uint64_t memoryBudget,
-  const std::vector<std::string>& directories)
+  const std::vector<std::string>& directories, const std::function<bool()>& stopRequested)
 {
+  struct StopScope
+  {
+    explicit StopScope(const std::function<bool()>& f) { gStopRequested = &f; }
+    ~StopScope() { gStopRequested = nullptr; }
+  } stopScope(stopRequested);
   // The mode is chosen once, from an upper bound of the blocks of the last level (no switch in
   // the middle of a step: its views keep their pointers): with V vertices and F faces, a level
   // holds at most 24 V + 40 E + 120 F bytes, E <= 3 F edges, and makes V + E vertices and 4 F
@@ -494,7 +524,14 @@ SubdivideStats SubdivideFile(const std::string& input, const std::string& output
   };
   {
     Loader loader(dml, P, T, configure);
-    io::ReadMesh(input, loader);
+    try
+    {
+      io::ReadMesh(input, loader);
+    }
+    catch (const io::ReadAbortedError&)
+    {
+      throw Interrupted();
+    }
   }
   for (int l = 0; l < levels; ++l)
   {

@@ -18,6 +18,8 @@
 // `scan --order rings`: the same kind of surface with its poles on the longest axis, written ring
 // by ring as it is generated (vertices along that axis, faces by their first ring), in a few MB
 // whatever its size: the 100M- to 1B-triangle inputs of the scale benchmarks.
+// Every output is written under a temporary name beside it and renamed into place when complete;
+// stopped by SIGINT or SIGTERM, a command leaves neither that file nor block files behind.
 #include "sipmss/io/MeshIO.h"
 #include "sipmss/io/VectorSink.h"
 #include "Subdivide.h"
@@ -26,8 +28,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <csignal>
+#include <signal.h>
 #include <filesystem>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <limits>
 #include <stdexcept>
 #include <string>
@@ -36,10 +42,79 @@
 #include <unordered_map>
 #include <vector>
 
+#include <unistd.h>
+
 using namespace sipmss;
 
 namespace
 {
+// SIGINT and SIGTERM. Every command writes its output under a temporary name beside OUTPUT and
+// renames it into place once it is complete (WriteOutput). During `subdivide` the first signal
+// is only noted: the passes see it at their next chunk and unwind, so its block files go and the
+// unfinished output is removed. Otherwise, or at a second signal, the handler removes the
+// unfinished output and the process ends at once.
+volatile std::sig_atomic_t g_signal = 0;
+volatile std::sig_atomic_t g_polled = 0;
+char g_partial[4096] = ""; // the unfinished output (written before the handler can see it)
+
+extern "C" void OnSignal(int sig)
+{
+  if (g_polled && !g_signal)
+  {
+    g_signal = sig;
+    return;
+  }
+  if (g_partial[0])
+  {
+    ::unlink(g_partial);
+  }
+  std::signal(sig, SIG_DFL);
+  std::raise(sig);
+}
+
+// Calls write(path) with a temporary path in OUTPUT's directory (the same extension, so the same
+// format), then renames it to OUTPUT; on any error the temporary file is removed.
+template <class F>
+void WriteOutput(const std::string& out, F&& write)
+{
+  const std::filesystem::path target(out);
+  const std::string tmp = (target.parent_path() /
+    (".partial-" + std::to_string(::getpid()) + "-" + target.filename().string()))
+                            .string();
+  if (tmp.size() >= sizeof(g_partial))
+  {
+    throw std::runtime_error(out + ": the path is too long");
+  }
+  sigset_t block, old;
+  sigemptyset(&block);
+  sigaddset(&block, SIGINT);
+  sigaddset(&block, SIGTERM);
+  sigprocmask(SIG_BLOCK, &block, &old); // (the handler never sees a half-copied name)
+  std::snprintf(g_partial, sizeof(g_partial), "%s", tmp.c_str());
+  sigprocmask(SIG_SETMASK, &old, nullptr);
+  auto forget = [&] {
+    sigprocmask(SIG_BLOCK, &block, &old);
+    g_partial[0] = '\0';
+    sigprocmask(SIG_SETMASK, &old, nullptr);
+  };
+  try
+  {
+    write(tmp);
+    if (std::rename(tmp.c_str(), out.c_str()) != 0)
+    {
+      throw std::runtime_error(out + ": cannot rename the finished output into place (" +
+        std::strerror(errno) + ")");
+    }
+  }
+  catch (...)
+  {
+    ::unlink(tmp.c_str());
+    forget();
+    throw;
+  }
+  forget();
+}
+
 struct Mesh
 {
   std::vector<float> p;
@@ -371,6 +446,8 @@ int main(int argc, char** argv)
   {
     return app.exit(e) == 0 ? 0 : 2;
   }
+  std::signal(SIGINT, OnSignal);
+  std::signal(SIGTERM, OnSignal);
   try
   {
     if (*colorize)
@@ -381,12 +458,12 @@ int main(int argc, char** argv)
         throw std::runtime_error(colorOut + ": is the input file " + colorIn +
           " (the same file); choose another output path");
       }
-      Colorize(colorIn, colorOut, cells);
+      WriteOutput(colorOut, [&](const std::string& path) { Colorize(colorIn, path, cells); });
       return 0;
     }
     if (*scan && order == "rings")
     {
-      WriteScanRings(triangles, out);
+      WriteOutput(out, [&](const std::string& path) { WriteScanRings(triangles, path); });
       return 0;
     }
     if (*sub)
@@ -398,9 +475,14 @@ int main(int argc, char** argv)
         throw std::runtime_error(out + ": is the input file " + in +
           " (the same file); choose another output path");
       }
-      const meshgen::SubdivideStats s = meshgen::SubdivideFile(in, out, levels, displace,
-        order == "scanner" ? meshgen::Order::Scanner : meshgen::Order::Shuffled,
-        std::uint64_t(memoryMB * 1048576.0), tmpdirs);
+      meshgen::SubdivideStats s;
+      g_polled = 1;
+      WriteOutput(out, [&](const std::string& path) {
+        s = meshgen::SubdivideFile(in, path, levels, displace,
+          order == "scanner" ? meshgen::Order::Scanner : meshgen::Order::Shuffled,
+          std::uint64_t(memoryMB * 1048576.0), tmpdirs, [] { return g_signal != 0; });
+      });
+      g_polled = 0;
       std::printf("sipmss-meshgen: wrote %s: %llu vertices, %llu triangles (%s, %.1f MB of blocks"
                   " in memory at most, %.1f MB of temporary files)\n",
         out.c_str(), (unsigned long long)s.vertices, (unsigned long long)s.triangles,
@@ -410,7 +492,12 @@ int main(int argc, char** argv)
     }
     Mesh mesh = Scan(triangles);
     Order(mesh, order);
-    Write(mesh, out);
+    WriteOutput(out, [&](const std::string& path) { Write(mesh, path); });
+  }
+  catch (const meshgen::Interrupted&)
+  {
+    std::fprintf(stderr, "sipmss-meshgen: interrupted; nothing was written\n");
+    return 128 + int(g_signal);
   }
   catch (const std::exception& e)
   {
