@@ -1026,7 +1026,7 @@ void DML::Impl::SwitchTo(Mode target)
 }
 
 void DML::Impl::Transfer(BlockId id, Block& b, std::uint64_t off, std::uint64_t n,
-  unsigned char* buf, bool write)
+  unsigned char* buf, bool write, bool once)
 {
   if (n == 0)
   {
@@ -1052,8 +1052,9 @@ void DML::Impl::Transfer(BlockId id, Block& b, std::uint64_t off, std::uint64_t 
   // them): streaming does not flush the cache, and a range that starts or ends inside a page (a
   // bucket's buffer, a sorter's segment) would otherwise read that whole page into the cache,
   // to write back part of it, or to read it again for the neighbouring range (the shuffled
-  // Lucy-size layout step read 1.6 times its bytes).
-  const bool bulk = n >= pb / 16;
+  // Lucy-size layout step read 1.6 times its bytes). A transfer of data read once (`once`) is
+  // bulk whatever its size: a sorter's segments, each in a page of other buckets' segments.
+  const bool bulk = once || n >= pb / 16;
   while (off < end)
   {
     const std::uint64_t page = off / pb;
@@ -1493,6 +1494,14 @@ void DML::ReadRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, vo
   Block& b = CheckRange(I, id, first, count);
   I.Transfer(id, b, first * b.elementSize, count * b.elementSize, static_cast<unsigned char*>(dst),
     false);
+}
+
+void DML::ReadRangeOnce(BlockId id, std::uint64_t first, std::uint64_t count, void* dst)
+{
+  Impl& I = *this->impl_;
+  Block& b = CheckRange(I, id, first, count);
+  I.Transfer(id, b, first * b.elementSize, count * b.elementSize, static_cast<unsigned char*>(dst),
+    false, true);
 }
 
 void DML::WriteRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, const void* src)

@@ -307,9 +307,10 @@ struct DML::Impl
   bool Relocate(detail::Block& b, std::uint64_t bytes, const std::string& why);
   void NoteFileBytes(std::uint64_t removed, std::uint64_t added);
   void Note(const std::string& text);
-  // Copies bytes [off, off + n) of a block from/to buf in either mode.
+  // Copies bytes [off, off + n) of a block from/to buf in either mode. `once`: a bulk transfer
+  // whatever its size (the data is not read again soon: ReadRangeOnce).
   void Transfer(BlockId id, detail::Block& b, std::uint64_t off, std::uint64_t n,
-    unsigned char* buf, bool write);
+    unsigned char* buf, bool write, bool once = false);
   void Shutdown() noexcept;
   void SyncBases() noexcept; // also SyncAllFast
   void SyncFast(BlockId id) noexcept;

@@ -704,6 +704,78 @@ TEST(StorageDML, BulkRangesOfPagesNotCachedGoStraightToTheFile)
   EXPECT_EQ(a.Get(first + page + len), model[first + page + len]);
 }
 
+TEST(StorageDML, ReadOnceMovesOnlyItsBytesWhateverTheSize)
+{
+  // ReadOnce (a sorter's segments): a range of a few elements of a page not cached is read
+  // straight from the file, only its own bytes, where Read brings the whole page in; a cached
+  // page (a dirty one) is used as it is. Every element read has its value.
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
+  const std::size_t page = dml.PageBytes() / sizeof(std::uint32_t);
+  ASSERT_GE(page, 256u);
+  const std::uint64_t n = 40 * page;
+  Array<std::uint32_t> a(dml, n), other(dml, n);
+  std::vector<std::uint32_t> model(n);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    model[i] = std::uint32_t(i * 2654435761u);
+  }
+  a.Write(0, n, model.data());
+  auto evict = [&] {
+    for (std::uint64_t i = 0; i < n; i += page / 2)
+    {
+      other.Set(i, std::uint32_t(i));
+    }
+  };
+  const std::uint64_t len = page / 64, first = 7 * page + 5; // (under a sixteenth of a page)
+  std::vector<std::uint32_t> v(len);
+  evict();
+  Stats before = dml.GetStats();
+  a.ReadOnce(first, len, v.data());
+  Stats after = dml.GetStats();
+  EXPECT_EQ(after.bytesRead - before.bytesRead, len * sizeof(std::uint32_t));
+  for (std::uint64_t k = 0; k < len; ++k)
+  {
+    ASSERT_EQ(v[k], model[first + k]) << k;
+  }
+  // Read of the same size reads the whole page into the cache.
+  evict();
+  before = dml.GetStats();
+  a.Read(first, len, v.data());
+  after = dml.GetStats();
+  EXPECT_EQ(after.bytesRead - before.bytesRead, dml.PageBytes());
+  // A dirty cached page: ReadOnce sees the element written through the cache.
+  evict();
+  a.Set(first + 3, 12345u);
+  model[first + 3] = 12345u;
+  before = dml.GetStats();
+  a.ReadOnce(first, len, v.data());
+  after = dml.GetStats();
+  EXPECT_EQ(after.bytesRead, before.bytesRead);
+  for (std::uint64_t k = 0; k < len; ++k)
+  {
+    ASSERT_EQ(v[k], model[first + k]) << k;
+  }
+  // Ranges across pages, some cached and some not.
+  std::mt19937 rng(5);
+  for (int round = 0; round < 100; ++round)
+  {
+    const std::uint64_t m = 1 + rng() % (2 * page);
+    const std::uint64_t at = rng() % (n - m);
+    if (round % 4 == 0)
+    {
+      evict();
+    }
+    std::vector<std::uint32_t> w(m);
+    a.ReadOnce(at, m, w.data());
+    for (std::uint64_t k = 0; k < m; ++k)
+    {
+      ASSERT_EQ(w[k], model[at + k]) << round << " " << k;
+    }
+  }
+}
+
 // ------------------------------------------------------------------------------------------------
 // Randomized equivalence against a std::vector model.
 class Workload

@@ -200,6 +200,10 @@ public:
   void Write(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
   void ReadRange(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
   void WriteRange(BlockId id, std::uint64_t first, std::uint64_t count, const void* src);
+  // ReadRange for elements read once, whose neighbours are not read soon (a sorter's segments,
+  // scattered among other buckets'): out of core, the pages that are not cached are read
+  // straight from the file whatever the size, without bringing the whole page into the cache.
+  void ReadRangeOnce(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
   void Fill(BlockId id, const void* element); // every element := *element
 
   // --- memory outside the blocks, counted against the budget (the public counted allocator)
@@ -420,6 +424,11 @@ public:
   void Read(std::uint64_t first, std::uint64_t n, T* dst) const
   {
     this->dml_->ReadRange(this->id_, first, n, dst);
+  }
+  // Read for elements read once (DML::ReadRangeOnce).
+  void ReadOnce(std::uint64_t first, std::uint64_t n, T* dst) const
+  {
+    this->dml_->ReadRangeOnce(this->id_, first, n, dst);
   }
   void Write(std::uint64_t first, std::uint64_t n, const T* src)
   {

@@ -985,7 +985,7 @@ public:
         T* data = sortBuf->Data();
         std::uint64_t filled = 0;
         segmentsOf(b, [&](const Segment& r) {
-          this->segments_.Read(r.start, r.length, data + filled);
+          this->segments_.ReadOnce(r.start, r.length, data + filled);
           filled += r.length;
         });
         detail::RadixSortByKey(data, count, this->key_, this->less_, SortPoll(), threads);
