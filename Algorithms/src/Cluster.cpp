@@ -112,7 +112,8 @@ struct ClusterState
   std::vector<double> extBuf, faceExt, cornerValues;
   Array<VertexRec> vertices;
   Array<CellRec> cells;
-  PinWindow<VertexRec> vertexWindow{ dml, storage::Access::Write };
+  // (a face's corners are in as many index ranges as a subdivided scan has levels)
+  PinWindow<VertexRec> vertexWindow{ dml, storage::Access::Write, PinWindow<VertexRec>::kMaxWays };
   PinWindow<CellRec> cellWindow{ dml, storage::Access::Write };
   storage::BlockId attrBlock = -1;
   CellMap cellMap;

@@ -13,6 +13,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <exception>
+#include <limits>
 #include <new>
 #include <stdexcept>
 #include <string_view>
@@ -1869,6 +1870,18 @@ void DML::Unpin(BlockId id, const Span& span)
     return; // in core pins are free
   }
   I.UnpinPage(id, span.first / b.perPage);
+}
+
+std::uint32_t DML::PinnablePages()
+{
+  Impl& I = *this->impl_;
+  if (I.mode != Mode::OutOfCore)
+  {
+    return std::numeric_limits<std::uint32_t>::max();
+  }
+  I.EnsureCache();
+  const std::uint64_t capacity = I.FrameCapacity(), held = std::uint64_t(I.cache.pinnedFrames) + 2;
+  return capacity > held ? static_cast<std::uint32_t>(capacity - held) : 0;
 }
 
 std::string DML::PrivateDirectory() const

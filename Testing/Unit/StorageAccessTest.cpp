@@ -11,6 +11,7 @@
 
 #include <atomic>
 #include <numeric>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -357,5 +358,72 @@ TEST(StorageAccess, WorkersDeclineAHelperThatThrashed)
   EXPECT_TRUE(again.Forked());
   EXPECT_EQ(record.declinedAtFileBytes, 0u);
   EXPECT_EQ(record.declined, 1u);
+}
+} // namespace
+
+namespace
+{
+using namespace sipmss::storage;
+using sipmss::storage::testing::TempDir;
+
+// PinWindow: records modified in place through up to kMaxWays pinned pages (faces reaching
+// their vertices in several index ranges) keep every value against a model; each page stays
+// pinned while the window uses it (the pages it holds count against what Pin may still take),
+// and when the cache shrinks below what the window chose (other pins) it goes on with one
+// page instead of failing.
+TEST(StorageAccess, PinWindowKeepsSeveralRangesAndGivesWayWhenPagesRunShort)
+{
+  TempDir tmp;
+  DML dml;
+  dml.Config(OutOfCoreProfile(tmp.Path(), 4 * 1024 * 1024));
+  const std::uint64_t perPage = dml.PageBytes() / sizeof(std::uint64_t);
+  const std::uint64_t n = 64 * perPage;
+  Array<std::uint64_t> a(dml, n);
+  std::vector<std::uint64_t> model(n, 0);
+  a.Write(0, n, model.data());
+  const std::uint32_t free0 = dml.PinnablePages();
+  ASSERT_GE(free0, 4u * PinWindow<std::uint64_t>::kMaxWays) << "the test needs a cache of 32+ pages";
+  std::mt19937_64 rng(11);
+  {
+    PinWindow<std::uint64_t> w(dml, Access::Write, PinWindow<std::uint64_t>::kMaxWays);
+    // Seven streams through the block, as the levels of a subdivided scan.
+    std::uint64_t at[7];
+    for (int s = 0; s < 7; ++s)
+    {
+      at[s] = std::uint64_t(s) * (n / 7);
+    }
+    for (int step = 0; step < 20000; ++step)
+    {
+      const int s = int(rng() % 7);
+      const std::uint64_t i = at[s]++ % n;
+      w.At(a.Id(), i) += std::uint64_t(step) + 1;
+      model[i] += std::uint64_t(step) + 1;
+    }
+    // The seven streams' pages stay pinned in the window (at most kMaxWays of them).
+    EXPECT_LE(free0 - dml.PinnablePages(), PinWindow<std::uint64_t>::kMaxWays);
+    EXPECT_GE(free0 - dml.PinnablePages(), 7u);
+    // Other pins take all but one of the pages left: the window gives way to one page.
+    std::vector<Span> others;
+    std::uint64_t page = 0;
+    while (dml.PinnablePages() > 0)
+    {
+      others.push_back(dml.Pin(a.Id(), (page++ % 64) * perPage, Access::Read));
+    }
+    for (int step = 0; step < 5000; ++step)
+    {
+      const std::uint64_t i = rng() % n;
+      w.At(a.Id(), i) += 3;
+      model[i] += 3;
+    }
+    for (const Span& s : others)
+    {
+      dml.Unpin(a.Id(), s);
+    }
+  }
+  EXPECT_EQ(dml.PinnablePages(), free0);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    ASSERT_EQ(a.Get(i), model[i]) << i;
+  }
 }
 } // namespace

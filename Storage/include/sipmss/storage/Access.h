@@ -23,6 +23,7 @@
 
 #include "sipmss/storage/DML.h"
 
+#include <algorithm>
 #include <cstring>
 #include <limits>
 #include <stdexcept>
@@ -302,13 +303,20 @@ private:
 // kept across element accesses (out of core), so that runs of nearby accesses cost one page
 // lookup instead of one per element; in core the block's memory. Not write-checked (a
 // single-threaded accessor). Release() before anything that may move or resize the block.
+// `maxWays` pages at most (up to kMaxWays), fewer when the cache has few pages: a quarter of
+// what may be pinned when the block is first used (DML::PinnablePages), at least two. The
+// faces of a subdivided scan reach their vertices in as many index ranges as it has levels
+// (the 397M-triangle file: 7), which two pages kept missing. A page is replaced in clock order
+// (one used since the hand last passed stays).
 template <class T>
 class PinWindow
 {
 public:
-  PinWindow(DML& dml, Access access)
+  static constexpr std::size_t kMaxWays = 8;
+  PinWindow(DML& dml, Access access, std::size_t maxWays = 2)
     : dml_(dml)
     , access_(access)
+    , maxWays_(std::clamp<std::size_t>(maxWays, 1, kMaxWays))
   {
   }
   ~PinWindow() { this->Release(); }
@@ -325,47 +333,85 @@ public:
     {
       this->Release();
       this->id_ = id;
+      this->ways_ = std::min<std::size_t>(
+        this->maxWays_, std::max<std::size_t>(2, this->dml_.PinnablePages() / 4));
     }
     for (std::size_t k = 0; k < this->used_; ++k)
     {
       const Span& s = this->spans_[k];
-      if (i >= s.first && i < s.first + s.count)
+      if (i - s.first < s.count)
       {
+        this->used_recently_[k] = true;
         return static_cast<T*>(s.data)[i - s.first];
       }
     }
-    std::size_t k = this->used_ < kWays ? this->used_++ : (this->next_++ % kWays);
-    if (this->spans_[k].data && k < this->used_ && this->used_ == kWays && this->pinned_[k])
+    std::size_t k = 0;
+    if (this->used_ < this->ways_)
     {
-      this->dml_.Unpin(this->id_, this->spans_[k]);
+      k = this->used_++;
     }
-    this->spans_[k] = this->dml_.Pin(id, i, this->access_);
-    this->pinned_[k] = true;
-    return static_cast<T*>(this->spans_[k].data)[i - this->spans_[k].first];
+    else
+    {
+      while (this->used_recently_[this->hand_])
+      {
+        this->used_recently_[this->hand_] = false;
+        this->hand_ = (this->hand_ + 1) % this->ways_;
+      }
+      k = this->hand_;
+      this->hand_ = (this->hand_ + 1) % this->ways_;
+      this->dml_.Unpin(this->id_, this->spans_[k]);
+      this->spans_[k] = Span{};
+    }
+    Span s;
+    try
+    {
+      s = this->dml_.Pin(id, i, this->access_);
+    }
+    catch (const BudgetError&)
+    {
+      bool others = false;
+      for (std::size_t j = 0; j < this->used_; ++j)
+      {
+        others = others || this->spans_[j].data != nullptr;
+      }
+      if (!others)
+      {
+        throw;
+      }
+      // (the cache has fewer pages than when the ways were chosen: start again with one)
+      this->Release();
+      this->ways_ = 1;
+      k = this->used_++;
+      s = this->dml_.Pin(id, i, this->access_);
+    }
+    this->spans_[k] = s;
+    this->used_recently_[k] = true;
+    return static_cast<T*>(s.data)[i - s.first];
   }
   void Release()
   {
     for (std::size_t k = 0; k < this->used_; ++k)
     {
-      if (this->pinned_[k])
+      if (this->spans_[k].data)
       {
         this->dml_.Unpin(this->id_, this->spans_[k]);
-        this->pinned_[k] = false;
       }
       this->spans_[k] = Span{};
+      this->used_recently_[k] = false;
     }
     this->used_ = 0;
-    this->next_ = 0;
+    this->hand_ = 0;
   }
 
 private:
-  static constexpr std::size_t kWays = 2;
   DML& dml_;
   Access access_;
+  std::size_t maxWays_;
+  std::size_t ways_ = 2;
   BlockId id_ = -1;
-  Span spans_[kWays];
-  bool pinned_[kWays] = { false, false };
-  std::size_t used_ = 0, next_ = 0;
+  Span spans_[kMaxWays];
+  bool used_recently_[kMaxWays] = {};
+  std::size_t used_ = 0, hand_ = 0;
 };
 
 inline namespace SIPMSS_ACCESS_NAMESPACE

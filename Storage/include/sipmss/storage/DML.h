@@ -225,6 +225,9 @@ public:
   // Pin the page holding `index`; the span runs to the end of that page (or block).
   Span Pin(BlockId id, std::uint64_t index, Access access);
   void Unpin(BlockId id, const Span& span);
+  // How many more pages Pin could hold now (out of core: the cache's pages less those pinned
+  // and the two kept free; in core: no limit, UINT32_MAX).
+  std::uint32_t PinnablePages();
 
   // --- a second page cache for a helper thread (out of core)
   // Fork lends `bytes` of this DML's budget to a new DML, the child, which serves the element
