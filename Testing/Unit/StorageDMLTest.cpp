@@ -624,16 +624,37 @@ TEST(StorageDML, FillAndRanges)
   }
 }
 
+// A DML out of core at 256 KiB for the transfer tests: its page in 4-byte words, and a way to
+// push every page of a block out of the cache (another block's pages take it over, element by
+// element).
+struct PagedWords
+{
+  TempDir tmp;
+  DML dml;
+  std::size_t page = 0;
+  PagedWords()
+  {
+    this->dml.Config(MakeProfile(this->tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
+    this->page = this->dml.PageBytes() / sizeof(std::uint32_t);
+  }
+  void Evict(Array<std::uint32_t>& other, std::uint64_t n) const
+  {
+    for (std::uint64_t i = 0; i < n; i += this->page / 2)
+    {
+      other.Set(i, std::uint32_t(i));
+    }
+  }
+};
+
 TEST(StorageDML, BulkRangesOfPagesNotCachedGoStraightToTheFile)
 {
   // Out of core, a range read or written in bulk (a sixteenth of a page or more) moves only its
   // own bytes for the pages that are not cached, also where it starts or ends inside a page: no
   // page is read to be written in part, or read whole for a part of it. Pages that are cached
   // (dirty ones above all) are used as they are, and every element keeps its value.
-  TempDir tmp;
-  DML dml;
-  dml.Config(MakeProfile(tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
-  const std::size_t page = dml.PageBytes() / sizeof(std::uint32_t);
+  PagedWords w;
+  DML& dml = w.dml;
+  const std::size_t page = w.page;
   ASSERT_GE(page, 64u);
   const std::uint64_t n = 40 * page;
   Array<std::uint32_t> a(dml, n);
@@ -677,12 +698,7 @@ TEST(StorageDML, BulkRangesOfPagesNotCachedGoStraightToTheFile)
   // A part of a page not cached: read, only its bytes; written, no read at all. (Every page
   // of `a` leaves the cache when another block's pages take it over, element by element.)
   Array<std::uint32_t> other(dml, n);
-  auto evict = [&] {
-    for (std::uint64_t i = 0; i < n; i += page / 2)
-    {
-      other.Set(i, std::uint32_t(i));
-    }
-  };
+  auto evict = [&] { w.Evict(other, n); };
   evict();
   const std::uint64_t len = page / 2, first = 10 * page + page / 3;
   Stats before = dml.GetStats();
@@ -709,10 +725,9 @@ TEST(StorageDML, ReadOnceMovesOnlyItsBytesWhateverTheSize)
   // ReadOnce (a sorter's segments): a range of a few elements of a page not cached is read
   // straight from the file, only its own bytes, where Read brings the whole page in; a cached
   // page (a dirty one) is used as it is. Every element read has its value.
-  TempDir tmp;
-  DML dml;
-  dml.Config(MakeProfile(tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
-  const std::size_t page = dml.PageBytes() / sizeof(std::uint32_t);
+  PagedWords w;
+  DML& dml = w.dml;
+  const std::size_t page = w.page;
   ASSERT_GE(page, 256u);
   const std::uint64_t n = 40 * page;
   Array<std::uint32_t> a(dml, n), other(dml, n);
@@ -722,12 +737,7 @@ TEST(StorageDML, ReadOnceMovesOnlyItsBytesWhateverTheSize)
     model[i] = std::uint32_t(i * 2654435761u);
   }
   a.Write(0, n, model.data());
-  auto evict = [&] {
-    for (std::uint64_t i = 0; i < n; i += page / 2)
-    {
-      other.Set(i, std::uint32_t(i));
-    }
-  };
+  auto evict = [&] { w.Evict(other, n); };
   const std::uint64_t len = page / 64, first = 7 * page + 5; // (under a sixteenth of a page)
   std::vector<std::uint32_t> v(len);
   evict();

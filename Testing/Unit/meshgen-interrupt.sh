@@ -18,6 +18,14 @@ await() {
   done
   fail "nothing matched $1"
 }
+# Sends SIGTERM to $1 and checks it exits 143 (128 + 15), leaving nothing in the output directory.
+stop() {
+  kill -TERM "$1"
+  local rc=0
+  wait "$1" || rc=$?
+  [ "$rc" = 143 ] || fail "$2 exited $rc, not 143"
+  [ -z "$(ls -A "$tmp/out")" ] || fail "$2 left an output"
+}
 
 "$meshgen" scan "$tmp/in.ply" --triangles 20000 >/dev/null
 # A finished run: its output under its own name, nothing else.
@@ -33,21 +41,13 @@ rm "$tmp/out/done.ply"
   --tmpdir "$tmp/blocks" >"$tmp/log" 2>&1 &
 pid=$!
 await "$tmp/blocks/sipmss-*/*"
-kill -TERM "$pid"
-rc=0
-wait "$pid" || rc=$?
-[ "$rc" = 143 ] || fail "subdivide exited $rc, not 143"
+stop "$pid" subdivide
 grep -q "interrupted; nothing was written" "$tmp/log" || fail "no message: $(cat "$tmp/log")"
 [ -z "$(ls -A "$tmp/blocks")" ] || fail "subdivide left block files"
-[ -z "$(ls -A "$tmp/out")" ] || fail "subdivide left an output"
 
 # scan --order rings (400M triangles, written as generated): stopped while it writes.
 "$meshgen" scan "$tmp/out/rings.ply" --triangles 400000000 --order rings >/dev/null 2>&1 &
 pid=$!
 await "$tmp/out/.partial-*"
-kill -TERM "$pid"
-rc=0
-wait "$pid" || rc=$?
-[ "$rc" = 143 ] || fail "scan exited $rc, not 143"
-[ -z "$(ls -A "$tmp/out")" ] || fail "scan left an output"
+stop "$pid" scan
 echo "meshgen interrupts: nothing left behind"
