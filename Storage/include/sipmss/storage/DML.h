@@ -487,7 +487,8 @@ void FreeReturnable(void* p, std::size_t bytes) noexcept;
 
 // A buffer of n elements counted against a DML's budget (ChargeMemory) for its lifetime: the
 // working memory of a phase that is not a block (a sort's runs, a merge's heads). Its memory is
-// returnable (Memory.h): freed, it leaves the process at once. The elements are not initialized.
+// returnable (AllocateReturnable): freed, it leaves the process at once. Its elements are not
+// initialized.
 template <class T>
 class CountedBuffer
 {
