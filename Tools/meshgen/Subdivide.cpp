@@ -129,9 +129,14 @@ constexpr std::size_t kChunk = 1 << 16;
 // The run's stopRequested (SubdivideFile sets it for its duration; the passes ask it per chunk).
 const std::function<bool()>* gStopRequested = nullptr;
 
+bool StopRequested()
+{
+  return gStopRequested && *gStopRequested && (*gStopRequested)();
+}
+
 void CheckStop()
 {
-  if (gStopRequested && *gStopRequested && (*gStopRequested)())
+  if (StopRequested())
   {
     throw Interrupted();
   }
@@ -216,10 +221,7 @@ public:
     this->p_.Resize(this->nv_);
     this->t_.Resize(this->nf_);
   }
-  bool AbortRequested() override
-  {
-    return gStopRequested && *gStopRequested && (*gStopRequested)();
-  }
+  bool AbortRequested() override { return StopRequested(); }
 
 private:
   DML& dml_;

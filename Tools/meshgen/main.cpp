@@ -27,21 +27,21 @@
 #include <CLI/CLI.hpp>
 
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
 #include <csignal>
-#include <signal.h>
-#include <filesystem>
-#include <cerrno>
 #include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <limits>
-#include <stdexcept>
-#include <string>
 #include <numeric>
 #include <random>
+#include <stdexcept>
+#include <string>
 #include <unordered_map>
 #include <vector>
 
+#include <signal.h>
 #include <unistd.h>
 
 using namespace sipmss;
@@ -72,6 +72,19 @@ extern "C" void OnSignal(int sig)
   std::raise(sig);
 }
 
+// Names the unfinished output for the handler ("" : none), with the signals blocked meanwhile
+// (the handler never sees a half-copied name).
+void SetPartial(const char* path)
+{
+  sigset_t block, old;
+  sigemptyset(&block);
+  sigaddset(&block, SIGINT);
+  sigaddset(&block, SIGTERM);
+  sigprocmask(SIG_BLOCK, &block, &old);
+  std::snprintf(g_partial, sizeof(g_partial), "%s", path);
+  sigprocmask(SIG_SETMASK, &old, nullptr);
+}
+
 // Calls write(path) with a temporary path in OUTPUT's directory (the same extension, so the same
 // format), then renames it to OUTPUT; on any error the temporary file is removed.
 template <class F>
@@ -85,18 +98,7 @@ void WriteOutput(const std::string& out, F&& write)
   {
     throw std::runtime_error(out + ": the path is too long");
   }
-  sigset_t block, old;
-  sigemptyset(&block);
-  sigaddset(&block, SIGINT);
-  sigaddset(&block, SIGTERM);
-  sigprocmask(SIG_BLOCK, &block, &old); // (the handler never sees a half-copied name)
-  std::snprintf(g_partial, sizeof(g_partial), "%s", tmp.c_str());
-  sigprocmask(SIG_SETMASK, &old, nullptr);
-  auto forget = [&] {
-    sigprocmask(SIG_BLOCK, &block, &old);
-    g_partial[0] = '\0';
-    sigprocmask(SIG_SETMASK, &old, nullptr);
-  };
+  SetPartial(tmp.c_str());
   try
   {
     write(tmp);
@@ -109,10 +111,10 @@ void WriteOutput(const std::string& out, F&& write)
   catch (...)
   {
     ::unlink(tmp.c_str());
-    forget();
+    SetPartial("");
     throw;
   }
-  forget();
+  SetPartial("");
 }
 
 struct Mesh
