@@ -449,6 +449,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
                                   : 4.0 * 3 * sizeof(Corner);
   const double total =
     double(V) * (2 * sizeof(KeyRec) + (newOf ? 0 : 2 * sizeof(OldNew)) +
+                  (path == Renumbering::Slices ? 2 * sizeof(OldNew) : 0) +
                   2.0 * double(groups) * sizeof(AttrRec)) +
     double(T) * (faceBytes + 2 * sizeof(Triangle));
   double done = 0;
@@ -498,50 +499,72 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       }
       keys.Write(first, n, recs.data());
     });
-    storage::SortByKey(this->dml_, keys,
-      [](const KeyRec& a, const KeyRec& b) { return a.key != b.key ? a.key < b.key : a.old < b.old; },
-      [](const KeyRec& r) { return r.key; }, 63, step(2.0 * double(V) * sizeof(KeyRec)), threads);
+    // The sorted records go straight from the sort to this (storage::SortByKeyInto: out of core
+    // not written back and read again): positions in the new order, and the inverse (in memory;
+    // else its (old, new) pairs in new order).
     std::vector<OldNew> map;
-    // In slices, the (old, new) pairs go straight to their slice of the inverse (slice b holds
-    // the old indices [b sliceLength, (b + 1) sliceLength), so it starts there), through a
-    // buffer per slice; step 2 then orders each slice in memory.
-    std::optional<BucketWriter<OldNew>> dist;
-    if (path == Renumbering::Slices)
+    std::uint64_t polled = 0;
+    auto sorted = [&](const KeyRec* r, std::uint64_t first, std::uint64_t count) {
+      for (std::uint64_t from = 0; from < count; from += kChunk)
+      {
+        if ((polled += kChunk) >= 16 * kChunk)
+        {
+          polled = 0;
+          progress.Poll();
+        }
+        const std::uint64_t n = std::min(kChunk, count - from);
+        const KeyRec* const c = r + from;
+        const std::uint64_t at = first + from;
+        pts.resize(static_cast<std::size_t>(n));
+        map.resize(static_cast<std::size_t>(n));
+        for (std::uint64_t i = 0; i < n; ++i)
+        {
+          std::memcpy(&pts[i], c[i].p, 12);
+          map[i] = OldNew{ c[i].old, static_cast<std::uint32_t>(at + i) };
+          if (newOf)
+          {
+            (*newOf)[c[i].old] = static_cast<std::uint32_t>(at + i);
+          }
+        }
+        this->points_.Write(at, n, pts.data());
+        if (!newOf)
+        {
+          inverse.Write(at, n, map.data());
+        }
+      }
+    };
+    storage::SortByKeyInto(this->dml_, keys,
+      [](const KeyRec& a, const KeyRec& b) { return a.key != b.key ? a.key < b.key : a.old < b.old; },
+      [](const KeyRec& r) { return r.key; }, 63, storage::SortSink<KeyRec>(sorted),
+      step(2.0 * double(V) * sizeof(KeyRec)), threads);
+  }
+  if (path == Renumbering::Slices)
+  {
+    // The (old, new) pairs go to their slice of the inverse (slice b holds the old indices
+    // [b sliceLength, (b + 1) sliceLength), so it starts there), through a buffer per slice;
+    // step 2 then orders each slice in memory.
+    Array<OldNew> sliced(this->dml_, V);
     {
       std::vector<std::uint64_t> starts;
       for (std::uint64_t b = 0; b < slices; ++b)
       {
         starts.push_back(b * sliceLength);
       }
-      dist.emplace(this->dml_, inverse, std::move(starts), static_cast<std::size_t>(bucketLength / 2));
-    }
-    Scan(keys, V, recs, [&](const KeyRec* r, std::uint64_t first, std::uint64_t n) {
-      tick(first);
-      pts.resize(static_cast<std::size_t>(n));
-      map.resize(static_cast<std::size_t>(n));
-      for (std::uint64_t i = 0; i < n; ++i)
-      {
-        std::memcpy(&pts[i], r[i].p, 12);
-        map[i] = OldNew{ r[i].old, static_cast<std::uint32_t>(first + i) };
-        if (newOf)
+      BucketWriter<OldNew> dist(
+        this->dml_, sliced, std::move(starts), static_cast<std::size_t>(bucketLength / 2));
+      std::vector<OldNew> pairs;
+      auto done1 = step(2.0 * double(V) * sizeof(OldNew));
+      Scan(inverse, V, pairs, [&](const OldNew* q, std::uint64_t first, std::uint64_t n) {
+        tick(first);
+        for (std::uint64_t i = 0; i < n; ++i)
         {
-          (*newOf)[r[i].old] = static_cast<std::uint32_t>(first + i);
+          dist.Add(static_cast<std::size_t>(sliceOf(q[i].old)), q[i]);
         }
-        else if (dist)
-        {
-          dist->Add(static_cast<std::size_t>(sliceOf(r[i].old)), map[i]);
-        }
-      }
-      this->points_.Write(first, n, pts.data());
-      if (!newOf && !dist)
-      {
-        inverse.Write(first, n, map.data());
-      }
-    });
-    if (dist)
-    {
-      dist->Finish();
+        done1(double(first + n) / double(V));
+      });
+      dist.Finish();
     }
+    inverse.Swap(sliced); // (the pairs in new order close with `sliced`)
   }
   // 2. The inverse: for each old index (in order) its new one.
   if (path == Renumbering::Slices)

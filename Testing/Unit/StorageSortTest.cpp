@@ -461,8 +461,8 @@ TEST(StorageSortByKey, DistributesSpreadKeysAndMergesCrowdedOnes)
   {
     check(Keys(kind, n, 9), 1 << 20, SortMethod::Merge, kind);
   }
-  // Buckets whose write buffers hold less than a page (partial pages: read first, then written):
-  // still distributed. 16 MB at 256 KiB.
+  // Buckets whose write buffers hold less than a page (partial pages, written straight to the
+  // file): still distributed. 16 MB at 256 KiB.
   check(Keys("random", 2000000, 4), 256 << 10, SortMethod::Distribution, "partial pages");
   // 32 MB at 64 KiB: every range of the count holds more than the memory; each is a bucket of
   // its own, distributed again on its lower bits.
@@ -688,12 +688,14 @@ TEST(StorageSortByKey, RadixSortInMemoryEqualsStdSort)
 // keys and with keys crowded into one bucket (that bucket sorted out of core on its own).
 std::vector<Face> SortByBuckets(const std::vector<Face>& in, std::uint64_t keyEnd,
   std::uint64_t budget, const std::string& dir, std::size_t* buckets = nullptr,
-  bool* oneBucket = nullptr, int threads = 1)
+  bool* oneBucket = nullptr, int threads = 1, std::size_t pageSize = 0,
+  std::uint64_t* addedReads = nullptr, std::size_t* bufferElements = nullptr)
 {
   Profile p;
   p.directories = { dir };
   p.memoryBudget = budget;
   p.policy = ModePolicy::OutOfCore;
+  p.pageSize = pageSize;
   DML dml;
   dml.Config(p);
   Array<Face> out(dml, in.size());
@@ -702,13 +704,22 @@ std::vector<Face> SortByBuckets(const std::vector<Face>& in, std::uint64_t keyEn
     auto first = [](const Face& f) { return std::uint64_t(f.a); };
     BucketSorter<Face, decltype(first), decltype(&FaceLess)> sorter(
       dml, in.size(), keyEnd, first, &FaceLess);
+    const std::uint64_t readBefore = dml.GetStats().bytesRead;
     for (const Face& f : in)
     {
       sorter.Add(f);
     }
+    if (addedReads)
+    {
+      *addedReads = dml.GetStats().bytesRead - readBefore;
+    }
     if (buckets)
     {
       *buckets = sorter.Buckets();
+    }
+    if (bufferElements)
+    {
+      *bufferElements = sorter.BufferElements();
     }
     if (oneBucket)
     {
@@ -776,6 +787,99 @@ TEST(StorageBucketSorter, EqualsStdSortSpreadAndCrowded)
   }
 }
 
+// SortByKeyInto: the sink gets std::sort's order, in order, in contiguous chunks, at every
+// budget and for spread, crowded (distributed again, or merged) and equal keys; out of core the
+// distributed buckets are not written back: one write of the data and three reads (SortByKey and
+// a scan: two writes and four reads).
+struct IntoRun
+{
+  std::vector<std::uint64_t> out;
+  bool contiguous = true;
+  SortMethod method = SortMethod::InMemory;
+  Stats stats;
+  std::uint64_t fileBytesBefore = 0;
+};
+
+IntoRun SortByKeyIntoWithBudget(
+  const std::vector<std::uint64_t>& in, std::uint64_t budget, const std::string& dir, int keyBits = 64)
+{
+  DML dml;
+  Configure(dml, budget, dir);
+  Array<std::uint64_t> a(dml, in.size());
+  a.Write(0, in.size(), in.data());
+  IntoRun r;
+  r.fileBytesBefore = dml.GetStats().fileBytes;
+  const Stats before = dml.GetStats();
+  r.method = SortByKeyInto(
+    dml, a, [](std::uint64_t x, std::uint64_t y) { return x < y; },
+    [](std::uint64_t x) { return x; }, keyBits,
+    SortSink<std::uint64_t>([&r](const std::uint64_t* d, std::uint64_t first, std::uint64_t n) {
+      r.contiguous = r.contiguous && first == r.out.size() && n > 0;
+      r.out.insert(r.out.end(), d, d + n);
+    }));
+  r.stats = dml.GetStats();
+  r.stats.bytesRead -= before.bytesRead;
+  r.stats.bytesWritten -= before.bytesWritten;
+  return r;
+}
+
+TEST(StorageSortByKeyInto, HandsStdSortsOrderToTheSinkAtEveryBudget)
+{
+  TempDir tmp;
+  for (std::uint64_t budget : { 0ull, 64ull << 10, 1ull << 20, 8ull << 20 })
+  {
+    for (const char* kind : { "random", "duplicates", "sorted", "reversed", "equal", "killer" })
+    {
+      for (std::uint64_t n : { std::uint64_t(1), std::uint64_t(1000), std::uint64_t(600000) })
+      {
+        const auto in = Keys(kind, n, 11);
+        auto expect = in;
+        std::sort(expect.begin(), expect.end());
+        const IntoRun r = SortByKeyIntoWithBudget(in, budget, tmp.Path());
+        const std::string what = std::string(kind) + " n=" + std::to_string(n) +
+          " budget=" + std::to_string(budget);
+        EXPECT_TRUE(r.out == expect) << what;
+        EXPECT_TRUE(r.contiguous) << what;
+        EXPECT_EQ(r.stats.fileBytes, r.fileBytesBefore) << what;
+        if (budget)
+        {
+          EXPECT_LE(r.stats.peakBytes, budget) << what;
+        }
+      }
+    }
+  }
+  // Spread keys out of core: distributed, the data written once and read three times.
+  const auto in = Keys("random", 500000, 9);
+  auto expect = in;
+  std::sort(expect.begin(), expect.end());
+  const IntoRun r = SortByKeyIntoWithBudget(in, 1 << 20, tmp.Path());
+  EXPECT_EQ(r.method, SortMethod::Distribution);
+  EXPECT_TRUE(r.out == expect);
+  const double bytes = 500000.0 * sizeof(std::uint64_t);
+  EXPECT_LE(double(r.stats.bytesWritten) / bytes, 1.2);
+  EXPECT_LE(double(r.stats.bytesRead) / bytes, 3.3);
+  // Every range crowded (distributed again on the lower bits), and crowded ranges that must be
+  // merged: the sink still gets the sorted order.
+  for (const bool merged : { false, true })
+  {
+    std::mt19937_64 rng(merged ? 23 : 3);
+    std::vector<std::uint64_t> keys(merged ? 600000 : 4000000);
+    for (std::uint64_t& k : keys)
+    {
+      k = merged && rng() % 10 < 9
+        ? (std::uint64_t(0x123) << 52 | std::uint64_t(0x9e3779b9) << 20 | (rng() & 0xfffff))
+        : rng();
+    }
+    auto sorted = keys;
+    std::sort(sorted.begin(), sorted.end());
+    const IntoRun c = SortByKeyIntoWithBudget(keys, merged ? 1 << 20 : 64 << 10, tmp.Path());
+    EXPECT_EQ(c.method, SortMethod::Distribution) << merged;
+    EXPECT_TRUE(c.out == sorted) << merged;
+    EXPECT_TRUE(c.contiguous) << merged;
+    EXPECT_EQ(c.stats.fileBytes, c.fileBytesBefore) << merged;
+  }
+}
+
 // A crowded range whose keys also fall in one range of its own count (32 constant bits below the
 // top ones) is merged in a block of its own: the result is still std::sort's within the budget,
 // nothing is left behind, and the progress goes on from the count it had reported.
@@ -831,6 +935,35 @@ TEST(StorageBucketSorter, ManySegmentsForTheMemoryStillCutTheKeyRange)
   const auto out = SortByBuckets(in, 1000000, 512 << 10, tmp.Path(), &buckets, &one);
   EXPECT_FALSE(one);
   EXPECT_GT(buckets, 100u);
+  EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0);
+}
+
+// Write buffers under a sixteenth of a page (125 buckets of about 120 faces in 512 KiB, pages of
+// 32 KiB) are gathered in a page and written whole: adding the elements reads none of the
+// segments' pages from the files (written one by one, each buffer would read its page first; the
+// segments' records, 24 bytes each, still do), and the result is still std::sort's.
+TEST(StorageBucketSorter, SmallSegmentsAreWrittenInWholePagesWithoutReading)
+{
+  TempDir tmp;
+  std::mt19937 rng(37);
+  const std::uint64_t n = 3000000;
+  std::vector<Face> in(n);
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    in[i] = { static_cast<std::uint32_t>(rng() % 1000000), static_cast<std::uint32_t>(rng() % 7),
+      static_cast<std::uint32_t>(rng()) };
+  }
+  auto expect = in;
+  std::sort(expect.begin(), expect.end(), FaceLess);
+  std::size_t buckets = 0;
+  std::uint64_t reads = 1;
+  std::size_t per = 0;
+  const auto out = SortByBuckets(
+    in, 1000000, 512 << 10, tmp.Path(), &buckets, nullptr, 1, 32 << 10, &reads, &per);
+  EXPECT_GT(buckets, 100u);
+  EXPECT_LT(per * sizeof(Face) * 16, std::size_t(32) << 10)
+    << "the buffers are under a sixteenth of a page";
+  EXPECT_LT(reads, n * sizeof(Face) / 16) << "the segments' pages were read";
   EXPECT_EQ(std::memcmp(out.data(), expect.data(), n * sizeof(Face)), 0);
 }
 

@@ -372,6 +372,11 @@ void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {}, int t
 
 
 // How SortByKey sorted: in memory, by distribution to key ranges, or by Sort's merges.
+// A consumer of sorted elements (SortByKeyInto): sink(data, first, n) gets the elements
+// [first, first + n) of the sorted order, called in order.
+template <class T>
+using SortSink = std::function<void(const T*, std::uint64_t, std::uint64_t)>;
+
 enum class SortMethod
 {
   InMemory,
@@ -563,7 +568,20 @@ void RadixSortByKey(
 template <class T, class Less, class Key>
 bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n,
   Array<T>* out, std::uint64_t outFirst, Less& less, Key& key, int keyBits, bool masked,
-  const SortPoll& poll, int threads, double& told);
+  const SortPoll& poll, int threads, double& told, const SortSink<T>* sink = nullptr);
+
+// Hands array[first, first + n) to the sink in chunks read through `buf`.
+template <class T>
+void ScanRange(Array<T>& array, std::uint64_t first, std::uint64_t n, T* buf, std::uint64_t bufSize,
+  const SortSink<T>& sink)
+{
+  for (std::uint64_t i = 0; i < n; i += bufSize)
+  {
+    const std::uint64_t c = std::min(bufSize, n - i);
+    array.Read(first + i, c, buf);
+    sink(buf, first + i, c);
+  }
+}
 
 // Copies from[fromFirst, fromFirst + n) to to[toFirst, toFirst + n) through `buf`.
 template <class T>
@@ -599,26 +617,38 @@ void MergeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n
 template <class T, class Less, class Key>
 bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n,
   Array<T>* out, std::uint64_t outFirst, Less& less, Key& key, int keyBits, bool masked,
-  const SortPoll& poll, int threads, double& told)
+  const SortPoll& poll, int threads, double& told, const SortSink<T>* sink)
 {
   const std::uint64_t pageElements = std::max<std::uint64_t>(1, dml.PageBytes() / sizeof(T));
   Array<T> other(dml, n); // (opened before the memory is taken, as Sort's)
   // The table: 2^binBits counts of equal ranges of the key (then each range's bucket) and three
-  // numbers per bucket (at most one bucket per range), within 1/16 of the working memory.
+  // numbers per bucket, within 1/16 of the working memory. A bucket is a run of ranges, closed
+  // when the next range would overflow the buffer: two consecutive buckets hold more than the
+  // buffer, so there are at most 2 n / buffer + 1 of them (the buffer is more than half the
+  // working memory), and at most one per range. (Three numbers per range instead left a 63-bit
+  // Morton key 13 bits of ranges at 8 MB, 4 bits an axis: a scan's vertices crowded into ranges
+  // larger than the buffer, distributed a second time.)
   const std::uint64_t workBytes = dml.SpareMemory(4) / 8 * 7;
+  const std::uint64_t halfBuffer = std::max<std::uint64_t>(1, workBytes / 2 / sizeof(T));
+  const std::uint64_t bucketsAtMost = 2 * (n / halfBuffer) + 3;
+  auto tableWords = [bucketsAtMost](int bits) {
+    const std::uint64_t ranges = std::uint64_t(1) << bits;
+    return ranges + 3 * std::min(ranges, bucketsAtMost) + 1;
+  };
   int binBits = std::min(keyBits, 16);
-  while (binBits > 4 && (std::uint64_t(4 * sizeof(std::uint64_t)) << binBits) > workBytes / 16)
+  while (binBits > 4 && tableWords(binBits) * sizeof(std::uint64_t) > workBytes / 16)
   {
     --binBits;
   }
   const int shift = keyBits - binBits;
   const std::size_t bins = std::size_t(1) << binBits;
+  const std::size_t maxBuckets = static_cast<std::size_t>(std::min<std::uint64_t>(bins, bucketsAtMost));
   const std::uint64_t mask = masked && keyBits < 64 ? (std::uint64_t(1) << keyBits) - 1 : ~std::uint64_t(0);
-  CountedBuffer<std::uint64_t> table(dml, 4 * bins + 1);
+  CountedBuffer<std::uint64_t> table(dml, static_cast<std::size_t>(tableWords(binBits)));
   std::uint64_t* count = table.Data(); // per range; later its bucket
   std::uint64_t* start = count + bins; // per bucket (and the end)
-  std::uint64_t* at = start + bins + 1;
-  std::uint64_t* fill = at + bins;
+  std::uint64_t* at = start + maxBuckets + 1;
+  std::uint64_t* fill = at + maxBuckets;
   const std::uint64_t spare = std::min<std::uint64_t>(n, dml.SpareMemory(4) / 8 * 7 / sizeof(T));
   if (spare < 2 * pageElements)
   {
@@ -670,6 +700,10 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
     }
     if (held > 0 && held + count[r] > spare)
     {
+      if (buckets + 1 == maxBuckets)
+      {
+        return false; // (the buffer smaller than the bound assumed: not expected)
+      }
       start[buckets + 1] = start[buckets] + held;
       ++buckets;
       held = 0;
@@ -681,9 +715,10 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
   ++buckets;
   const std::uint64_t readElements = std::min(spare / 4, 2 * pageElements);
   const std::uint64_t per = (spare - readElements) / buckets;
-  // A bucket's buffer of a page or more writes whole pages; down to 1/16 of a page its writes
-  // are partial (the page is read first), which still costs less than merging; below that a
-  // second level of buckets would be needed, and merging is as good.
+  // A bucket's buffer of a page or more writes whole pages; down to 1/16 of a page it writes
+  // the whole buffer each time, straight to the file (a bulk transfer, docs/storage.md), which
+  // still costs less than merging; below that a second level of buckets would be needed, and
+  // merging is as good.
   if (per < std::max<std::uint64_t>(64, pageElements / 16))
   {
     return false;
@@ -698,10 +733,12 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
   }
   // Writes bucket b's buffer up to the last page boundary it reaches (else all of it, and all of
   // it when `all`): with a buffer of a page or more, a bucket writes whole pages after its first
-  // write.
+  // write. A smaller buffer writes all of it: cut at a page boundary, its remainder before the
+  // boundary could be under a sixteenth of a page, a transfer that reads the page into the cache
+  // first (the 397M-triangle layout step's Morton sort read 27 GB for 14 GB of reads).
   auto flush = [&](std::size_t b, bool all) {
     std::uint64_t c = fill[b];
-    if (!all)
+    if (!all && per >= pageElements)
     {
       const std::uint64_t aligned = (at[b] + fill[b]) / pageElements * pageElements;
       c = aligned > at[b] ? aligned - at[b] : fill[b];
@@ -756,7 +793,7 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
       double innerTold = 0;
       if (shift == 0 ||
         !DistributeRange(dml, other, start[b], c, &dst, dstFirst + start[b], less, key, shift, true,
-          inner, threads, innerTold))
+          inner, threads, innerTold, sink))
       {
         // (progress on from where the distribution's count left it)
         SortPoll rest;
@@ -765,19 +802,35 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
           rest = [&inner, innerTold](double f) { inner(innerTold + (1.0 - innerTold) * f); };
         }
         MergeRange(dml, other, start[b], c, dst, dstFirst + start[b], less, rest, threads);
+        buffer.emplace(dml, static_cast<std::size_t>(spare));
+        buf = buffer->Data();
+        if (sink)
+        {
+          ScanRange(dst, dstFirst + start[b], c, buf, spare, *sink);
+        }
       }
-      buffer.emplace(dml, static_cast<std::size_t>(spare));
-      buf = buffer->Data();
+      else
+      {
+        buffer.emplace(dml, static_cast<std::size_t>(spare));
+        buf = buffer->Data();
+      }
     }
     else if (c > 0)
     {
       other.Read(start[b], c, buf);
       RadixSortByKey(buf, c, key, less, SortPoll(), threads);
-      dst.Write(dstFirst + start[b], c, buf);
+      if (sink)
+      {
+        (*sink)(buf, dstFirst + start[b], c); // (not written: the sink takes it from here)
+      }
+      else
+      {
+        dst.Write(dstFirst + start[b], c, buf);
+      }
     }
     tell(to);
   }
-  if (!out)
+  if (!out && !sink)
   {
     src.Swap(other); // (the old order closes with `other`)
   }
@@ -786,10 +839,10 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
 
 template <class T, class Less, class Key>
 bool SortByDistribution(DML& dml, Array<T>& array, Less& less, Key& key, int keyBits,
-  const SortPoll& poll, int threads, double& told)
+  const SortPoll& poll, int threads, double& told, const SortSink<T>* sink = nullptr)
 {
   return DistributeRange(dml, array, 0, array.Size(), static_cast<Array<T>*>(nullptr), 0, less,
-    key, keyBits, false, poll, threads, told);
+    key, keyBits, false, poll, threads, told, sink);
 }
 } // namespace detail
 
@@ -844,11 +897,65 @@ SortMethod SortByKey(DML& dml, Array<T>& array, Less less, Key key, int keyBits,
   return SortMethod::Merge;
 }
 
+// SortByKey for an array read once in sorted order and then dropped: sink(data, first, n) gets
+// the elements [first, first + n) of the sorted order, in order, in chunks of at most what the
+// working memory holds (in core: all of them, in place). Out of core, where the distribution
+// sorts a bucket in memory it goes to the sink from there, neither written back nor read again
+// (two transfers of the data fewer than SortByKey and a scan), and the array keeps its elements
+// in an unspecified order; in core and after a merge the array is sorted. Progress covers the
+// sort; the sink's calls come within it.
+template <class T, class Less, class Key>
+SortMethod SortByKeyInto(DML& dml, Array<T>& array, Less less, Key key, int keyBits,
+  const SortSink<T>& sink, const SortPoll& poll = {}, int threads = 0)
+{
+  if (keyBits < 1 || keyBits > 64)
+  {
+    throw std::invalid_argument("sipmss::storage::SortByKeyInto: keyBits must be 1 to 64");
+  }
+  const std::uint64_t n = array.Size();
+  if (dml.BasePointer(array.Id()))
+  {
+    const SortMethod m = SortByKey(dml, array, less, key, keyBits, poll, threads);
+    if (n > 0)
+    {
+      sink(static_cast<const T*>(dml.BasePointer(array.Id())), 0, n);
+    }
+    return m;
+  }
+  if (n < 2)
+  {
+    if (n == 1)
+    {
+      T x{};
+      array.Read(0, 1, &x);
+      sink(&x, 0, 1);
+    }
+    return SortMethod::InMemory;
+  }
+  double told = 0;
+  if (detail::SortByDistribution(dml, array, less, key, keyBits, poll, threads, told, &sink))
+  {
+    return SortMethod::Distribution;
+  }
+  SortPoll rest;
+  if (poll)
+  {
+    rest = [&poll, told](double f) { poll(told + (1.0 - told) * f); };
+  }
+  Sort(dml, array, less, rest, threads);
+  const auto chunk = static_cast<std::size_t>(
+    std::max<std::uint64_t>(1, std::min<std::uint64_t>(n, dml.PageBytes() / sizeof(T))));
+  CountedBuffer<T> buf(dml, chunk);
+  detail::ScanRange(array, 0, n, buf.Data(), chunk, sink);
+  return SortMethod::Merge;
+}
+
 
 // Sorting elements that are produced one by one (out of core), by a key whose range [0, keyEnd)
 // is known but not how the elements spread over it: the key's range is cut into equal buckets
 // expected to hold what the memory spares at construction each; Add puts an element in its
 // bucket's write buffer, and a full buffer is appended to a block as a segment of that bucket
+// (buffers under a page through a page-sized stage, written whole)
 // (no count pass, no distribution pass: the producer's pass is the distribution). Finish reads
 // each bucket's segments, radix-sorts them (RadixSortByKey) and writes them to `out` in key
 // order: one read and one write of the data besides the producer's. A bucket that turns out
@@ -885,6 +992,20 @@ public:
       this->buckets_ = 1;
       this->shift_ = -1;
       this->per_ = static_cast<std::size_t>(std::max<std::uint64_t>(1, spare * 3 / 4));
+    }
+    // Write buffers smaller than a page are appended to a page-sized buffer, written whole: a
+    // segment written on its own (under a sixteenth of a page) would read its page of the file
+    // into the cache first (at 8 MB the 397M-triangle layout step's 1,516 buckets of 150 faces
+    // read 4.8 GB of pages never written).
+    const std::uint64_t page = std::max<std::size_t>(1, dml.PageBytes() / sizeof(T));
+    if (this->buckets_ > 1 && this->per_ < page && page <= spare / 8)
+    {
+      const auto per = static_cast<std::size_t>((spare * 3 / 4 - page) / this->buckets_);
+      if (per >= 64)
+      {
+        this->per_ = per;
+        this->stage_.emplace(dml, static_cast<std::size_t>(page));
+      }
     }
     // Per bucket: its fill, its element count and its open segment (start, length); the closed
     // segments (bucket, start, length: full buffers, and one partial each at the end) go to a
@@ -934,6 +1055,11 @@ public:
       this->Flush(b);
       this->CloseSegment(b);
     }
+    if (this->stage_ && this->added_ > this->staged_)
+    {
+      this->segments_.Write(this->staged_, this->added_ - this->staged_, this->stage_->Data());
+    }
+    this->stage_.reset();
     this->buffer_.reset(); // (the write buffers go; the sort's buffer takes what is spare)
     // The segments by bucket, each bucket's newest first (the order in which a chain of them
     // was followed: the same elements in the same order go to each bucket's sort).
@@ -1027,6 +1153,8 @@ public:
   }
 
   std::size_t Buckets() const { return this->buckets_; }
+  // Elements of write buffer per bucket.
+  std::size_t BufferElements() const { return this->per_; }
   // Whether the key's range could not be cut (a write buffer for each of that many buckets would
   // hold fewer than 64 elements): one bucket, sorted at the end by Sort when larger than the
   // memory. A producer that can write its elements in place and sort them itself does better
@@ -1068,7 +1196,7 @@ private:
     {
       throw std::logic_error("sipmss::storage::BucketSorter: more elements than announced");
     }
-    this->segments_.Write(this->added_, c, this->buffer_->Data() + b * this->per_);
+    this->Append(this->buffer_->Data() + b * this->per_, c);
     if (this->OpenLength()[b] > 0 && this->OpenStart()[b] + this->OpenLength()[b] == this->added_)
     {
       this->OpenLength()[b] += c; // (right after the bucket's last segment: it grows)
@@ -1084,6 +1212,33 @@ private:
     this->Fill()[b] = 0;
   }
 
+  // Writes c elements to the segments at added_: through the stage when there is one (it holds
+  // [staged_, added_), a page that starts on a page boundary).
+  void Append(const T* x, std::uint64_t c)
+  {
+    if (!this->stage_)
+    {
+      this->segments_.Write(this->added_, c, x);
+      return;
+    }
+    const std::uint64_t page = this->stage_->Size();
+    std::uint64_t held = this->added_ - this->staged_;
+    while (c > 0)
+    {
+      const std::uint64_t k = std::min(c, page - held);
+      std::copy(x, x + k, this->stage_->Data() + held);
+      held += k;
+      x += k;
+      c -= k;
+      if (held == page)
+      {
+        this->segments_.Write(this->staged_, page, this->stage_->Data());
+        this->staged_ += page;
+        held = 0;
+      }
+    }
+  }
+
   DML& dml_;
   std::uint64_t n_;
   Key key_;
@@ -1096,6 +1251,8 @@ private:
   std::uint64_t added_ = 0, received_ = 0; // (written to segments; handed to Add)
   std::optional<CountedBuffer<std::uint64_t>> table_;
   std::optional<CountedBuffer<T>> buffer_;
+  std::optional<CountedBuffer<T>> stage_; // (a page of the segments, see Append)
+  std::uint64_t staged_ = 0;              // (where the stage starts in the segments)
 };
 
 } // namespace sipmss::storage
