@@ -371,12 +371,12 @@ void Sort(DML& dml, Array<T>& array, Less less, const SortPoll& poll = {}, int t
 }
 
 
-// How SortByKey sorted: in memory, by distribution to key ranges, or by Sort's merges.
 // A consumer of sorted elements (SortByKeyInto): sink(data, first, n) gets the elements
 // [first, first + n) of the sorted order, called in order.
 template <class T>
 using SortSink = std::function<void(const T*, std::uint64_t, std::uint64_t)>;
 
+// How SortByKey sorted: in memory, by distribution to key ranges, or by Sort's merges.
 enum class SortMethod
 {
   InMemory,
@@ -557,14 +557,17 @@ void RadixSortByKey(
 // changed and nothing held, when all the keys fall in one range of the count, or the data are too
 // large for one distribution within the working memory.
 // - At the top (`out` null, the whole array): the buckets are sorted in place in a second block,
-//   which then becomes the array (an abort leaves the array as it was).
+//   which then becomes the array (an abort leaves the array as it was); with a `sink`, each
+//   bucket sorted in memory goes to the sink instead of being written back, the second block is
+//   dropped and the array stays as it was.
 // - A range that holds more than the working memory (crowded keys: a range of the count is a
 //   range of the key, and spatial keys crowd) is a bucket of its own, sorted by the same
 //   distribution on the key's lower bits (`keyBits` = the range's shift; `masked`: the keys are
 //   taken below those bits) from its place in the second block into the same place (`out`,
-//   `outFirst`): no copy. Where that cannot distribute either, the bucket is merged (Sort) in a
-//   block of its own. Every level holds its table (1/16 of the memory) and gives its buffer back
-//   while a bucket below it sorts.
+//   `outFirst`): no copy (the sink passed down). Where that cannot distribute either, the
+//   bucket is merged (Sort) in a block of its own (and read back for the sink). Every level
+//   holds its table (1/16 of the memory) and gives its buffer back while a bucket below it
+//   sorts.
 template <class T, class Less, class Key>
 bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint64_t n,
   Array<T>* out, std::uint64_t outFirst, Less& less, Key& key, int keyBits, bool masked,
@@ -715,11 +718,11 @@ bool DistributeRange(DML& dml, Array<T>& src, std::uint64_t srcFirst, std::uint6
   ++buckets;
   const std::uint64_t readElements = std::min(spare / 4, 2 * pageElements);
   const std::uint64_t per = (spare - readElements) / buckets;
-  // A bucket's buffer of a page or more writes whole pages; down to 1/16 of a page it writes
-  // the whole buffer each time, straight to the file (a bulk transfer, docs/storage.md), which
-  // still costs less than merging; below that a second level of buckets would be needed, and
-  // merging is as good.
-  if (per < std::max<std::uint64_t>(64, pageElements / 16))
+  // A bucket's buffer of a page or more writes whole pages; down to 1/16 of a page (in bytes,
+  // the DML's rule) it writes the whole buffer each time, straight to the file (a bulk
+  // transfer, docs/storage.md), which still costs less than merging; below that a second level
+  // of buckets would be needed, and merging is as good.
+  if (per < 64 || per * sizeof(T) < pageElements * sizeof(T) / 16)
   {
     return false;
   }
@@ -903,7 +906,7 @@ SortMethod SortByKey(DML& dml, Array<T>& array, Less less, Key key, int keyBits,
 // sorts a bucket in memory it goes to the sink from there, neither written back nor read again
 // (two transfers of the data fewer than SortByKey and a scan), and the array keeps its elements
 // in an unspecified order; in core and after a merge the array is sorted. Progress covers the
-// sort; the sink's calls come within it.
+// sort (in core and after a merge the sink's calls come after it).
 template <class T, class Less, class Key>
 SortMethod SortByKeyInto(DML& dml, Array<T>& array, Less less, Key key, int keyBits,
   const SortSink<T>& sink, const SortPoll& poll = {}, int threads = 0)
@@ -1213,7 +1216,8 @@ private:
   }
 
   // Writes c elements to the segments at added_: through the stage when there is one (it holds
-  // [staged_, added_), a page that starts on a page boundary).
+  // [staged_, added_), a page's worth of elements, each full stage one transfer straight to
+  // the file).
   void Append(const T* x, std::uint64_t c)
   {
     if (!this->stage_)
