@@ -233,14 +233,16 @@ bool FaceLess(const Face& x, const Face& y)
   return x.c < y.c;
 }
 
-// Faces over 5,000 first vertices, 3 second ones and any third: many ties of the first.
-std::vector<Face> RandomFaces(std::uint64_t n, unsigned seed)
+// Faces over `firsts` first vertices, `seconds` second ones and any third (by default 5,000
+// and 3: many ties of the first).
+std::vector<Face> RandomFaces(
+  std::uint64_t n, unsigned seed, std::uint32_t firsts = 5000, std::uint32_t seconds = 3)
 {
   std::mt19937 rng(seed);
   std::vector<Face> in(n);
   for (auto& f : in)
   {
-    f = { static_cast<std::uint32_t>(rng() % 5000), static_cast<std::uint32_t>(rng() % 3),
+    f = { static_cast<std::uint32_t>(rng() % firsts), static_cast<std::uint32_t>(rng() % seconds),
       static_cast<std::uint32_t>(rng()) };
   }
   return in;
@@ -965,14 +967,8 @@ TEST(StorageSortByKey, ACrowdedRangeThatCannotBeDistributedAgainIsMerged)
 TEST(StorageBucketSorter, ManySegmentsForTheMemoryStillCutTheKeyRange)
 {
   TempDir tmp;
-  std::mt19937 rng(31);
   const std::uint64_t n = 3000000;
-  std::vector<Face> in(n);
-  for (std::uint64_t i = 0; i < n; ++i)
-  {
-    in[i] = { static_cast<std::uint32_t>(rng() % 1000000), static_cast<std::uint32_t>(rng() % 7),
-      static_cast<std::uint32_t>(rng()) };
-  }
+  const std::vector<Face> in = RandomFaces(n, 31, 1000000, 7);
   auto expect = in;
   std::sort(expect.begin(), expect.end(), FaceLess);
   std::size_t buckets = 0;
@@ -990,14 +986,8 @@ TEST(StorageBucketSorter, ManySegmentsForTheMemoryStillCutTheKeyRange)
 TEST(StorageBucketSorter, SmallSegmentsAreWrittenInWholePagesWithoutReading)
 {
   TempDir tmp;
-  std::mt19937 rng(37);
   const std::uint64_t n = 3000000;
-  std::vector<Face> in(n);
-  for (std::uint64_t i = 0; i < n; ++i)
-  {
-    in[i] = { static_cast<std::uint32_t>(rng() % 1000000), static_cast<std::uint32_t>(rng() % 7),
-      static_cast<std::uint32_t>(rng()) };
-  }
+  const std::vector<Face> in = RandomFaces(n, 37, 1000000, 7);
   auto expect = in;
   std::sort(expect.begin(), expect.end(), FaceLess);
   std::size_t buckets = 0;
