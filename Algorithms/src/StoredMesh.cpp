@@ -516,19 +516,25 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
         const KeyRec* const c = r + from;
         const std::uint64_t at = first + from;
         pts.resize(static_cast<std::size_t>(n));
-        map.resize(static_cast<std::size_t>(n));
         for (std::uint64_t i = 0; i < n; ++i)
         {
           std::memcpy(&pts[i], c[i].p, 12);
-          map[i] = OldNew{ c[i].old, static_cast<std::uint32_t>(at + i) };
-          if (newOf)
+        }
+        this->points_.Write(at, n, pts.data());
+        if (newOf)
+        {
+          for (std::uint64_t i = 0; i < n; ++i)
           {
             (*newOf)[c[i].old] = static_cast<std::uint32_t>(at + i);
           }
         }
-        this->points_.Write(at, n, pts.data());
-        if (!newOf)
+        else
         {
+          map.resize(static_cast<std::size_t>(n));
+          for (std::uint64_t i = 0; i < n; ++i)
+          {
+            map[i] = OldNew{ c[i].old, static_cast<std::uint32_t>(at + i) };
+          }
           inverse.Write(at, n, map.data());
         }
       }

@@ -13,6 +13,7 @@
 #include <random>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 namespace
@@ -644,6 +645,15 @@ struct PagedWords
       other.Set(i, std::uint32_t(i));
     }
   }
+  // The bytes f() reads from and writes to the files.
+  template <class F>
+  std::pair<std::uint64_t, std::uint64_t> Moved(F&& f)
+  {
+    const Stats before = this->dml.GetStats();
+    f();
+    const Stats after = this->dml.GetStats();
+    return { after.bytesRead - before.bytesRead, after.bytesWritten - before.bytesWritten };
+  }
 };
 
 TEST(StorageDML, BulkRangesOfPagesNotCachedGoStraightToTheFile)
@@ -701,21 +711,16 @@ TEST(StorageDML, BulkRangesOfPagesNotCachedGoStraightToTheFile)
   auto evict = [&] { w.Evict(other, n); };
   evict();
   const std::uint64_t len = page / 2, first = 10 * page + page / 3;
-  Stats before = dml.GetStats();
   std::vector<std::uint32_t> part(len);
-  a.Read(first, len, part.data());
-  Stats after = dml.GetStats();
-  EXPECT_EQ(after.bytesRead - before.bytesRead, len * sizeof(std::uint32_t));
+  EXPECT_EQ(w.Moved([&] { a.Read(first, len, part.data()); }).first, len * sizeof(std::uint32_t));
   for (std::uint64_t k = 0; k < len; ++k)
   {
     ASSERT_EQ(part[k], model[first + k]);
   }
   evict();
-  before = dml.GetStats();
-  a.Write(first + page, len, part.data());
-  after = dml.GetStats();
-  EXPECT_EQ(after.bytesRead, before.bytesRead);
-  EXPECT_EQ(after.bytesWritten - before.bytesWritten, len * sizeof(std::uint32_t));
+  const auto written = w.Moved([&] { a.Write(first + page, len, part.data()); });
+  EXPECT_EQ(written.first, 0u);
+  EXPECT_EQ(written.second, len * sizeof(std::uint32_t));
   EXPECT_EQ(a.Get(first + page + len - 1), part[len - 1]);
   EXPECT_EQ(a.Get(first + page + len), model[first + page + len]);
 }
@@ -741,28 +746,19 @@ TEST(StorageDML, ReadOnceMovesOnlyItsBytesWhateverTheSize)
   const std::uint64_t len = page / 64, first = 7 * page + 5; // (under a sixteenth of a page)
   std::vector<std::uint32_t> v(len);
   evict();
-  Stats before = dml.GetStats();
-  a.ReadOnce(first, len, v.data());
-  Stats after = dml.GetStats();
-  EXPECT_EQ(after.bytesRead - before.bytesRead, len * sizeof(std::uint32_t));
+  EXPECT_EQ(w.Moved([&] { a.ReadOnce(first, len, v.data()); }).first, len * sizeof(std::uint32_t));
   for (std::uint64_t k = 0; k < len; ++k)
   {
     ASSERT_EQ(v[k], model[first + k]) << k;
   }
   // Read of the same size reads the whole page into the cache.
   evict();
-  before = dml.GetStats();
-  a.Read(first, len, v.data());
-  after = dml.GetStats();
-  EXPECT_EQ(after.bytesRead - before.bytesRead, dml.PageBytes());
+  EXPECT_EQ(w.Moved([&] { a.Read(first, len, v.data()); }).first, dml.PageBytes());
   // A dirty cached page: ReadOnce sees the element written through the cache.
   evict();
   a.Set(first + 3, 12345u);
   model[first + 3] = 12345u;
-  before = dml.GetStats();
-  a.ReadOnce(first, len, v.data());
-  after = dml.GetStats();
-  EXPECT_EQ(after.bytesRead, before.bytesRead);
+  EXPECT_EQ(w.Moved([&] { a.ReadOnce(first, len, v.data()); }).first, 0u);
   for (std::uint64_t k = 0; k < len; ++k)
   {
     ASSERT_EQ(v[k], model[first + k]) << k;
