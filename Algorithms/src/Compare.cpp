@@ -4,6 +4,7 @@
 #include "sipmss/storage/Threads.h"
 
 #include "sipmss/storage/Parallel.h"
+#include "sipmss/storage/Sort.h"
 
 #include <algorithm>
 #include <atomic>
@@ -236,34 +237,166 @@ private:
 // ---------------------------------------------------------------------------------------------
 // Area table
 
+// ---------------------------------------------------------------------------------------------
+// Canonical order. The samples are strata of the cumulative area; so that they depend on the
+// surface and not on how a file lists it, the cumulative area runs over the triangles in a
+// canonical order, and each triangle's corners are taken in a canonical order too (for the
+// samples and for the index's distances). A copy of a mesh with its points, its triangles or the
+// corners of its triangles listed in another order then gets the same samples and the same
+// distances, bit for bit.
+
+// Whether point i comes before point j: by x, then y, then z.
+inline bool PointBefore(const float* pts, std::uint32_t i, std::uint32_t j)
+{
+  const float* a = pts + 3 * std::size_t(i);
+  const float* b = pts + 3 * std::size_t(j);
+  return a[0] != b[0] ? a[0] < b[0] : (a[1] != b[1] ? a[1] < b[1] : a[2] < b[2]);
+}
+
+// The corners of triangle t in the order of their points (PointBefore).
+inline std::array<std::uint32_t, 3> Corners(const TriangleMesh& mesh, std::size_t t)
+{
+  const float* pts = mesh.points.data();
+  std::array<std::uint32_t, 3> c = { mesh.triangles[3 * t], mesh.triangles[3 * t + 1],
+    mesh.triangles[3 * t + 2] };
+  if (PointBefore(pts, c[1], c[0]))
+  {
+    std::swap(c[0], c[1]);
+  }
+  if (PointBefore(pts, c[2], c[1]))
+  {
+    std::swap(c[1], c[2]);
+  }
+  if (PointBefore(pts, c[1], c[0]))
+  {
+    std::swap(c[0], c[1]);
+  }
+  return c;
+}
+
+// 21 bits spread to every third bit.
+inline std::uint64_t Spread21(std::uint64_t x)
+{
+  x &= 0x1fffff;
+  x = (x | x << 32) & 0x1f00000000ffffULL;
+  x = (x | x << 16) & 0x1f0000ff0000ffULL;
+  x = (x | x << 8) & 0x100f00f00f00f00fULL;
+  x = (x | x << 4) & 0x10c30c30c30c30c3ULL;
+  x = (x | x << 2) & 0x1249249249249249ULL;
+  return x;
+}
+
+// The triangles in canonical order: by the Morton code of their centroids (21 bits an axis over
+// the centroids' bounds), then by their corners' points, then by index (only triangles on the
+// same three points keep the file's order). Neighbouring strata are then neighbouring pieces of
+// the surface whatever the file's order.
+std::vector<std::uint32_t> CanonicalOrder(const TriangleMesh& mesh, int threads)
+{
+  const std::size_t nt = mesh.NumberOfTriangles();
+  const float* pts = mesh.points.data();
+  auto centroid = [&](std::size_t t, double x[3]) {
+    const std::array<std::uint32_t, 3> c = Corners(mesh, t);
+    for (int k = 0; k < 3; ++k)
+    {
+      x[k] = (double(pts[3 * std::size_t(c[0]) + k]) + double(pts[3 * std::size_t(c[1]) + k]) +
+               double(pts[3 * std::size_t(c[2]) + k])) / 3.0;
+    }
+  };
+  double lo[3], hi[3];
+  for (int k = 0; k < 3; ++k)
+  {
+    lo[k] = std::numeric_limits<double>::infinity();
+    hi[k] = -std::numeric_limits<double>::infinity();
+  }
+  for (std::size_t t = 0; t < nt; ++t)
+  {
+    double x[3];
+    centroid(t, x);
+    for (int k = 0; k < 3; ++k)
+    {
+      lo[k] = std::min(lo[k], x[k]);
+      hi[k] = std::max(hi[k], x[k]);
+    }
+  }
+  struct Rec
+  {
+    std::uint64_t key;
+    std::uint32_t t;
+  };
+  std::vector<Rec> recs(nt);
+  for (std::size_t t = 0; t < nt; ++t)
+  {
+    std::uint64_t key = 0;
+    double x[3];
+    centroid(t, x);
+    for (int k = 0; k < 3; ++k)
+    {
+      const double extent = hi[k] - lo[k];
+      const double f = extent > 0.0 ? (x[k] - lo[k]) / extent : 0.0;
+      const auto q = static_cast<std::uint64_t>(std::clamp(f, 0.0, 1.0) * double(0x1fffff));
+      key |= Spread21(q) << k;
+    }
+    recs[t] = Rec{ key, static_cast<std::uint32_t>(t) };
+  }
+  auto less = [&](const Rec& a, const Rec& b) {
+    if (a.key != b.key)
+    {
+      return a.key < b.key;
+    }
+    const std::array<std::uint32_t, 3> ca = Corners(mesh, a.t), cb = Corners(mesh, b.t);
+    for (int v = 0; v < 3; ++v)
+    {
+      if (PointBefore(pts, ca[v], cb[v]))
+      {
+        return true;
+      }
+      if (PointBefore(pts, cb[v], ca[v]))
+      {
+        return false;
+      }
+    }
+    return a.t < b.t;
+  };
+  auto keyOf = [](const Rec& r) { return r.key; };
+  storage::detail::RadixSortByKey(
+    recs.data(), nt, keyOf, less, storage::SortPoll(), storage::ResolveThreads(threads));
+  std::vector<std::uint32_t> order(nt);
+  for (std::size_t i = 0; i < nt; ++i)
+  {
+    order[i] = recs[i].t;
+  }
+  return order;
+}
+
 struct AreaTable
 {
-  std::vector<double> cdf; // cdf[i] = total area of triangles 0..i
+  std::vector<std::uint32_t> order; // the triangles in canonical order (CanonicalOrder)
+  std::vector<double> cdf;          // cdf[i] = total area of triangles order[0..i]
   double total = 0;
-  std::uint32_t lastPositive = 0;
+  std::uint32_t lastPositive = 0; // (a position in order)
 };
 
-AreaTable BuildAreaTable(const TriangleMesh& mesh)
+AreaTable BuildAreaTable(const TriangleMesh& mesh, int threads)
 {
   AreaTable table;
   const std::size_t nt = mesh.NumberOfTriangles();
+  table.order = CanonicalOrder(mesh, threads);
   table.cdf.resize(nt);
   const float* pts = mesh.points.data();
   double sum = 0.0;
-  for (std::size_t t = 0; t < nt; ++t)
+  for (std::size_t i = 0; i < nt; ++i)
   {
-    const float* a = pts + 3 * std::size_t(mesh.triangles[3 * t]);
-    const float* b = pts + 3 * std::size_t(mesh.triangles[3 * t + 1]);
-    const float* c = pts + 3 * std::size_t(mesh.triangles[3 * t + 2]);
-    const Vec3 pa = At(a);
-    const Vec3 n = Cross(At(b) - pa, At(c) - pa);
+    const std::array<std::uint32_t, 3> c = Corners(mesh, table.order[i]);
+    const Vec3 pa = At(pts + 3 * std::size_t(c[0]));
+    const Vec3 n =
+      Cross(At(pts + 3 * std::size_t(c[1])) - pa, At(pts + 3 * std::size_t(c[2])) - pa);
     const double area = 0.5 * std::sqrt(Dot(n, n));
     if (area > 0.0)
     {
-      table.lastPositive = static_cast<std::uint32_t>(t);
+      table.lastPositive = static_cast<std::uint32_t>(i);
     }
     sum += area;
-    table.cdf[t] = sum;
+    table.cdf[i] = sum;
   }
   table.total = sum;
   return table;
@@ -339,7 +472,6 @@ Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistance
   const std::size_t nt = table.cdf.size();
   const double* cdf = table.cdf.data();
   const float* pts = from.points.data();
-  const std::uint32_t* tris = from.triangles.data();
 
   ParallelChunks(chunks, ResolveThreads(threads), [&](std::uint64_t chunk) {
     Rng rng(seed, stream, chunk);
@@ -366,10 +498,11 @@ Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistance
         }
       }
       // First triangle with cdf > x has positive area; past the end only by rounding.
-      const std::size_t tri = t < nt ? t : table.lastPositive;
-      const float* a = pts + 3 * std::size_t(tris[3 * tri]);
-      const float* b = pts + 3 * std::size_t(tris[3 * tri + 1]);
-      const float* c = pts + 3 * std::size_t(tris[3 * tri + 2]);
+      const std::size_t tri = table.order[t < nt ? t : table.lastPositive];
+      const std::array<std::uint32_t, 3> corner = Corners(from, tri);
+      const float* a = pts + 3 * std::size_t(corner[0]);
+      const float* b = pts + 3 * std::size_t(corner[1]);
+      const float* c = pts + 3 * std::size_t(corner[2]);
       const double r1 = std::sqrt(rng.Uniform());
       const double u2 = rng.Uniform();
       const double w0 = 1.0 - r1;
@@ -386,7 +519,7 @@ Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistance
       if (ng)
       {
         // The attributes at the sample and at its nearest point on the other mesh.
-        const std::uint32_t* tt = toMesh->triangles.data() + 3 * std::size_t(hit.triangle);
+        const std::array<std::uint32_t, 3> tt = Corners(*toMesh, hit.triangle);
         const float* tp = toMesh->points.data();
         double ta[3][3];
         for (int k = 0; k < 3; ++k)
@@ -405,8 +538,8 @@ Sums Sample(const TriangleMesh& from, const AreaTable& table, const MeshDistance
           double e2 = 0;
           for (std::size_t c = groups[g][0]; c < groups[g][0] + groups[g][1]; ++c)
           {
-            const double x = w0 * fa[fs * tris[3 * tri] + c] + w1 * fa[fs * tris[3 * tri + 1] + c] +
-              w2 * fa[fs * tris[3 * tri + 2] + c];
+            const double x = w0 * fa[fs * corner[0] + c] + w1 * fa[fs * corner[1] + c] +
+              w2 * fa[fs * corner[2] + c];
             const double y = bw[0] * ttA[ts * tt[0] + c] + bw[1] * ttA[ts * tt[1] + c] +
               bw[2] * ttA[ts * tt[2] + c];
             e2 += (x - y) * (x - y);
@@ -468,7 +601,25 @@ std::array<double, 6> TriangleMesh::Bounds() const
 double PointTriangleDistanceSquared(
   const double p[3], const double a[3], const double b[3], const double c[3])
 {
-  return TriangleDistance2(At(p), At(a), At(b), At(c));
+  // The corners in the order of their coordinates (as Corners orders a mesh's): the same value,
+  // bit for bit, whichever corner comes first and whichever way round.
+  const double* v[3] = { a, b, c };
+  auto before = [](const double* x, const double* y) {
+    return x[0] != y[0] ? x[0] < y[0] : (x[1] != y[1] ? x[1] < y[1] : x[2] < y[2]);
+  };
+  if (before(v[1], v[0]))
+  {
+    std::swap(v[0], v[1]);
+  }
+  if (before(v[2], v[1]))
+  {
+    std::swap(v[1], v[2]);
+  }
+  if (before(v[1], v[0]))
+  {
+    std::swap(v[0], v[1]);
+  }
+  return TriangleDistance2(At(p), At(v[0]), At(v[1]), At(v[2]));
 }
 
 std::array<double, 3> ClosestPointBarycentric(
@@ -999,9 +1150,10 @@ MeshDistanceIndex::MeshDistanceIndex(const TriangleMesh& mesh, int threads)
   for (std::size_t t = 0; t < nt; ++t)
   {
     Box box;
+    const std::array<std::uint32_t, 3> corner = Corners(mesh, t);
     for (int v = 0; v < 3; ++v)
     {
-      const float* x = mesh.points.data() + 3 * std::size_t(mesh.triangles[3 * t + v]);
+      const float* x = mesh.points.data() + 3 * std::size_t(corner[v]);
       std::copy_n(x, 3, triangles.data() + 9 * t + 3 * v);
       box.Grow(x, x);
     }
@@ -1138,7 +1290,7 @@ OneSided SampleDistance(const TriangleMesh& from, const TriangleMesh& to, std::u
 {
   ValidateMesh(from, "SampleDistance", "the 'from'");
   ValidateMesh(to, "SampleDistance", "the 'to'");
-  const AreaTable table = BuildAreaTable(from);
+  const AreaTable table = BuildAreaTable(from, threads);
   if (!(table.total > 0.0))
   {
     throw std::invalid_argument(
@@ -1157,13 +1309,13 @@ CompareResult CompareMeshes(
 {
   ValidateMesh(reference, "CompareMeshes", "the reference");
   ValidateMesh(candidate, "CompareMeshes", "the candidate");
-  const AreaTable refTable = BuildAreaTable(reference);
+  const AreaTable refTable = BuildAreaTable(reference, options.threads);
   if (!(refTable.total > 0.0))
   {
     throw std::invalid_argument(
       "CompareMeshes: the reference mesh has zero total area (all triangles degenerate)");
   }
-  const AreaTable candTable = BuildAreaTable(candidate);
+  const AreaTable candTable = BuildAreaTable(candidate, options.threads);
   if (!(candTable.total > 0.0))
   {
     throw std::invalid_argument(

@@ -3,7 +3,15 @@
 //
 // Sampling. Each side gets the same number of samples S. Samples are stratified along the
 // cumulative area table: sample k falls in the area stratum [k, k+1) * A/S (jittered uniformly
-// inside it). Each sample so lands on a triangle with probability proportional to its area, and
+// inside it). The table runs over the triangles in a canonical order, not the file's: by the
+// Morton code of their centroids (21 bits an axis over the centroids' bounds), then by their
+// corners' coordinates; and each triangle's corners are taken in the order of their coordinates
+// (x, then y, then z). So neighbouring strata are neighbouring pieces of the surface, and a copy
+// of a mesh with its points, triangles or corners listed in another order (a shuffled file, a
+// tool that writes its triangles in another order) gets the same samples and the same numbers,
+// bit for bit. (Only triangles on the same three points keep the file's order between them, and
+// when two triangles of the other mesh are equally near a sample, which one the search returns
+// decides the attribute values there.) Each sample so lands on a triangle with probability proportional to its area, and
 // a triangle with area share f gets between floor(f * S) - 1 and ceil(f * S) + 1 samples (less
 // variance than independent draws). The point inside the triangle is uniform (barycentric with
 // the sqrt trick). Zero-area triangles are never sampled but are still distance targets.
@@ -102,9 +110,10 @@ struct OneSided
 OneSided SampleDistance(const TriangleMesh& from, const TriangleMesh& to, std::uint64_t samples,
   std::uint64_t seed, int threads);
 
-// Exact squared distance from p to the triangle (a, b, c): Ericson's closest-point region test.
-// Degenerate triangles (collinear vertices, coincident vertices, a single point) are handled as
-// the union of their edges.
+// Exact squared distance from p to the triangle (a, b, c): Ericson's closest-point region test,
+// on the corners in the order of their coordinates (the same value, bit for bit, whichever order
+// they are given in). Degenerate triangles (collinear vertices, coincident vertices, a single
+// point) are handled as the union of their edges.
 double PointTriangleDistanceSquared(
   const double p[3], const double a[3], const double b[3], const double c[3]);
 // The barycentric coordinates (of a, b, c) of the point of triangle (a, b, c) nearest to p
