@@ -1,5 +1,6 @@
 // Metro-style mesh comparison; see Compare.h for the method.
 #include "sipmss/algorithms/Compare.h"
+#include "Morton.h"
 #include "sipmss/algorithms/Vector.h"
 #include "sipmss/storage/Threads.h"
 
@@ -274,18 +275,6 @@ inline std::array<std::uint32_t, 3> Corners(const TriangleMesh& mesh, std::size_
   return c;
 }
 
-// 21 bits spread to every third bit.
-inline std::uint64_t Spread21(std::uint64_t x)
-{
-  x &= 0x1fffff;
-  x = (x | x << 32) & 0x1f00000000ffffULL;
-  x = (x | x << 16) & 0x1f0000ff0000ffULL;
-  x = (x | x << 8) & 0x100f00f00f00f00fULL;
-  x = (x | x << 4) & 0x10c30c30c30c30c3ULL;
-  x = (x | x << 2) & 0x1249249249249249ULL;
-  return x;
-}
-
 // The triangles in canonical order: by the Morton code of their centroids (21 bits an axis over
 // the centroids' bounds), then by their corners' points, then by index (only triangles on the
 // same three points keep the file's order). Neighbouring strata are then neighbouring pieces of
@@ -334,7 +323,7 @@ std::vector<std::uint32_t> CanonicalOrder(const TriangleMesh& mesh, int threads)
       const double extent = hi[k] - lo[k];
       const double f = extent > 0.0 ? (x[k] - lo[k]) / extent : 0.0;
       const auto q = static_cast<std::uint64_t>(std::clamp(f, 0.0, 1.0) * double(0x1fffff));
-      key |= Spread21(q) << k;
+      key |= detail::Spread21(q) << k;
     }
     recs[t] = Rec{ key, static_cast<std::uint32_t>(t) };
   }

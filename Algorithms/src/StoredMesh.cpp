@@ -1,4 +1,5 @@
 #include "StoredMesh.h"
+#include "Morton.h"
 
 #include "sipmss/storage/Sort.h"
 
@@ -60,18 +61,6 @@ private:
   Progress& progress_;
   LayoutMeter meter_;
 };
-
-// 21 bits of each coordinate interleaved (z y x from the top).
-std::uint64_t Spread21(std::uint64_t x)
-{
-  x &= 0x1fffff;
-  x = (x | x << 32) & 0x1f00000000ffffULL;
-  x = (x | x << 16) & 0x1f0000ff0000ffULL;
-  x = (x | x << 8) & 0x100f00f00f00f00fULL;
-  x = (x | x << 4) & 0x10c30c30c30c30c3ULL;
-  x = (x | x << 2) & 0x1249249249249249ULL;
-  return x;
-}
 
 struct KeyRec
 {
