@@ -235,8 +235,25 @@ private:
   std::uint64_t S[4];
 };
 
-// ---------------------------------------------------------------------------------------------
-// Area table
+using storage::ResolveThreads;
+
+// Runs body(chunk) for chunk in [0, count) on up to `threads` threads (the caller included).
+template <typename Body>
+void ParallelChunks(std::uint64_t count, int threads, const Body& body)
+{
+  std::atomic<std::uint64_t> next{ 0 };
+  auto worker = [&](int) {
+    for (std::uint64_t c = next.fetch_add(1, std::memory_order_relaxed); c < count;
+         c = next.fetch_add(1, std::memory_order_relaxed))
+    {
+      body(c);
+    }
+  };
+  // (a thread that cannot be started leaves its chunks to the others)
+  storage::RunOnThreads(
+    static_cast<int>(std::min<std::uint64_t>(count, static_cast<std::uint64_t>(std::max(threads, 1)))),
+    worker);
+}
 
 // ---------------------------------------------------------------------------------------------
 // Canonical order. The samples are strata of the cumulative area; so that they depend on the
@@ -246,12 +263,32 @@ private:
 // corners of its triangles listed in another order then gets the same samples and the same
 // distances, bit for bit.
 
-// Whether point i comes before point j: by x, then y, then z.
+// Whether the point at a comes before the point at b: by x, then y, then z.
+template <class T>
+inline bool Before(const T* a, const T* b)
+{
+  return a[0] != b[0] ? a[0] < b[0] : (a[1] != b[1] ? a[1] < b[1] : a[2] < b[2]);
+}
 inline bool PointBefore(const float* pts, std::uint32_t i, std::uint32_t j)
 {
-  const float* a = pts + 3 * std::size_t(i);
-  const float* b = pts + 3 * std::size_t(j);
-  return a[0] != b[0] ? a[0] < b[0] : (a[1] != b[1] ? a[1] < b[1] : a[2] < b[2]);
+  return Before(pts + 3 * std::size_t(i), pts + 3 * std::size_t(j));
+}
+// Three points (their coordinates' addresses) put in Before order.
+template <class T>
+inline void SortThree(const T* (&v)[3])
+{
+  if (Before(v[1], v[0]))
+  {
+    std::swap(v[0], v[1]);
+  }
+  if (Before(v[2], v[1]))
+  {
+    std::swap(v[1], v[2]);
+  }
+  if (Before(v[1], v[0]))
+  {
+    std::swap(v[0], v[1]);
+  }
 }
 
 // The corners of triangle t in the order of their points (PointBefore).
@@ -279,32 +316,59 @@ inline std::array<std::uint32_t, 3> Corners(const TriangleMesh& mesh, std::size_
 // the centroids' bounds), then by their corners' points, then by index (only triangles on the
 // same three points keep the file's order). Neighbouring strata are then neighbouring pieces of
 // the surface whatever the file's order.
-std::vector<std::uint32_t> CanonicalOrder(const TriangleMesh& mesh, int threads)
+// Also each triangle's area (on its canonical corners), in the file's order.
+std::vector<std::uint32_t> CanonicalOrder(
+  const TriangleMesh& mesh, int threads, std::vector<double>& areas)
 {
   const std::size_t nt = mesh.NumberOfTriangles();
   const float* pts = mesh.points.data();
-  auto centroid = [&](std::size_t t, double x[3]) {
-    const std::array<std::uint32_t, 3> c = Corners(mesh, t);
-    for (int k = 0; k < 3; ++k)
+  if (nt == 0)
+  {
+    areas.clear();
+    return {};
+  }
+  // The centroids (of the canonical corners, rounded to floats) and their bounds, then the keys:
+  // two passes over chunks of triangles on the threads.
+  constexpr std::size_t kChunk = std::size_t(1) << 16;
+  const std::uint64_t chunks = (nt + kChunk - 1) / kChunk;
+  std::vector<float> centroids(3 * nt);
+  areas.resize(nt);
+  std::vector<std::array<double, 6>> chunkBounds(chunks);
+  const int workers = storage::ResolveThreads(threads);
+  ParallelChunks(chunks, workers, [&](std::uint64_t chunk) {
+    std::array<double, 6> b = { std::numeric_limits<double>::infinity(),
+      std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
+      -std::numeric_limits<double>::infinity(), -std::numeric_limits<double>::infinity(),
+      -std::numeric_limits<double>::infinity() };
+    const std::size_t end = std::min<std::size_t>(nt, (chunk + 1) * kChunk);
+    for (std::size_t t = chunk * kChunk; t < end; ++t)
     {
-      x[k] = (double(pts[3 * std::size_t(c[0]) + k]) + double(pts[3 * std::size_t(c[1]) + k]) +
-               double(pts[3 * std::size_t(c[2]) + k])) / 3.0;
+      const std::array<std::uint32_t, 3> c = Corners(mesh, t);
+      const Vec3 pa = At(pts + 3 * std::size_t(c[0]));
+      const Vec3 n =
+        Cross(At(pts + 3 * std::size_t(c[1])) - pa, At(pts + 3 * std::size_t(c[2])) - pa);
+      areas[t] = 0.5 * std::sqrt(Dot(n, n));
+      for (int k = 0; k < 3; ++k)
+      {
+        const auto x = static_cast<float>((double(pts[3 * std::size_t(c[0]) + k]) +
+                                             double(pts[3 * std::size_t(c[1]) + k]) +
+                                             double(pts[3 * std::size_t(c[2]) + k])) / 3.0);
+        centroids[3 * t + k] = x;
+        b[k] = std::min<double>(b[k], x);
+        b[3 + k] = std::max<double>(b[3 + k], x);
+      }
     }
-  };
+    chunkBounds[chunk] = b;
+  });
   double lo[3], hi[3];
   for (int k = 0; k < 3; ++k)
   {
     lo[k] = std::numeric_limits<double>::infinity();
     hi[k] = -std::numeric_limits<double>::infinity();
-  }
-  for (std::size_t t = 0; t < nt; ++t)
-  {
-    double x[3];
-    centroid(t, x);
-    for (int k = 0; k < 3; ++k)
+    for (const auto& b : chunkBounds)
     {
-      lo[k] = std::min(lo[k], x[k]);
-      hi[k] = std::max(hi[k], x[k]);
+      lo[k] = std::min(lo[k], b[k]);
+      hi[k] = std::max(hi[k], b[3 + k]);
     }
   }
   struct Rec
@@ -313,20 +377,22 @@ std::vector<std::uint32_t> CanonicalOrder(const TriangleMesh& mesh, int threads)
     std::uint32_t t;
   };
   std::vector<Rec> recs(nt);
-  for (std::size_t t = 0; t < nt; ++t)
-  {
-    std::uint64_t key = 0;
-    double x[3];
-    centroid(t, x);
-    for (int k = 0; k < 3; ++k)
+  ParallelChunks(chunks, workers, [&](std::uint64_t chunk) {
+    const std::size_t end = std::min<std::size_t>(nt, (chunk + 1) * kChunk);
+    for (std::size_t t = chunk * kChunk; t < end; ++t)
     {
-      const double extent = hi[k] - lo[k];
-      const double f = extent > 0.0 ? (x[k] - lo[k]) / extent : 0.0;
-      const auto q = static_cast<std::uint64_t>(std::clamp(f, 0.0, 1.0) * double(0x1fffff));
-      key |= detail::Spread21(q) << k;
+      std::uint64_t key = 0;
+      for (int k = 0; k < 3; ++k)
+      {
+        const double extent = hi[k] - lo[k];
+        const double f = extent > 0.0 ? (centroids[3 * t + k] - lo[k]) / extent : 0.0;
+        const auto q = static_cast<std::uint64_t>(std::clamp(f, 0.0, 1.0) * double(0x1fffff));
+        key |= detail::Spread21(q) << k;
+      }
+      recs[t] = Rec{ key, static_cast<std::uint32_t>(t) };
     }
-    recs[t] = Rec{ key, static_cast<std::uint32_t>(t) };
-  }
+  });
+  centroids = std::vector<float>();
   auto less = [&](const Rec& a, const Rec& b) {
     if (a.key != b.key)
     {
@@ -347,8 +413,7 @@ std::vector<std::uint32_t> CanonicalOrder(const TriangleMesh& mesh, int threads)
     return a.t < b.t;
   };
   auto keyOf = [](const Rec& r) { return r.key; };
-  storage::detail::RadixSortByKey(
-    recs.data(), nt, keyOf, less, storage::SortPoll(), storage::ResolveThreads(threads));
+  storage::detail::RadixSortByKey(recs.data(), nt, keyOf, less, storage::SortPoll(), workers);
   std::vector<std::uint32_t> order(nt);
   for (std::size_t i = 0; i < nt; ++i)
   {
@@ -356,6 +421,9 @@ std::vector<std::uint32_t> CanonicalOrder(const TriangleMesh& mesh, int threads)
   }
   return order;
 }
+
+// ---------------------------------------------------------------------------------------------
+// Area table
 
 struct AreaTable
 {
@@ -369,17 +437,13 @@ AreaTable BuildAreaTable(const TriangleMesh& mesh, int threads)
 {
   AreaTable table;
   const std::size_t nt = mesh.NumberOfTriangles();
-  table.order = CanonicalOrder(mesh, threads);
+  std::vector<double> areas;
+  table.order = CanonicalOrder(mesh, threads, areas);
   table.cdf.resize(nt);
-  const float* pts = mesh.points.data();
   double sum = 0.0;
   for (std::size_t i = 0; i < nt; ++i)
   {
-    const std::array<std::uint32_t, 3> c = Corners(mesh, table.order[i]);
-    const Vec3 pa = At(pts + 3 * std::size_t(c[0]));
-    const Vec3 n =
-      Cross(At(pts + 3 * std::size_t(c[1])) - pa, At(pts + 3 * std::size_t(c[2])) - pa);
-    const double area = 0.5 * std::sqrt(Dot(n, n));
+    const double area = areas[table.order[i]];
     if (area > 0.0)
     {
       table.lastPositive = static_cast<std::uint32_t>(i);
@@ -401,26 +465,6 @@ struct ChunkStats
   double sum = 0, sumSq = 0, max = 0;
   std::vector<double> attrSumSq, attrMax; // per attribute group
 };
-
-using storage::ResolveThreads;
-
-// Runs body(chunk) for chunk in [0, count) on up to `threads` threads (the caller included).
-template <typename Body>
-void ParallelChunks(std::uint64_t count, int threads, const Body& body)
-{
-  std::atomic<std::uint64_t> next{ 0 };
-  auto worker = [&](int) {
-    for (std::uint64_t c = next.fetch_add(1, std::memory_order_relaxed); c < count;
-         c = next.fetch_add(1, std::memory_order_relaxed))
-    {
-      body(c);
-    }
-  };
-  // (a thread that cannot be started leaves its chunks to the others)
-  storage::RunOnThreads(
-    static_cast<int>(std::min<std::uint64_t>(count, static_cast<std::uint64_t>(std::max(threads, 1)))),
-    worker);
-}
 
 struct Sums
 {
@@ -593,21 +637,7 @@ double PointTriangleDistanceSquared(
   // The corners in the order of their coordinates (as Corners orders a mesh's): the same value,
   // bit for bit, whichever corner comes first and whichever way round.
   const double* v[3] = { a, b, c };
-  auto before = [](const double* x, const double* y) {
-    return x[0] != y[0] ? x[0] < y[0] : (x[1] != y[1] ? x[1] < y[1] : x[2] < y[2]);
-  };
-  if (before(v[1], v[0]))
-  {
-    std::swap(v[0], v[1]);
-  }
-  if (before(v[2], v[1]))
-  {
-    std::swap(v[1], v[2]);
-  }
-  if (before(v[1], v[0]))
-  {
-    std::swap(v[0], v[1]);
-  }
+  SortThree(v);
   return TriangleDistance2(At(p), At(v[0]), At(v[1]), At(v[2]));
 }
 
@@ -1138,11 +1168,12 @@ MeshDistanceIndex::MeshDistanceIndex(const TriangleMesh& mesh, int threads)
   double scale = 0.0;
   for (std::size_t t = 0; t < nt; ++t)
   {
+    // (the file's corner order here: the nodes' mean normals, the axes of their boxes, need the
+    // triangles' orientation, which the canonical order below does not keep)
     Box box;
-    const std::array<std::uint32_t, 3> corner = Corners(mesh, t);
     for (int v = 0; v < 3; ++v)
     {
-      const float* x = mesh.points.data() + 3 * std::size_t(corner[v]);
+      const float* x = mesh.points.data() + 3 * std::size_t(mesh.triangles[3 * t + v]);
       std::copy_n(x, 3, triangles.data() + 9 * t + 3 * v);
       box.Grow(x, x);
     }
@@ -1174,9 +1205,17 @@ MeshDistanceIndex::MeshDistanceIndex(const TriangleMesh& mesh, int threads)
   this->Degenerate.resize(nt);
   for (std::size_t i = 0; i < nt; ++i)
   {
+    // The corners in canonical order (as Corners orders them), as PointTriangleDistanceSquared
+    // takes them.
     const float* src = triangles.data() + 9 * std::size_t(order[i]);
-    std::copy_n(src, 9, this->Triangles.data() + 9 * i);
-    this->Degenerate[i] = NearlyDegenerate(At(src), At(src + 3), At(src + 6)) ? 1 : 0;
+    const float* v[3] = { src, src + 3, src + 6 };
+    SortThree(v);
+    float* dst = this->Triangles.data() + 9 * i;
+    for (int k = 0; k < 3; ++k)
+    {
+      std::copy_n(v[k], 3, dst + 3 * k);
+    }
+    this->Degenerate[i] = NearlyDegenerate(At(dst), At(dst + 3), At(dst + 6)) ? 1 : 0;
   }
   this->Original = std::move(order);
   this->Position.resize(nt);

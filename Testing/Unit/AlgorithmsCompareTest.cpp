@@ -793,7 +793,8 @@ TEST(AlgorithmsCompare, TheOrderOfAFileChangesNothing)
   {
     const TriangleMesh ref2 = Reordered(reference, seed), cand2 = Reordered(candidate, seed + 10);
     using Pair = std::pair<const TriangleMesh*, const TriangleMesh*>;
-    for (const auto& [r, c] : { Pair(&ref2, &candidate), Pair(&reference, &cand2), Pair(&ref2, &cand2) })
+    for (const auto& [r, c] :
+      { Pair(&ref2, &candidate), Pair(&reference, &cand2), Pair(&ref2, &cand2) })
     {
       const CompareResult other = CompareMeshes(*r, *c, options);
       EXPECT_EQ(base.mean, other.mean) << seed;

@@ -9,11 +9,12 @@
 // (x, then y, then z). So neighbouring strata are neighbouring pieces of the surface, and a copy
 // of a mesh with its points, triangles or corners listed in another order (a shuffled file, a
 // tool that writes its triangles in another order) gets the same samples and the same numbers,
-// bit for bit. (Only triangles on the same three points keep the file's order between them, and
-// when two triangles of the other mesh are equally near a sample, which one the search returns
-// decides the attribute values there.) Each sample so lands on a triangle with probability proportional to its area, and
-// a triangle with area share f gets between floor(f * S) - 1 and ceil(f * S) + 1 samples (less
-// variance than independent draws). The point inside the triangle is uniform (barycentric with
+// bit for bit. (Only the attribute values can still follow the file's order: triangles on the
+// same three points keep it between them, so do coincident corners of a zero-area triangle, and
+// when two triangles of the other mesh are equally near a sample, the one the search returns
+// gives the values there.) Each sample so lands on a triangle with probability proportional to
+// its area, and a triangle with area share f gets between floor(f * S) - 1 and ceil(f * S) + 1
+// samples (less variance than independent draws). The point inside the triangle is uniform (barycentric with
 // the sqrt trick). Zero-area triangles are never sampled but are still distance targets.
 // Vertices are NOT added as extra samples: every sample carries the same weight, so mean and rms
 // are unbiased area averages. The Hausdorff value is therefore a sampled (lower) estimate of the
