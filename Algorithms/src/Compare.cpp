@@ -291,23 +291,20 @@ inline void SortThree(const T* (&v)[3])
   }
 }
 
-// The corners of triangle t in the order of their points (PointBefore).
+// The corners of triangle t in the order of their points (SortThree).
 inline std::array<std::uint32_t, 3> Corners(const TriangleMesh& mesh, std::size_t t)
 {
   const float* pts = mesh.points.data();
-  std::array<std::uint32_t, 3> c = { mesh.triangles[3 * t], mesh.triangles[3 * t + 1],
-    mesh.triangles[3 * t + 2] };
-  if (PointBefore(pts, c[1], c[0]))
+  const float* v[3];
+  for (int k = 0; k < 3; ++k)
   {
-    std::swap(c[0], c[1]);
+    v[k] = pts + 3 * std::size_t(mesh.triangles[3 * t + k]);
   }
-  if (PointBefore(pts, c[2], c[1]))
+  SortThree(v);
+  std::array<std::uint32_t, 3> c;
+  for (int k = 0; k < 3; ++k)
   {
-    std::swap(c[1], c[2]);
-  }
-  if (PointBefore(pts, c[1], c[0]))
-  {
-    std::swap(c[0], c[1]);
+    c[k] = static_cast<std::uint32_t>((v[k] - pts) / 3);
   }
   return c;
 }
