@@ -114,6 +114,11 @@ RunStats RunStageTwo(detail::StoredMesh& handoff, io::MeshSink& output, const De
     output, dopt, p2, onLevel);
   stats.phases.insert(stats.phases.end(), s2.phases.begin(), s2.phases.end());
   Prefix(stats.phases, from, "stage 2 ");
+  for (PassStat p : s2.passes)
+  {
+    p.run = "stage 2 " + p.run;
+    stats.passes.push_back(std::move(p));
+  }
   stats.outputVertices = s2.outputVertices;
   stats.outputTriangles = s2.outputTriangles;
   stats.prunedComponents = s2.prunedComponents; // (pieces of the clustered mesh)

@@ -474,6 +474,78 @@ TEST(AlgorithmsDecimate, ClosedSphereStaysClosedAndManifold)
     2);
 }
 
+// RunStats::passes: each pass's sizes chain from the input's to the output's, the first pass
+// places every edge of a closed surface once, and the counts do not depend on the threads or
+// the mode (only the times and the I/O do).
+TEST(AlgorithmsDecimate, PassesAreReported)
+{
+  Mesh s = BumpySphere(5); // 20480 triangles, closed
+  const std::uint64_t F = s.Triangles();
+  auto run = [&](int threads, std::uint64_t budget) {
+    alg::DecimateOptions o;
+    o.targetTriangles = 300;
+    o.threads = threads;
+    o.storage.memoryBudget = budget;
+    return Simplify(MemorySource(s), o);
+  };
+  const Outcome one = run(1, 0), two = run(2, 0), paged = run(1, 64 * 1024);
+  for (const Outcome* r : { &one, &two, &paged })
+  {
+    const auto& P = r->stats.passes;
+    ASSERT_GE(P.size(), 2u);
+    EXPECT_EQ(P.front().triangles, F);
+    EXPECT_EQ(P.front().activeVertices, P.front().vertices); // every vertex starts afresh
+    EXPECT_EQ(P.front().edgesPlaced, 3 * F / 2); // each edge of the closed surface once
+    EXPECT_EQ(P.back().trianglesAfter, r->out.Triangles());
+    double seconds = 0;
+    for (std::size_t i = 0; i < P.size(); ++i)
+    {
+      const alg::PassStat& p = P[i];
+      EXPECT_EQ(p.run, "");
+      EXPECT_LE(p.trianglesAfter, p.triangles) << i;
+      EXPECT_GE(p.trianglesAfter + 1, p.goal) << i; // (a collapse takes two; levels exactly)
+      EXPECT_LE(p.activeVertices, p.vertices) << i;
+      EXPECT_LE(p.collapses + p.illegal, p.candidates) << i;
+      EXPECT_GT(p.collapses, 0u) << i;
+      if (i + 1 < P.size())
+      {
+        EXPECT_EQ(P[i + 1].triangles, p.trianglesAfter) << i;
+        EXPECT_LT(P[i + 1].vertices, p.vertices) << i;
+      }
+      seconds += p.sweepSeconds + p.orderSeconds + p.stepSeconds + p.compactSeconds;
+    }
+    double collapse = -1;
+    for (const auto& ph : r->stats.phases)
+    {
+      collapse = ph.name == "collapse" ? ph.seconds : collapse;
+    }
+    EXPECT_LE(seconds, collapse + 1e-6); // (the passes' steps are laps inside that phase)
+  }
+  ASSERT_EQ(one.stats.passes.size(), two.stats.passes.size());
+  ASSERT_EQ(one.stats.passes.size(), paged.stats.passes.size());
+  bool outOfCore = false;
+  for (std::size_t i = 0; i < one.stats.passes.size(); ++i)
+  {
+    for (const Outcome* r : { &two, &paged })
+    {
+      const alg::PassStat &a = one.stats.passes[i], &b = r->stats.passes[i];
+      EXPECT_EQ(a.vertices, b.vertices) << i;
+      EXPECT_EQ(a.triangles, b.triangles) << i;
+      EXPECT_EQ(a.goal, b.goal) << i;
+      EXPECT_EQ(a.trianglesAfter, b.trianglesAfter) << i;
+      EXPECT_EQ(a.activeVertices, b.activeVertices) << i;
+      EXPECT_EQ(a.edgesPlaced, b.edgesPlaced) << i;
+      EXPECT_EQ(a.candidates, b.candidates) << i;
+      EXPECT_EQ(a.collapses, b.collapses) << i;
+      EXPECT_EQ(a.illegal, b.illegal) << i;
+    }
+    EXPECT_EQ(one.stats.passes[i].bytesRead, 0u) << i;
+    const alg::PassStat& p = paged.stats.passes[i];
+    outOfCore = outOfCore || (p.mode == st::Mode::OutOfCore && p.bytesRead > 0 && p.misses > 0);
+  }
+  EXPECT_TRUE(outOfCore) << "the 64 KiB run read no pass from its files";
+}
+
 TEST(AlgorithmsDecimate, FlatSquareCollapsesToTwoTrianglesOnItsCorners)
 {
   Mesh g = Grid(8); // 128 triangles

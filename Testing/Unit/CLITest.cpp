@@ -497,6 +497,68 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
   }
 }
 
+// The stats JSON lists the decimation's passes: each with its sizes, work, steps' seconds and
+// I/O; the last one ends at the output's triangle count; two-stage names its stage-2 passes;
+// a clustering has none.
+TEST_F(CLI, StatsListTheDecimationPasses)
+{
+  const int n = 24;
+  const std::string in = this->P("bumps.ply");
+  {
+    std::ofstream f(in);
+    f << "ply\nformat ascii 1.0\nelement vertex " << (n + 1) * (n + 1)
+      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
+      << "\nproperty list uchar int vertex_indices\nend_header\n";
+    for (int j = 0; j <= n; ++j)
+    {
+      for (int i = 0; i <= n; ++i)
+      {
+        f << i << " " << j << " " << 2 * std::sin(0.4 * i) * std::cos(0.3 * j) << "\n";
+      }
+    }
+    for (int j = 0; j < n; ++j)
+    {
+      for (int i = 0; i < n; ++i)
+      {
+        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
+        f << "3 " << a << " " << b << " " << c << "\n3 " << a << " " << c << " " << d << "\n";
+      }
+    }
+  }
+  const char* keys[] = { "\"vertices\"", "\"triangles\"", "\"goal\"", "\"triangles_after\"",
+    "\"active_vertices\"", "\"edges_placed\"", "\"candidates\"", "\"collapses\"",
+    "\"illegal\"", "\"sweep\"", "\"order\"", "\"step\"", "\"compact\"", "\"bytes_read\"",
+    "\"bytes_written\"", "\"misses\"" };
+  for (const char* algorithm : { "decimate", "two-stage" })
+  {
+    Result r = RunCli("simplify " + in + " " + this->P("out.ply") + " --quiet --target 100" +
+      (std::string(algorithm) == "two-stage" ? " --grid 16" : "") + " --algorithm " + algorithm +
+      " --stats-json " + this->P("s.json"));
+    ASSERT_EQ(r.status, 0) << algorithm << "\n" << r.out;
+    const std::string j = ReadAll(this->P("s.json"));
+    const std::size_t at = j.find("\"passes\": [");
+    ASSERT_NE(at, std::string::npos) << j;
+    const std::string passes = j.substr(at);
+    for (const char* k : keys)
+    {
+      EXPECT_NE(passes.find(k), std::string::npos) << algorithm << " " << k << "\n" << j;
+    }
+    EXPECT_EQ(passes.find("\"run\": \"stage 2 \"") != std::string::npos,
+      std::string(algorithm) == "two-stage") << j;
+    // The last pass ends at the output's count.
+    const std::size_t out = j.find("\"output_triangles\": ");
+    ASSERT_NE(out, std::string::npos) << j;
+    const std::string count = j.substr(out + 20, j.find_first_of(",\n", out + 20) - out - 20);
+    const std::size_t last = passes.rfind("\"triangles_after\": ");
+    ASSERT_NE(last, std::string::npos) << j;
+    EXPECT_EQ(passes.substr(last + 19, count.size() + 1), count + ",") << j;
+  }
+  Result c = RunCli("simplify " + in + " " + this->P("c.ply") + " --quiet --grid 8 --stats-json " +
+    this->P("c.json"));
+  ASSERT_EQ(c.status, 0) << c.out;
+  EXPECT_NE(ReadAll(this->P("c.json")).find("\"passes\": []"), std::string::npos);
+}
+
 // --max-error is a fraction of the input's diagonal (or a distance with --absolute-error); the
 // error reached is in the summary line and the statistics.
 TEST_F(CLI, ErrorBoundAndAchievedError)

@@ -42,6 +42,7 @@
 #include <vector>
 
 #include <signal.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 using namespace sipmss;
@@ -485,11 +486,16 @@ int main(int argc, char** argv)
           std::uint64_t(memoryMB * 1048576.0), tmpdirs, [] { return g_signal != 0; });
       });
       g_polled = 0;
+      // (the blocks are what the budget bounds; the process's peak adds the code, the reader's
+      // and writer's buffers and the sorts' working memory)
+      struct rusage ru = {};
+      getrusage(RUSAGE_SELF, &ru);
       std::printf("sipmss-meshgen: wrote %s: %llu vertices, %llu triangles (%s, %.1f MB of blocks"
-                  " in memory at most, %.1f MB of temporary files)\n",
+                  " in memory at most, %.1f MB of temporary files, peak RSS of the process"
+                  " %.1f MiB)\n",
         out.c_str(), (unsigned long long)s.vertices, (unsigned long long)s.triangles,
         s.outOfCore ? "out of core" : "in core", double(s.peakBytes) / 1e6,
-        double(s.peakFileBytes) / 1e6);
+        double(s.peakFileBytes) / 1e6, double(ru.ru_maxrss) / 1024.0);
       return 0;
     }
     Mesh mesh = Scan(triangles);

@@ -526,6 +526,22 @@ int RunSimplify(const SimplifyArgs& a)
         { "mode", p.mode == storage::Mode::InCore ? "in-core" : "out-of-core" } });
     }
     j["phases"] = phases;
+    // The decimation's passes (docs/architecture.md "Algorithm I and the two-stage method in
+    // brief"): sizes, work, the seconds of their four steps and the DML's I/O during each.
+    nlohmann::json passes = nlohmann::json::array();
+    for (const auto& p : stats.passes)
+    {
+      passes.push_back({ { "run", p.run }, { "vertices", p.vertices },
+        { "triangles", p.triangles }, { "goal", p.goal }, { "triangles_after", p.trianglesAfter },
+        { "active_vertices", p.activeVertices }, { "edges_placed", p.edgesPlaced },
+        { "candidates", p.candidates }, { "collapses", p.collapses }, { "illegal", p.illegal },
+        { "seconds", { { "sweep", p.sweepSeconds }, { "order", p.orderSeconds },
+                       { "step", p.stepSeconds }, { "compact", p.compactSeconds } } },
+        { "mode", p.mode == storage::Mode::InCore ? "in-core" : "out-of-core" },
+        { "bytes_read", p.bytesRead }, { "bytes_written", p.bytesWritten },
+        { "misses", p.misses } });
+    }
+    j["passes"] = passes;
     const auto& s = stats.storage;
     j["storage"] = { { "mode", storage::ToString(s.mode) }, { "used_in_core", s.usedInCore },
       { "used_out_of_core", s.usedOutOfCore }, { "peak_bytes", s.peakBytes }, { "hits", s.hits },

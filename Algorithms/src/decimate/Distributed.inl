@@ -156,12 +156,18 @@ struct PieceSample
   std::uint64_t vertex;
 };
 
+// The phases and the passes of a run that is part of this one, named with `prefix`.
 void AddPhases(RunStats& to, const RunStats& from, const char* prefix)
 {
   for (PhaseStat p : from.phases)
   {
     p.name = prefix + p.name;
     to.phases.push_back(std::move(p));
+  }
+  for (PassStat p : from.passes)
+  {
+    p.run = prefix + p.run;
+    to.passes.push_back(std::move(p));
   }
 }
 

@@ -1002,11 +1002,72 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
   }
 }
 
+// Pass's statistics: the sizes at its start, the laps of its steps, the step-1 counts of the
+// threads' scratch and the DML's I/O, added to RunStats::passes when the pass ends (also by an
+// early return; not when it throws).
+class PassRecord
+{
+public:
+  PassStat stat;
+  PassRecord(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal)
+    : ctx_(ctx)
+    , mesh_(mesh)
+    , pass_(pass)
+    , io_(mesh.dml.GetStats())
+    , lap_(std::chrono::steady_clock::now())
+  {
+    this->stat.vertices = mesh.nv;
+    this->stat.triangles = mesh.liveFaces;
+    this->stat.goal = goal;
+    for (Scratch& s : pass.scratch)
+    {
+      s.active = s.placed = 0;
+    }
+  }
+  ~PassRecord()
+  {
+    if (std::uncaught_exceptions() > 0)
+    {
+      return;
+    }
+    for (const Scratch& s : this->pass_.scratch)
+    {
+      this->stat.activeVertices += s.active;
+      this->stat.edgesPlaced += s.placed;
+    }
+    this->stat.trianglesAfter = this->mesh_.liveFaces;
+    const storage::Stats io = this->mesh_.dml.GetStats();
+    this->stat.mode = io.mode;
+    this->stat.bytesRead = io.bytesRead - this->io_.bytesRead;
+    this->stat.bytesWritten = io.bytesWritten - this->io_.bytesWritten;
+    this->stat.misses = io.misses - this->io_.misses;
+    this->ctx_.stats.passes.push_back(this->stat);
+  }
+  PassRecord(const PassRecord&) = delete;
+  PassRecord& operator=(const PassRecord&) = delete;
+  // Adds the time since the last lap to `seconds`.
+  void Lap(double& seconds)
+  {
+    const auto now = std::chrono::steady_clock::now();
+    seconds += std::chrono::duration<double>(now - this->lap_).count();
+    this->lap_ = now;
+  }
+
+private:
+  RunContext& ctx_;
+  MeshState& mesh_;
+  PassState& pass_;
+  storage::Stats io_;
+  std::chrono::steady_clock::time_point lap_;
+};
+
 bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal, bool exact,
   double workAfter)
 {
   const std::uint64_t nv = mesh.nv;
   mesh.BindViews();
+  // This pass's statistics (RunStats::passes): recorded however the pass ends.
+  PassRecord record(ctx, mesh, pass, goal);
   // Progress: the pass's steps by their work (kWork), then the rest of the run.
   const double wantGuess = double(2 * (mesh.liveFaces - std::min(goal, mesh.liveFaces)) + 16);
   const double wStep = kWork::kStep * wantGuess;
@@ -1016,6 +1077,7 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   ctx.progress.BeginPhase(
     "collapse", kWork::kSweep * double(nv), wOrder + wStep + wCompact + workAfter);
   Sweep(ctx, mesh, pass, nv);
+  record.Lap(record.stat.sweepSeconds);
   // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
   // about four times the collapses the goal needs (a collapse removes 2 faces, and both
   // endpoints may propose it). Ties in order of vertex index.
@@ -1034,6 +1096,7 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   }
   if (candidates == 0)
   {
+    record.Lap(record.stat.orderSeconds);
     return false;
   }
   const std::uint64_t want = 2 * (mesh.liveFaces - goal) + 16;
@@ -1094,6 +1157,8 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
   // in the next passes. A pass that may end on a level goes strictly in order, one collapse at
   // a time; the others go group by group through StepChunks (in parallel when in core).
+  record.Lap(record.stat.orderSeconds);
+  record.stat.candidates = taken;
   pass.stepTotal = std::max<std::uint64_t>(taken, 1);
   ctx.progress.BeginPhase("collapse", kWork::kStep * double(taken), wCompact + workAfter);
   // (the page policy's choice, see lazySums_; the mode does not change before Compact)
@@ -1114,9 +1179,13 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
     mesh.liveFaces -= run.removed;
   }
   const std::uint64_t done = run.done, illegal = run.illegal;
+  record.Lap(record.stat.stepSeconds);
+  record.stat.collapses = done;
+  record.stat.illegal = illegal;
   // 4. Compact into fresh blocks.
   ctx.progress.BeginPhase("collapse", wCompact, workAfter);
   Compact(ctx, mesh, pass);
+  record.Lap(record.stat.compactSeconds);
   // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
   // as long as some candidate exists.
   return done > 0 || illegal > 0;

@@ -305,6 +305,7 @@ void Evaluate(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u
         Quadric Q = w.Q.Get(v);
         AddTo(Q, w.Q.Get(u));
         EdgeQuadric(mesh, w, u, v, Q, s);
+        ++s.placed;
         const Placement pl = Place(Q, w.P.Get(u), w.P.Get(v), su, w.S.Get(v));
         // c.cost stays: the same edge's cost as computed before (equal up to rounding), which
         // keeps the outcome independent of whether an offer to u came before or after this.
@@ -317,6 +318,7 @@ void Evaluate(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u
     }
     return;
   }
+  ++s.active;
   const std::uint32_t b = w.RO.Get(u), e = w.RO.Get(u + 1);
   const std::uint32_t* ids = w.RF.Run(b, e - b, s.ids);
   if (e - b > s.next.size())
@@ -475,6 +477,7 @@ void EvaluateEdge(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32
     Quadric Q = Qv;
     AddTo(Q, Qu);
     const double trace = EdgeQuadric(mesh, w, u, v, Q, s);
+    ++s.placed;
     OfferEdge(ctx, mesh, pass, u, v, Place(Q, pu, pv, su, sv), trace, offerV, s);
     return;
   }
@@ -524,6 +527,7 @@ void FlushEdges(RunContext& ctx, MeshState& mesh, PassState& pass, Scratch& s)
     return;
   }
   b.n = 0;
+  s.placed += std::uint64_t(n);
   // Unused lanes repeat the first edge (their results are ignored).
   for (int l = n; l < EdgeBatch::kLanes; ++l)
   {
@@ -603,6 +607,7 @@ void OfferEdge(RunContext& ctx, MeshState& mesh, PassState& pass,
 void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, Scratch& s)
 {
   Views& w = mesh.W(s);
+  ++s.active;
   w.C.Set(u, kNoCandidate);
   const std::uint32_t lengthU = RingLength(w, u);
   if (lengthU > kMaxCollapseRing)
@@ -640,6 +645,7 @@ void EvaluateFull(RunContext& ctx, MeshState& mesh, std::uint32_t u, State su, S
     Quadric Q = w.Q.Get(nb.v);
     AddTo(Q, Qu);
     const double trace = EdgeQuadric(mesh, w, u, nb.v, Q, s);
+    ++s.placed;
     const Placement pl = Place(Q, ru.px, nb.p, su, sv);
     if (!std::isfinite(pl.cost) || pl.cost > ctx.maxErr2 * trace)
     {

@@ -209,6 +209,25 @@ struct PhaseStat
   storage::Mode mode = storage::Mode::InCore;
 };
 
+// One pass of the decimation (Algorithm I, docs/architecture.md "Algorithm I and the two-stage
+// method in brief"): its sizes, its work and where its time went.
+struct PassStat
+{
+  std::string run; // "" for a run of its own; "stage 2 ", "piece ", "gathered " as in phases
+  std::uint64_t vertices = 0;       // vertices at the pass's start (dead ones included)
+  std::uint64_t triangles = 0;      // live triangles at the pass's start
+  std::uint64_t goal = 0;           // the triangle count the pass stops at
+  std::uint64_t trianglesAfter = 0; // live triangles at its end
+  std::uint64_t activeVertices = 0; // vertices that went over their edges (step 1)
+  std::uint64_t edgesPlaced = 0;    // edges given a placement and a cost (step 1)
+  std::uint64_t candidates = 0;     // candidates taken in cost order (step 2)
+  std::uint64_t collapses = 0;      // collapses made (step 3)
+  std::uint64_t illegal = 0;        // candidates found illegal (step 3)
+  double sweepSeconds = 0, orderSeconds = 0, stepSeconds = 0, compactSeconds = 0;
+  storage::Mode mode = storage::Mode::InCore; // the DML's at the pass's end
+  std::uint64_t bytesRead = 0, bytesWritten = 0, misses = 0; // the DML's during the pass
+};
+
 // The layout step for inputs whose vertices and faces are not in a spatially coherent order
 // (docs/architecture.md, "Input layout"). Automatic: the first faces are measured and an
 // incoherent input is copied into the DML and reordered (vertices along a Morton curve, faces by
@@ -243,6 +262,7 @@ struct RunStats
   double achievedError = -1;
   double errorDiagonal = 0;
   std::vector<PhaseStat> phases;
+  std::vector<PassStat> passes; // the decimation's passes, in order (none for a clustering)
   storage::Stats storage; // the DML's statistics at the end of the run (peak, hits, misses, ...)
   // The budget the run had (bytes, 0: unbounded) and how it was chosen (empty: given), as
   // Simplify() computed it once for the run.
