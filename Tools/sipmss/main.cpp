@@ -527,19 +527,22 @@ int RunSimplify(const SimplifyArgs& a)
     }
     j["phases"] = phases;
     // The decimation's passes (docs/architecture.md "Algorithm I and the two-stage method in
-    // brief"): sizes, work, the seconds of their four steps and the DML's I/O during each.
+    // brief"): sizes, work, and the seconds and the DML's I/O of their four steps.
     nlohmann::json passes = nlohmann::json::array();
     for (const auto& p : stats.passes)
     {
+      nlohmann::json steps;
+      for (const auto& [name, st] : { std::pair{ "sweep", &p.sweep }, std::pair{ "order", &p.order },
+             std::pair{ "step", &p.step }, std::pair{ "compact", &p.compact } })
+      {
+        steps[name] = { { "seconds", st->seconds }, { "bytes_read", st->bytesRead },
+          { "bytes_written", st->bytesWritten }, { "misses", st->misses } };
+      }
       passes.push_back({ { "run", p.run }, { "vertices", p.vertices },
         { "triangles", p.triangles }, { "goal", p.goal }, { "triangles_after", p.trianglesAfter },
         { "active_vertices", p.activeVertices }, { "edges_placed", p.edgesPlaced },
         { "candidates", p.candidates }, { "collapses", p.collapses }, { "illegal", p.illegal },
-        { "seconds", { { "sweep", p.sweepSeconds }, { "order", p.orderSeconds },
-                       { "step", p.stepSeconds }, { "compact", p.compactSeconds } } },
-        { "mode", p.mode == storage::Mode::InCore ? "in-core" : "out-of-core" },
-        { "bytes_read", p.bytesRead }, { "bytes_written", p.bytesWritten },
-        { "misses", p.misses } });
+        { "steps", steps }, { "mode", p.mode == storage::Mode::InCore ? "in-core" : "out-of-core" } });
     }
     j["passes"] = passes;
     const auto& s = stats.storage;

@@ -1002,9 +1002,9 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
   }
 }
 
-// Pass's statistics: the sizes at its start, the laps of its steps, the step-1 counts of the
-// threads' scratch and the DML's I/O, added to RunStats::passes when the pass ends (also by an
-// early return; not when it throws).
+// Pass's statistics: the sizes at its start, the laps of its steps (time and the DML's I/O),
+// the step-1 counts of the threads' scratch, added to RunStats::passes when the pass ends (also
+// by an early return; not when it throws).
 class PassRecord
 {
 public:
@@ -1036,21 +1036,22 @@ public:
       this->stat.edgesPlaced += s.placed;
     }
     this->stat.trianglesAfter = this->mesh_.liveFaces;
-    const storage::Stats io = this->mesh_.dml.GetStats();
-    this->stat.mode = io.mode;
-    this->stat.bytesRead = io.bytesRead - this->io_.bytesRead;
-    this->stat.bytesWritten = io.bytesWritten - this->io_.bytesWritten;
-    this->stat.misses = io.misses - this->io_.misses;
+    this->stat.mode = this->mesh_.dml.GetMode();
     this->ctx_.stats.passes.push_back(this->stat);
   }
   PassRecord(const PassRecord&) = delete;
   PassRecord& operator=(const PassRecord&) = delete;
-  // Adds the time since the last lap to `seconds`.
-  void Lap(double& seconds)
+  // Adds the time and the DML's I/O since the last lap to `step`.
+  void Lap(PassStat::Step& step)
   {
     const auto now = std::chrono::steady_clock::now();
-    seconds += std::chrono::duration<double>(now - this->lap_).count();
+    const storage::Stats io = this->mesh_.dml.GetStats();
+    step.seconds += std::chrono::duration<double>(now - this->lap_).count();
+    step.bytesRead += io.bytesRead - this->io_.bytesRead;
+    step.bytesWritten += io.bytesWritten - this->io_.bytesWritten;
+    step.misses += io.misses - this->io_.misses;
     this->lap_ = now;
+    this->io_ = io;
   }
 
 private:
@@ -1077,7 +1078,7 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   ctx.progress.BeginPhase(
     "collapse", kWork::kSweep * double(nv), wOrder + wStep + wCompact + workAfter);
   Sweep(ctx, mesh, pass, nv);
-  record.Lap(record.stat.sweepSeconds);
+  record.Lap(record.stat.sweep);
   // 2. Counting sort of the cheapest candidates on their cost's float bits: enough bins for
   // about four times the collapses the goal needs (a collapse removes 2 faces, and both
   // endpoints may propose it). Ties in order of vertex index.
@@ -1096,7 +1097,7 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   }
   if (candidates == 0)
   {
-    record.Lap(record.stat.orderSeconds);
+    record.Lap(record.stat.order);
     return false;
   }
   const std::uint64_t want = 2 * (mesh.liveFaces - goal) + 16;
@@ -1157,7 +1158,7 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
   // in the next passes. A pass that may end on a level goes strictly in order, one collapse at
   // a time; the others go group by group through StepChunks (in parallel when in core).
-  record.Lap(record.stat.orderSeconds);
+  record.Lap(record.stat.order);
   record.stat.candidates = taken;
   pass.stepTotal = std::max<std::uint64_t>(taken, 1);
   ctx.progress.BeginPhase("collapse", kWork::kStep * double(taken), wCompact + workAfter);
@@ -1179,13 +1180,13 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
     mesh.liveFaces -= run.removed;
   }
   const std::uint64_t done = run.done, illegal = run.illegal;
-  record.Lap(record.stat.stepSeconds);
+  record.Lap(record.stat.step);
   record.stat.collapses = done;
   record.stat.illegal = illegal;
   // 4. Compact into fresh blocks.
   ctx.progress.BeginPhase("collapse", wCompact, workAfter);
   Compact(ctx, mesh, pass);
-  record.Lap(record.stat.compactSeconds);
+  record.Lap(record.stat.compact);
   // Flagged vertices always get a legal candidate (or none) in the next pass: progress is made
   // as long as some candidate exists.
   return done > 0 || illegal > 0;

@@ -223,9 +223,14 @@ struct PassStat
   std::uint64_t candidates = 0;     // candidates taken in cost order (step 2)
   std::uint64_t collapses = 0;      // collapses made (step 3)
   std::uint64_t illegal = 0;        // candidates found illegal (step 3)
-  double sweepSeconds = 0, orderSeconds = 0, stepSeconds = 0, compactSeconds = 0;
+  // Its four steps: the candidate sweep, the cost order, the collapse step, the compaction.
+  struct Step
+  {
+    double seconds = 0;
+    std::uint64_t bytesRead = 0, bytesWritten = 0, misses = 0; // the DML's, during the step
+  };
+  Step sweep, order, step, compact;
   storage::Mode mode = storage::Mode::InCore; // the DML's at the pass's end
-  std::uint64_t bytesRead = 0, bytesWritten = 0, misses = 0; // the DML's during the pass
 };
 
 // The layout step for inputs whose vertices and faces are not in a spatially coherent order
