@@ -1036,8 +1036,15 @@ public:
       this->stat.edgesPlaced += s.placed;
     }
     this->stat.trianglesAfter = this->mesh_.liveFaces;
-    this->stat.mode = this->mesh_.dml.GetMode();
-    this->ctx_.stats.passes.push_back(this->stat);
+    try
+    {
+      this->stat.mode = this->mesh_.dml.GetMode();
+      this->ctx_.stats.passes.push_back(this->stat);
+    }
+    catch (...)
+    {
+      // (a destructor must not throw: without memory for it, the pass goes unrecorded)
+    }
   }
   PassRecord(const PassRecord&) = delete;
   PassRecord& operator=(const PassRecord&) = delete;
