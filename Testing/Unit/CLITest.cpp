@@ -502,29 +502,8 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
 // a clustering has none.
 TEST_F(CLI, StatsListTheDecimationPasses)
 {
-  const int n = 24;
   const std::string in = this->P("bumps.ply");
-  {
-    std::ofstream f(in);
-    f << "ply\nformat ascii 1.0\nelement vertex " << (n + 1) * (n + 1)
-      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
-      << "\nproperty list uchar int vertex_indices\nend_header\n";
-    for (int j = 0; j <= n; ++j)
-    {
-      for (int i = 0; i <= n; ++i)
-      {
-        f << i << " " << j << " " << 2 * std::sin(0.4 * i) * std::cos(0.3 * j) << "\n";
-      }
-    }
-    for (int j = 0; j < n; ++j)
-    {
-      for (int i = 0; i < n; ++i)
-      {
-        const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
-        f << "3 " << a << " " << b << " " << c << "\n3 " << a << " " << c << " " << d << "\n";
-      }
-    }
-  }
+  WriteGrid(in, 24);
   const char* keys[] = { "\"vertices\"", "\"triangles\"", "\"goal\"", "\"triangles_after\"",
     "\"active_vertices\"", "\"edges_placed\"", "\"candidates\"", "\"collapses\"",
     "\"illegal\"", "\"steps\"", "\"sweep\"", "\"order\"", "\"step\"", "\"compact\"",
