@@ -86,6 +86,7 @@
 #include "sipmss/algorithms/Vector.h"
 #include "sipmss/storage/Access.h"
 #include "sipmss/storage/Parallel.h"
+#include "sipmss/storage/Prefault.h"
 #include "sipmss/storage/Threads.h"
 
 #include "../StoredMesh.h"
@@ -747,6 +748,10 @@ struct MeshState
   std::vector<Vec3> vbuf;
   std::vector<std::uint8_t> abuf;
   std::vector<Tri> tbuf;
+  // In core with more than one thread, the read's blocks are made present on another core
+  // while the reader fills them (storage/Prefault.h; BeginInput starts it, the read stops it
+  // before a block grows and at its end). The last member: it stops before the blocks go.
+  storage::Prefaulter prefault;
 };
 
 // The state of the passes: what one pass leaves for its steps (and the next pass reuses).

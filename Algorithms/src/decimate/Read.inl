@@ -200,6 +200,25 @@ void BeginInput(RunContext& ctx, MeshState& mesh, const io::MeshHeader& header)
   {
     mesh.outside = Array<std::uint8_t>(mesh.dml, mesh.vCap);
   }
+  // In core, the reader's first touches of these blocks go to another core, in the order the
+  // reader fills them (a PLY's vertices come first). On one thread, as asked, none.
+  if (ctx.threads > 1 && V > 0 && F > 0)
+  {
+    std::vector<storage::Prefaulter::Range> ranges;
+    auto add = [&](BlockId id, std::uint64_t bytes) {
+      if (void* base = mesh.dml.BasePointer(id))
+      {
+        ranges.push_back({ base, std::size_t(bytes) });
+      }
+    };
+    add(mesh.pos.Id(), mesh.vCap * sizeof(Vec3));
+    if (mesh.recSize)
+    {
+      add(mesh.attr.Id(), mesh.vCap * mesh.recSize);
+    }
+    add(mesh.faces.Id(), mesh.fCap * sizeof(Tri));
+    mesh.prefault.Start(std::move(ranges));
+  }
 }
 
 void EnsureVertexCapacity(MeshState& mesh, std::uint64_t n)
@@ -209,6 +228,7 @@ void EnsureVertexCapacity(MeshState& mesh, std::uint64_t n)
     return;
   }
   std::uint64_t cap = std::max<std::uint64_t>({ n, mesh.vCap * 2, 1024 });
+  mesh.prefault.Stop(); // (the blocks may move)
   mesh.pos.Resize(cap);
   if (mesh.recSize)
   {
@@ -228,6 +248,7 @@ void EnsureFaceCapacity(MeshState& mesh, std::uint64_t n)
     return;
   }
   std::uint64_t cap = std::max<std::uint64_t>({ n, mesh.fCap * 2, 1024 });
+  mesh.prefault.Stop(); // (the blocks may move)
   mesh.faces.Resize(cap);
   mesh.fCap = cap;
 }
@@ -358,6 +379,7 @@ void Read(RunContext& ctx, MeshState& mesh, const MeshSource& input)
     }
     throw;
   }
+  mesh.prefault.Stop(); // (the blocks shrink to their counts below)
   if (loader.Aborted())
   {
     throw AbortedError();
