@@ -70,7 +70,7 @@ bool Prefaulter::Start(std::vector<Range> ranges)
             return;
           }
           const std::size_t n = std::size_t(std::min<std::uintptr_t>(kStep, last - a));
-          if (::madvise(reinterpret_cast<void*>(a), n, MADV_POPULATE_WRITE) != 0)
+          if (!Populate(reinterpret_cast<void*>(a), n))
           {
             // EINVAL: a kernel without it; anything else (no memory: ENOMEM): the caller's
             // own first touches will meet the same, with the error handling they have.

@@ -523,7 +523,7 @@ int RunSimplify(const SimplifyArgs& a)
     for (const auto& p : stats.phases)
     {
       phases.push_back({ { "name", p.name }, { "seconds", p.seconds },
-        { "mode", p.mode == storage::Mode::InCore ? "in-core" : "out-of-core" } });
+        { "mode", storage::ToString(p.mode) } });
     }
     j["phases"] = phases;
     // The decimation's passes (docs/architecture.md "Algorithm I and the two-stage method in
@@ -542,7 +542,7 @@ int RunSimplify(const SimplifyArgs& a)
         { "triangles", p.triangles }, { "goal", p.goal }, { "triangles_after", p.trianglesAfter },
         { "active_vertices", p.activeVertices }, { "edges_placed", p.edgesPlaced },
         { "candidates", p.candidates }, { "collapses", p.collapses }, { "illegal", p.illegal },
-        { "steps", steps }, { "mode", p.mode == storage::Mode::InCore ? "in-core" : "out-of-core" } });
+        { "steps", steps }, { "mode", storage::ToString(p.mode) } });
     }
     j["passes"] = passes;
     const auto& s = stats.storage;
