@@ -73,6 +73,84 @@ TEST(StorageDML, InCoreBasics)
   EXPECT_THROW(dml.CloseBlock(12345), std::invalid_argument);
 }
 
+// In-core blocks of 4 MiB and more are mappings of their own that start on a huge page and
+// grow without a copy (mremap); a resize across 4 MiB moves the block between malloc'd and
+// mapped memory. Contents survive every move, grown elements read as zero, and the memory is
+// charged as before.
+TEST(StorageDML, LargeInCoreBlocksGrowAndShrink)
+{
+  DML dml;
+  Profile p;
+  p.memoryBudget = std::uint64_t(256) << 20;
+  p.policy = ModePolicy::InCore;
+  ASSERT_EQ(dml.Config(p), Mode::InCore);
+  Array<std::uint64_t> a(dml, 1000); // 8 KB: malloc'd
+  auto fill = [&](std::uint64_t from, std::uint64_t to) {
+    for (std::uint64_t i = from; i < to; ++i)
+    {
+      a.Set(i, i * 2654435761u + 1);
+    }
+  };
+  auto check = [&](std::uint64_t to) {
+    const auto* d = static_cast<const std::uint64_t*>(dml.BasePointer(a.Id()));
+    ASSERT_NE(d, nullptr);
+    for (std::uint64_t i = 0; i < to; ++i)
+    {
+      if (d[i] != i * 2654435761u + 1)
+      {
+        FAIL() << "element " << i << " changed";
+      }
+    }
+  };
+  auto zeros = [&](std::uint64_t from, std::uint64_t to) {
+    const auto* d = static_cast<const std::uint64_t*>(dml.BasePointer(a.Id()));
+    for (std::uint64_t i = from; i < to; ++i)
+    {
+      if (d[i] != 0)
+      {
+        FAIL() << "grown element " << i << " is not zero";
+      }
+    }
+  };
+  fill(0, 1000);
+  std::uint64_t n = 1000;
+  // Grows by steps (x1.5 capacity each): across 4 MiB, then as a mapping many times.
+  while (n < (std::uint64_t(48) << 20) / 8)
+  {
+    const std::uint64_t m = n + n / 3 + 1000;
+    a.Resize(m);
+    zeros(n, m);
+    fill(n, m);
+    n = m;
+    const auto at = reinterpret_cast<std::uintptr_t>(dml.BasePointer(a.Id()));
+    if (n * 8 >= (std::uint64_t(4) << 20))
+    {
+      EXPECT_EQ(at % (std::uintptr_t(2) << 20), 0u) << "a large block starts on a huge page";
+    }
+  }
+  check(n);
+  // A large block opened at once is zero and aligned.
+  Array<std::uint64_t> b(dml, (std::uint64_t(6) << 20) / 8);
+  EXPECT_EQ(reinterpret_cast<std::uintptr_t>(dml.BasePointer(b.Id())) % (std::uintptr_t(2) << 20),
+    0u);
+  EXPECT_EQ(b.Get(0), 0u);
+  EXPECT_EQ(b.Get(b.Size() - 1), 0u);
+  const std::uint64_t held = dml.GetStats().peakBytes;
+  EXPECT_GE(held, n * 8 + b.Size() * 8);
+  // Shrinks in place (a mapping), then below 4 MiB (malloc'd again), and grows back: the kept
+  // elements stay, the regrown ones are zero.
+  a.Resize(n / 8);
+  check(n / 8);
+  a.Resize(1000);
+  check(1000);
+  a.Resize(300000);
+  check(1000);
+  zeros(1000, 300000);
+  b.Close();
+  a.Close();
+  EXPECT_EQ(dml.GetStats().mode, Mode::InCore);
+}
+
 TEST(StorageDML, OutOfCoreBasicsAndCleanup)
 {
   TempDir tmp;
