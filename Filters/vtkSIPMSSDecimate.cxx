@@ -14,6 +14,7 @@
 #include "vtkPolyData.h"
 #include "vtkStringArray.h"
 
+#include <algorithm>
 #include <exception>
 #include <filesystem>
 #include <system_error>
@@ -110,8 +111,8 @@ int vtkSIPMSSDecimate::RequestData(
 void vtkSIPMSSDecimate::FillRequest(sipmss::algorithms::SimplifyRequest& request)
 {
   using sipmss::algorithms::Algorithm;
-  request.algorithm = this->PreClusterGridDimension > 0 ? Algorithm::TwoStage : Algorithm::Decimate;
-  request.grid = this->PreClusterGridDimension;
+  request.algorithm = this->PreClusterGridDimension != 0 ? Algorithm::TwoStage : Algorithm::Decimate;
+  request.grid = std::max(this->PreClusterGridDimension, 0); // (-1: 0, the automatic grid)
   request.targetTriangles = static_cast<std::uint64_t>(this->TargetNumberOfTriangles);
   request.targetReduction = this->TargetReduction;
   request.maximumError =

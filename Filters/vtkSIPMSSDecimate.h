@@ -105,9 +105,12 @@ public:
    * Two-stage simplification (the paper's Algorithm Two-Stage): when > 0, the input is first
    * clustered on a grid with this maximum dimension (as vtkSIPMSSCluster, e.g. 300), and the
    * clustered mesh, kept in the storage layer, is then decimated. Much faster on huge inputs at
-   * the same quality (measured). 0 (default): decimate the input directly.
+   * the same quality (measured). -1: two-stage on the automatic grid, as the command line's
+   * two-stage without --grid (with a TargetNumberOfTriangles T, the grid whose clustered mesh
+   * has about 16 T triangles, ceil(sqrt(16 T / 3.4)); without one, 300). 0 (default): decimate
+   * the input directly.
    */
-  vtkSetClampMacro(PreClusterGridDimension, int, 0, 65535);
+  vtkSetClampMacro(PreClusterGridDimension, int, -1, 65535);
   vtkGetMacro(PreClusterGridDimension, int);
   ///@}
 
@@ -127,7 +130,7 @@ public:
    * SelectionArray: only vertices where it is not 0 move or go, and every triangle without one
    * is kept as it was; or, when it names a one-component cell array (and no point array), every
    * cell where it is 0 is kept as it was (its corners never move or go). A multi-component point
-   * array is named NAME_K per component. Decimation only (not with PreClusterGridDimension > 0,
+   * array is named NAME_K per component. Decimation only (not with PreClusterGridDimension != 0,
    * whose clustering moves every vertex).
    */
   vtkSetStringMacro(LockArray);

@@ -1,5 +1,6 @@
 #include "sipmss/algorithms/Simplify.h"
 
+#include <algorithm>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
@@ -20,13 +21,26 @@ const char* ToString(Algorithm a)
   }
 }
 
+int AutomaticTwoStageGrid(std::uint64_t targetTriangles)
+{
+  const double g = std::ceil(
+    std::sqrt(kTwoStageClusteredPerTarget * double(targetTriangles) / kClusteredTrianglesPerGridSquare));
+  return int(std::clamp(g, 1.0, double(kMaximumGrid)));
+}
+
 int SimplifyRequest::EffectiveGrid() const
 {
   if (this->grid > 0)
   {
     return this->grid;
   }
-  return this->algorithm == Algorithm::TwoStage ? kDefaultTwoStageGrid : kDefaultClusterGrid;
+  if (this->algorithm != Algorithm::TwoStage)
+  {
+    return kDefaultClusterGrid;
+  }
+  // (a reduction is of the clustered mesh's triangles, and a bound alone names no size)
+  return this->targetTriangles > 0 ? AutomaticTwoStageGrid(this->targetTriangles)
+                                   : kDefaultTwoStageGrid;
 }
 
 double SimplifyRequest::EffectiveBoundaryWeight() const

@@ -121,6 +121,12 @@ CASES = [
      ["--algorithm", "two-stage", "--grid", "30", "--attributes", "keep:2"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 30}, ["--algorithm", "two-stage", "--grid", "30"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 300}, ["--algorithm", "two-stage"], True),
+    (vtkSIPMSSDecimate, {"PreClusterGridDimension": -1}, ["--algorithm", "two-stage"], True),
+    # (the automatic grid with a target: ceil(sqrt(16 * 200 / 3.4)) = 31)
+    (vtkSIPMSSDecimate, {"PreClusterGridDimension": -1, "TargetNumberOfTriangles": 200},
+     ["--algorithm", "two-stage", "--target", "200"], True),
+    (vtkSIPMSSDecimate, {"PreClusterGridDimension": 31, "TargetNumberOfTriangles": 200},
+     ["--algorithm", "two-stage", "--target", "200"], True),
     (vtkSIPMSSDecimate, {"NumberOfThreads": 1, "OperationMode": 1},
      ["--threads", "1", "--mode", "in-core"], False),
     (vtkSIPMSSDecimate, {"OperationMode": 2, "MemoryBudgetMB": 1.0},

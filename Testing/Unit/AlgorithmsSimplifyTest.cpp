@@ -70,8 +70,18 @@ TEST(Simplify, EachAlgorithmHasItsDefaults)
   EXPECT_EQ(r.EffectiveGrid(), kDefaultClusterGrid);
   EXPECT_EQ(r.EffectiveBoundaryWeight(), kDefaultClusterBoundaryWeight);
   r.algorithm = Algorithm::TwoStage;
-  EXPECT_EQ(r.EffectiveGrid(), kDefaultTwoStageGrid);
+  EXPECT_EQ(r.EffectiveGrid(), kDefaultTwoStageGrid); // (no triangle target)
   EXPECT_EQ(r.EffectiveBoundaryWeight(), kDefaultDecimateBoundaryWeight);
+  // With a triangle target: the grid whose clustered mesh has about 16 times its triangles.
+  r.targetTriangles = 10000;
+  EXPECT_EQ(r.EffectiveGrid(), 217); // ceil(sqrt(160000 / 3.4)) = ceil(216.9)
+  r.targetTriangles = 200;
+  EXPECT_EQ(r.EffectiveGrid(), 31);
+  r.targetTriangles = 1;
+  EXPECT_EQ(r.EffectiveGrid(), 3);
+  r.targetTriangles = std::uint64_t(1) << 40;
+  EXPECT_EQ(r.EffectiveGrid(), kMaximumGrid);
+  r.targetTriangles = 0;
   r.algorithm = Algorithm::Decimate;
   EXPECT_EQ(r.EffectiveBoundaryWeight(), kDefaultDecimateBoundaryWeight);
   r.grid = 77;
@@ -184,12 +194,12 @@ TEST(Simplify, RunsWhatTheRequestAsks)
   }
   {
     SimplifyRequest r;
-    r.algorithm = Algorithm::TwoStage; // grid: kDefaultTwoStageGrid
+    r.algorithm = Algorithm::TwoStage; // grid: the automatic one for 200 triangles
     r.targetTriangles = 200;
     Collect viaRequest, direct;
     Simplify(r, MemorySource(in), viaRequest, none);
     TwoStageOptions o;
-    o.gridDimension = kDefaultTwoStageGrid;
+    o.gridDimension = AutomaticTwoStageGrid(200);
     o.decimate.targetTriangles = 200;
     TwoStage(MemorySource(in), direct, o, none);
     ExpectSameMesh(viaRequest.m, direct.m);

@@ -483,6 +483,15 @@ int RunSimplify(const SimplifyArgs& a)
   {
     nlohmann::json j;
     j["algorithm"] = a.algorithm;
+    // The grid cluster and two-stage ran on (two-stage's default follows the target).
+    if (request.algorithm != algorithms::Algorithm::Decimate)
+    {
+      j["grid"] = request.EffectiveGrid();
+    }
+    else
+    {
+      j["grid"] = nullptr;
+    }
     j["input"] = a.input;
     j["output"] = a.output;
     j["input_vertices"] = stats.inputVertices;
@@ -594,9 +603,14 @@ int RunSimplify(const SimplifyArgs& a)
     {
       std::snprintf(error, sizeof(error), ", error %.3g of the diagonal", stats.achievedError);
     }
+    std::string algorithm = a.algorithm;
+    if (request.algorithm != algorithms::Algorithm::Decimate)
+    {
+      algorithm += " (grid " + std::to_string(request.EffectiveGrid()) + ")";
+    }
     std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices%s) in %.2f s, peak RSS "
                 "%.1f MB, %s%s\n",
-      a.algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
+      algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
       (unsigned long long)stats.outputTriangles, (unsigned long long)stats.outputVertices, error,
       seconds,
       PeakRssMB(),
@@ -830,8 +844,9 @@ int main(int argc, char** argv)
   CLI::Option_group* clustering = simplify->add_option_group("Clustering",
     "cluster and two-stage: the grid");
   auto* grid = clustering->add_option("--grid", rq.grid,
-    "maximum grid dimension (cells along the longest axis; cluster: default 50, two-stage: "
-    "default 300)");
+    "maximum grid dimension (cells along the longest axis; cluster: default 50; two-stage: "
+    "default with --target T the grid whose clustered mesh has about 16 T triangles, "
+    "ceil(sqrt(16 T / 3.4)), e.g. 217 for 10000; without --target 300)");
   auto* bounds = clustering->add_option("--bounds", sa.bounds,
     "cluster: the grid's box, xmin xmax ymin ymax zmin zmax (default: the input's bounds)")
     ->expected(6)

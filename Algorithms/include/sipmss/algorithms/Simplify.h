@@ -46,7 +46,8 @@ struct SimplifyRequest
   bool absoluteError = false;
   int levelsOfDetail = 1;
 
-  // Grid (cluster, two-stage): 0 is the algorithm's default (kDefaultClusterGrid,
+  // Grid (cluster, two-stage): 0 is the algorithm's default (cluster: kDefaultClusterGrid;
+  // two-stage: AutomaticTwoStageGrid(targetTriangles) with a triangle target, else
   // kDefaultTwoStageGrid).
   int grid = 0;
   // Cluster only: the grid's box (xmin xmax ymin ymax zmin zmax); empty: the input's bounds.
