@@ -106,9 +106,9 @@ public:
    * clustered on a grid with this maximum dimension (as vtkSIPMSSCluster, e.g. 300), and the
    * clustered mesh, kept in the storage layer, is then decimated. Much faster on huge inputs at
    * the same quality (measured). -1: two-stage on the automatic grid, as the command line's
-   * two-stage without --grid (with a TargetNumberOfTriangles T, the grid whose clustered mesh
-   * has about 16 T triangles, ceil(sqrt(16 T / 3.4)); without one, 300). 0 (default): decimate
-   * the input directly.
+   * two-stage without --grid: 300, or with a TargetNumberOfTriangles T above 19,125 the grid
+   * whose clustered mesh has about 16 T triangles, ceil(sqrt(16 T / 3.4)). 0 (default):
+   * decimate the input directly.
    */
   vtkSetClampMacro(PreClusterGridDimension, int, -1, 65535);
   vtkGetMacro(PreClusterGridDimension, int);

@@ -25,7 +25,7 @@ int AutomaticTwoStageGrid(std::uint64_t targetTriangles)
 {
   const double g = std::ceil(
     std::sqrt(kTwoStageClusteredPerTarget * double(targetTriangles) / kClusteredTrianglesPerGridSquare));
-  return int(std::clamp(g, 1.0, double(kMaximumGrid)));
+  return int(std::clamp(g, double(kDefaultTwoStageGrid), double(kMaximumGrid)));
 }
 
 int SimplifyRequest::EffectiveGrid() const

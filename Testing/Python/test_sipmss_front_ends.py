@@ -122,10 +122,10 @@ CASES = [
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 30}, ["--algorithm", "two-stage", "--grid", "30"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": 300}, ["--algorithm", "two-stage"], True),
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": -1}, ["--algorithm", "two-stage"], True),
-    # (the automatic grid with a target: ceil(sqrt(16 * 200 / 3.4)) = 31)
+    # (the automatic grid with a target: max(300, ceil(sqrt(16 * 200 / 3.4))) = 300)
     (vtkSIPMSSDecimate, {"PreClusterGridDimension": -1, "TargetNumberOfTriangles": 200},
      ["--algorithm", "two-stage", "--target", "200"], True),
-    (vtkSIPMSSDecimate, {"PreClusterGridDimension": 31, "TargetNumberOfTriangles": 200},
+    (vtkSIPMSSDecimate, {"PreClusterGridDimension": 300, "TargetNumberOfTriangles": 200},
      ["--algorithm", "two-stage", "--target", "200"], True),
     (vtkSIPMSSDecimate, {"NumberOfThreads": 1, "OperationMode": 1},
      ["--threads", "1", "--mode", "in-core"], False),

@@ -72,13 +72,16 @@ TEST(Simplify, EachAlgorithmHasItsDefaults)
   r.algorithm = Algorithm::TwoStage;
   EXPECT_EQ(r.EffectiveGrid(), kDefaultTwoStageGrid); // (no triangle target)
   EXPECT_EQ(r.EffectiveBoundaryWeight(), kDefaultDecimateBoundaryWeight);
-  // With a triangle target: the grid whose clustered mesh has about 16 times its triangles.
+  // With a triangle target: the grid whose clustered mesh has about 16 times its triangles,
+  // never coarser than 300.
   r.targetTriangles = 10000;
-  EXPECT_EQ(r.EffectiveGrid(), 217); // ceil(sqrt(160000 / 3.4)) = ceil(216.9)
-  r.targetTriangles = 200;
-  EXPECT_EQ(r.EffectiveGrid(), 31);
-  r.targetTriangles = 1;
-  EXPECT_EQ(r.EffectiveGrid(), 3);
+  EXPECT_EQ(r.EffectiveGrid(), kDefaultTwoStageGrid); // (ceil(sqrt(160000 / 3.4)) = 217)
+  r.targetTriangles = 19000;
+  EXPECT_EQ(r.EffectiveGrid(), 300); // (298.9)
+  r.targetTriangles = 19126;
+  EXPECT_EQ(r.EffectiveGrid(), 301);
+  r.targetTriangles = 100000;
+  EXPECT_EQ(r.EffectiveGrid(), 686); // ceil(685.99)
   r.targetTriangles = std::uint64_t(1) << 40;
   EXPECT_EQ(r.EffectiveGrid(), kMaximumGrid);
   r.targetTriangles = 0;
@@ -194,7 +197,7 @@ TEST(Simplify, RunsWhatTheRequestAsks)
   }
   {
     SimplifyRequest r;
-    r.algorithm = Algorithm::TwoStage; // grid: the automatic one for 200 triangles
+    r.algorithm = Algorithm::TwoStage; // grid: the automatic one for 200 triangles (300)
     r.targetTriangles = 200;
     Collect viaRequest, direct;
     Simplify(r, MemorySource(in), viaRequest, none);

@@ -542,36 +542,30 @@ TEST_F(CLI, StatsListTheDecimationPasses)
 }
 
 // Two-stage without --grid: with --target T the grid whose clustered mesh has about 16 T
-// triangles (ceil(sqrt(16 T / 3.4))), without --target 300; the grid run is in the statistics
-// ("grid") and the summary line. The clustered mesh (stage 2's first pass) follows the target.
+// triangles, max(300, ceil(sqrt(16 T / 3.4))), without --target 300; the grid run is in the
+// statistics ("grid") and the summary line.
 TEST_F(CLI, TwoStageGridFollowsTheTarget)
 {
   const std::string in = this->P("bumps.ply");
-  WriteGrid(in, 120); // (28,800 triangles)
+  WriteGrid(in, 160); // (51,200 triangles)
   auto number = [](const std::string& json, const std::string& key) {
     const std::size_t k = json.find("\"" + key + "\": ");
     EXPECT_NE(k, std::string::npos) << key << "\n" << json;
     return k == std::string::npos ? -1.0 : std::stod(json.substr(k + key.size() + 4));
   };
-  std::uint64_t clustered[2] = {};
-  int i = 0;
-  for (const int target : { 100, 1000 })
+  for (const int target : { 1000, 40000 })
   {
     Result r = RunCli("simplify " + in + " " + this->P("out.ply") + " --algorithm two-stage --target " +
       std::to_string(target) + " --stats-json " + this->P("s.json"));
     ASSERT_EQ(r.status, 0) << r.out;
-    const int grid = int(std::ceil(std::sqrt(16.0 * target / 3.4)));
+    const int grid = std::max(300, int(std::ceil(std::sqrt(16.0 * target / 3.4))));
+    EXPECT_EQ(grid, target == 1000 ? 300 : 434);
     const std::string j = ReadAll(this->P("s.json"));
     EXPECT_EQ(number(j, "grid"), grid) << j;
     EXPECT_NE(r.out.find("two-stage (grid " + std::to_string(grid) + ")"), std::string::npos) << r.out;
     EXPECT_LE(number(j, "output_triangles"), target);
-    // stage 2's input: the first pass's triangles
-    const std::size_t p = j.find("\"passes\": [");
-    ASSERT_NE(p, std::string::npos) << j;
-    clustered[i++] = std::uint64_t(number(j.substr(p), "triangles"));
+    EXPECT_GE(number(j, "output_triangles"), target - 2);
   }
-  // A target 10 times larger: a clustered mesh several times larger (a grid sqrt(10) finer).
-  EXPECT_GT(clustered[1], 4 * clustered[0]) << clustered[0] << " " << clustered[1];
   Result r = RunCli("simplify " + in + " " + this->P("out.ply") +
     " --algorithm two-stage --reduction 0.5 --stats-json " + this->P("s.json"));
   ASSERT_EQ(r.status, 0) << r.out;

@@ -845,8 +845,8 @@ int main(int argc, char** argv)
     "cluster and two-stage: the grid");
   auto* grid = clustering->add_option("--grid", rq.grid,
     "maximum grid dimension (cells along the longest axis; cluster: default 50; two-stage: "
-    "default with --target T the grid whose clustered mesh has about 16 T triangles, "
-    "ceil(sqrt(16 T / 3.4)), e.g. 217 for 10000; without --target 300)");
+    "default 300, or with a --target T above 19125 the grid whose clustered mesh has about 16 T "
+    "triangles, ceil(sqrt(16 T / 3.4)), e.g. 686 for 100000)");
   auto* bounds = clustering->add_option("--bounds", sa.bounds,
     "cluster: the grid's box, xmin xmax ymin ymax zmin zmax (default: the input's bounds)")
     ->expected(6)

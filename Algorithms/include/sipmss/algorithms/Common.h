@@ -137,12 +137,12 @@ bool ClusterGoesOutOfCore(const ClusterOptions& options, std::uint64_t V, std::u
 // Defaults and ranges shared by every front end (SimplifyRequest, Simplify.h) and the cores'
 // option structs.
 constexpr int kDefaultClusterGrid = 50;   // cluster: cells along the longest axis
-constexpr int kDefaultTwoStageGrid = 300; // two-stage: stage 1's grid without a triangle target
-// Two-stage with a triangle target T and no grid given: stage 1's grid is the one whose clustered
-// mesh has about kTwoStageClusteredPerTarget * T triangles, a scan's clustered mesh having about
-// kClusteredTrianglesPerGridSquare * g^2 triangles at grid g (Dragon-size 3.8, Lucy-size 3.0 at
-// grid 300): ceil(sqrt(16 T / 3.4)), 217 for 10,000 triangles. Stage 2's work then follows the
-// target, not the input (docs/architecture.md, "Two-stage's grid").
+constexpr int kDefaultTwoStageGrid = 300; // two-stage: stage 1's grid, and its finest default
+// Two-stage with a triangle target T and no grid given: stage 1's grid is 300, or finer when the
+// target needs it: the grid whose clustered mesh has about kTwoStageClusteredPerTarget * T
+// triangles, a scan's clustered mesh having about kClusteredTrianglesPerGridSquare * g^2
+// triangles at grid g (Dragon-size 3.8, Lucy-size 3.0 at grid 300): max(300, ceil(sqrt(16 T /
+// 3.4))), finer than 300 from 19,126 triangles on (docs/architecture.md, "Two-stage's grid").
 constexpr double kTwoStageClusteredPerTarget = 16;
 constexpr double kClusteredTrianglesPerGridSquare = 3.4;
 int AutomaticTwoStageGrid(std::uint64_t targetTriangles);
