@@ -34,129 +34,27 @@ namespace
 constexpr std::uint64_t kHugeBlockBytes = std::uint64_t(4) << 20;
 constexpr std::size_t kHugePageBytes = std::size_t(2) << 20;
 
-// The memory of an in-core block. In-core blocks are accessed at random (rings, quadrics,
-// candidates): on large blocks 2 MiB pages save most TLB misses (the kernel's "madvise" THP
-// mode leaves them off otherwise). From kHugeBlockBytes of capacity on, a block is a mapping of
-// its own that starts on a huge page and is advised for huge pages (its length: the capacity
-// rounded up to whole huge pages); smaller blocks come from malloc. A mapping grows by mremap:
-// its pages move with their page tables, so the block's contents are neither copied nor
-// written to fresh memory again (the first touch of fresh memory is what costs on these
-// machines, and a clustering's cell records grow some 25 times). Whether a block's memory is
-// mapped follows from its capacity alone (Mapped); a resize across kHugeBlockBytes moves it.
-namespace BlockMemory
+// In-core blocks are accessed at random (rings, quadrics, candidates): on large blocks 2 MiB
+// pages save most TLB misses (the kernel's "madvise" THP mode leaves them off otherwise).
+void AdviseHugePages(void* p, std::uint64_t bytes)
 {
-bool Mapped(std::uint64_t capacity)
-{
-  return capacity >= kHugeBlockBytes;
-}
-
-std::uint64_t MappedLength(std::uint64_t capacity)
-{
-  return (capacity + kHugePageBytes - 1) & ~std::uint64_t(kHugePageBytes - 1);
-}
-
-// `length` bytes (a multiple of kHugePageBytes) of zeros on a huge-page boundary, or nullptr.
-unsigned char* MapAligned(std::uint64_t length)
-{
-  void* raw = ::mmap(nullptr, length + kHugePageBytes, PROT_READ | PROT_WRITE,
-    MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
-  if (raw == MAP_FAILED)
-  {
-    return nullptr;
-  }
-  const std::uintptr_t a = reinterpret_cast<std::uintptr_t>(raw);
-  const std::uintptr_t first = (a + kHugePageBytes - 1) & ~std::uintptr_t(kHugePageBytes - 1);
-  if (first > a)
-  {
-    ::munmap(raw, first - a);
-  }
-  const std::uintptr_t end = a + length + kHugePageBytes;
-  if (end > first + length)
-  {
-    ::munmap(reinterpret_cast<void*>(first + length), end - (first + length));
-  }
 #ifdef MADV_HUGEPAGE
-  ::madvise(reinterpret_cast<void*>(first), length, MADV_HUGEPAGE); // advice only
+  if (!p || bytes < kHugeBlockBytes)
+  {
+    return;
+  }
+  const std::uintptr_t a = reinterpret_cast<std::uintptr_t>(p);
+  const std::uintptr_t first = (a + kHugePageBytes - 1) & ~std::uintptr_t(kHugePageBytes - 1);
+  const std::uintptr_t last = (a + bytes) & ~std::uintptr_t(kHugePageBytes - 1);
+  if (last > first)
+  {
+    ::madvise(reinterpret_cast<void*>(first), last - first, MADV_HUGEPAGE); // advice only
+  }
+#else
+  (void)p;
+  (void)bytes;
 #endif
-  return reinterpret_cast<unsigned char*>(first);
 }
-
-// Zeroed memory of `capacity` bytes, or nullptr.
-unsigned char* Allocate(std::uint64_t capacity)
-{
-  if (Mapped(capacity))
-  {
-    return MapAligned(MappedLength(capacity));
-  }
-  return static_cast<unsigned char*>(std::calloc(capacity, 1));
-}
-
-void Free(unsigned char* p, std::uint64_t capacity) noexcept
-{
-  if (!p)
-  {
-    return;
-  }
-  if (Mapped(capacity))
-  {
-    ::munmap(p, MappedLength(capacity));
-    return;
-  }
-  std::free(p);
-}
-
-// The memory `p` of `oldCapacity` bytes (its first `keep` bytes in use) resized to
-// `newCapacity` bytes, or nullptr (then `p` is unchanged). Past the kept bytes the contents are
-// undefined.
-unsigned char* Resize(
-  unsigned char* p, std::uint64_t oldCapacity, std::uint64_t newCapacity, std::uint64_t keep)
-{
-  const bool was = Mapped(oldCapacity), will = Mapped(newCapacity);
-  if (!was && !will)
-  {
-    return static_cast<unsigned char*>(std::realloc(p, newCapacity));
-  }
-  if (was && will)
-  {
-    const std::uint64_t oldLength = MappedLength(oldCapacity);
-    const std::uint64_t newLength = MappedLength(newCapacity);
-    if (newLength == oldLength)
-    {
-      return p;
-    }
-    // In place (shrinking always is; growing when the addresses after it are free), else moved
-    // to a huge-page boundary reserved first (the huge pages move whole).
-    void* q = ::mremap(p, oldLength, newLength, 0);
-    if (q != MAP_FAILED)
-    {
-      return static_cast<unsigned char*>(q);
-    }
-    unsigned char* target = MapAligned(newLength);
-    if (!target)
-    {
-      return nullptr;
-    }
-    q = ::mremap(p, oldLength, newLength, MREMAP_MAYMOVE | MREMAP_FIXED, target);
-    if (q != MAP_FAILED)
-    {
-      return static_cast<unsigned char*>(q);
-    }
-    // (no move: the target stays fresh memory, the contents are copied)
-    std::memcpy(target, p, std::min(keep, std::min(oldCapacity, newCapacity)));
-    ::munmap(p, oldLength);
-    return target;
-  }
-  // Across kHugeBlockBytes: fresh memory of the other kind, the kept bytes copied.
-  unsigned char* q = Allocate(newCapacity);
-  if (!q)
-  {
-    return nullptr;
-  }
-  std::memcpy(q, p, std::min(keep, std::min(oldCapacity, newCapacity)));
-  Free(p, oldCapacity);
-  return q;
-}
-} // namespace BlockMemory
 
 bool AllZero(const unsigned char* p, std::size_t n)
 {
@@ -242,7 +140,7 @@ void DML::Impl::Shutdown() noexcept
   }
   for (auto& b : this->blocks)
   {
-    BlockMemory::Free(b.mem, b.capacityBytes);
+    std::free(b.mem);
     b.mem = nullptr;
     if (b.fd >= 0)
     {
@@ -425,12 +323,13 @@ BlockId DML::Impl::OpenRaw(Kind kind, std::size_t elementSize, std::uint64_t cou
     {
       const std::uint64_t cap = std::max<std::uint64_t>(bytes, 1);
       this->acc.Charge(HeapCost(cap));
-      b.mem = BlockMemory::Allocate(cap);
+      b.mem = static_cast<unsigned char*>(std::calloc(cap, 1));
       if (!b.mem)
       {
         this->acc.Release(HeapCost(cap));
         throw std::bad_alloc();
       }
+      AdviseHugePages(b.mem, cap);
       b.capacityBytes = cap;
       b.count = count;
     }
@@ -854,7 +753,7 @@ void DML::Impl::CloseRaw(BlockId id)
   Block& b = this->blocks[static_cast<std::size_t>(id)];
   if (b.mem)
   {
-    BlockMemory::Free(b.mem, b.capacityBytes);
+    std::free(b.mem);
     b.mem = nullptr;
     this->acc.Release(HeapCost(b.capacityBytes));
   }
@@ -870,8 +769,8 @@ void DML::Impl::CloseRaw(BlockId id)
   b = Block{};
 }
 
-// In core: grows through BlockMemory::Resize (the old and new capacity are both charged while
-// it may copy). Throws BudgetError when the new size does not fit the budget.
+// In core: grows by realloc (the old and new buffers are both charged while realloc may copy).
+// Returns false when the new size does not fit the budget.
 void DML::Impl::ResizeInCore(Block& b, std::uint64_t count)
 {
   const std::uint64_t newBytes = CheckedBytes(count, b.elementSize);
@@ -885,12 +784,11 @@ void DML::Impl::ResizeInCore(Block& b, std::uint64_t count)
     else if (b.capacityBytes > 4096 && newBytes < b.capacityBytes / 4)
     {
       const std::uint64_t cap = std::max<std::uint64_t>(newBytes, 1);
-      // (shrinking in place, or into memory of the smaller kind: at most a quarter is copied)
-      if (unsigned char* p = BlockMemory::Resize(b.mem, b.capacityBytes, cap, newBytes))
+      if (void* p = std::realloc(b.mem, cap)) // shrinking realloc does not copy
       {
         this->acc.Release(HeapCost(b.capacityBytes));
         this->acc.Add(HeapCost(cap));
-        b.mem = p;
+        b.mem = static_cast<unsigned char*>(p);
         b.capacityBytes = cap;
       }
     }
@@ -903,20 +801,38 @@ void DML::Impl::ResizeInCore(Block& b, std::uint64_t count)
     cap = newBytes;
   }
   this->acc.Charge(HeapCost(cap)); // throws BudgetError when it does not fit
-  // A block of huge-page size lives in a mapping of its own advised for huge pages, which grows
-  // without a copy (BlockMemory): the cell records of a clustering grow this way, and are then
+  // A block of huge-page size moves to fresh memory advised for huge pages (realloc would move
+  // its small pages as they are): the cell records of a clustering grow this way, and are then
   // accessed at random (in a shuffled input a TLB miss each on small pages; Lucy-size
   // clustering 1.4 s faster, docs/benchmarks.md). It starts on a huge page, so records of a
   // power-of-two size start on a cache line (cluster records: a face's update in two lines).
-  unsigned char* p = BlockMemory::Resize(b.mem, b.capacityBytes, cap, oldBytes);
+  void* p = nullptr;
+  if (cap >= kHugeBlockBytes)
+  {
+    if (::posix_memalign(&p, kHugePageBytes, cap) != 0)
+    {
+      p = nullptr;
+    }
+    if (p)
+    {
+      AdviseHugePages(p, cap);
+      std::memcpy(p, b.mem, oldBytes);
+      std::free(b.mem);
+    }
+  }
+  else
+  {
+    p = std::realloc(b.mem, cap);
+  }
   if (!p)
   {
     this->acc.Release(HeapCost(cap));
     throw std::bad_alloc();
   }
   this->acc.Release(HeapCost(b.capacityBytes));
-  b.mem = p;
+  b.mem = static_cast<unsigned char*>(p);
   b.capacityBytes = cap;
+  AdviseHugePages(b.mem, cap);
   std::memset(b.mem + oldBytes, 0, newBytes - oldBytes);
   b.count = count;
 }
@@ -1017,7 +933,7 @@ void DML::Impl::SpillBlock(BlockId id)
     }
     throw;
   }
-  BlockMemory::Free(b.mem, b.capacityBytes);
+  std::free(b.mem);
   b.mem = nullptr;
   this->acc.Release(HeapCost(b.capacityBytes));
   b.capacityBytes = 0;
@@ -1029,19 +945,20 @@ void DML::Impl::LoadBlock(BlockId id)
   Block& b = this->blocks[static_cast<std::size_t>(id)];
   const std::uint64_t cap = std::max<std::uint64_t>(b.Bytes(), 1);
   this->acc.Charge(HeapCost(cap));
-  unsigned char* mem = BlockMemory::Allocate(cap);
+  auto* mem = static_cast<unsigned char*>(std::malloc(cap));
   if (!mem)
   {
     this->acc.Release(HeapCost(cap));
     throw std::bad_alloc();
   }
+  AdviseHugePages(mem, cap);
   try
   {
     this->BackendRead(b, mem, b.Bytes(), 0);
   }
   catch (...)
   {
-    BlockMemory::Free(mem, cap);
+    std::free(mem);
     this->acc.Release(HeapCost(cap));
     throw;
   }
