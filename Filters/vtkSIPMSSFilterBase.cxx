@@ -101,6 +101,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
   this->AchievedReduction = 0;
   this->AchievedError = -1;
   this->ErrorDiagonal = 0;
+  this->GridDimension = 0;
   this->PrunedComponents = this->PrunedTriangles = 0;
   this->NumberOfRanks = 1;
   this->BytesSent = this->BytesReceived = 0;
@@ -368,6 +369,7 @@ int vtkSIPMSSFilterBase::Simplify(vtkInformationVector** inputVector, vtkPolyDat
     this->LayoutFarFraction = stats.layoutFarFraction;
     this->AchievedError = stats.achievedError;
     this->ErrorDiagonal = stats.errorDiagonal;
+    this->GridDimension = stats.gridDimension;
     this->PrunedComponents = stats.prunedComponents;
     this->PrunedTriangles = stats.prunedTriangles;
     this->Reordered = stats.reordered;
@@ -476,6 +478,7 @@ void vtkSIPMSSFilterBase::PrintSelf(ostream& os, vtkIndent indent)
   os << indent << "AchievedReduction: " << this->AchievedReduction << "\n";
   os << indent << "AchievedError: " << this->AchievedError << "\n";
   os << indent << "ErrorDiagonal: " << this->ErrorDiagonal << "\n";
+  os << indent << "GridDimension: " << this->GridDimension << "\n";
   os << indent << "PrunedComponents: " << this->PrunedComponents << "\n";
   os << indent << "PrunedTriangles: " << this->PrunedTriangles << "\n";
 }

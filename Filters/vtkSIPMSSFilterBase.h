@@ -149,6 +149,9 @@ public:
   // (-1 and 0 before a run; docs/architecture.md, "Error bound").
   vtkGetMacro(AchievedError, double);
   vtkGetMacro(ErrorDiagonal, double);
+  // The grid the last run clustered on (vtkSIPMSSCluster's, or two-stage's stage 1: with
+  // vtkSIPMSSDecimate's PreClusterGridDimension -1 the automatic one); 0: no clustering.
+  vtkGetMacro(GridDimension, int);
   // Disconnected pieces the run removed (vtkSIPMSSDecimate's PruneSize) and their triangles.
   vtkGetMacro(PrunedComponents, vtkTypeUInt64);
   vtkGetMacro(PrunedTriangles, vtkTypeUInt64);
@@ -239,6 +242,7 @@ protected:
   double AchievedReduction = 0.0;
   double AchievedError = -1.0;
   double ErrorDiagonal = 0.0;
+  int GridDimension = 0;
   vtkTypeUInt64 PrunedComponents = 0;
   vtkTypeUInt64 PrunedTriangles = 0;
 

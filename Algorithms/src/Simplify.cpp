@@ -272,6 +272,7 @@ RunStats Simplify(const SimplifyRequest& request, const MeshSource& input, io::M
     progress, profile, [&] { return Run(request, profile, input, output, progress, onLevel); });
   stats.memoryBudgetBytes = profile.memoryBudget;
   stats.memoryBudgetOrigin = profile.budgetOrigin;
+  stats.gridDimension = request.algorithm == Algorithm::Decimate ? 0 : request.EffectiveGrid();
   return stats;
 }
 

@@ -30,7 +30,7 @@ STORAGE = ["MemoryBudgetMB", "TemporaryDirectories", "OperationMode", "NumberOfT
 STATISTICS = ["UsedOutOfCore", "MemoryBudgetBytes", "PeakStorageBytes", "PeakTemporaryFileBytes",
               "InputTriangles", "OutputTriangles", "AchievedReduction", "ElapsedSeconds",
               "LayoutFarFraction", "Reordered", "AchievedError", "ErrorDiagonal",
-              "PrunedComponents", "PrunedTriangles"]
+              "PrunedComponents", "PrunedTriangles", "GridDimension"]
 
 pxm = servermanager.ProxyManager()
 errors = []
@@ -151,6 +151,15 @@ check(0 < dec.GetProperty("AchievedError").GetData() < 1, "achieved error %r" %
       dec.GetProperty("AchievedError").GetData())
 check(abs(dec.GetProperty("ErrorDiagonal").GetData() - 3 ** 0.5) < 0.01, "diagonal %r" %
       dec.GetProperty("ErrorDiagonal").GetData())  # (the unit sphere's box: side 1)
+check(dec.GetProperty("GridDimension").GetData() == 0, "a decimation reports a grid")
+# Two-stage on the automatic grid (-1): the grid it ran on is reported (300 for this target).
+dec.PreClusterGridDimension = -1
+dec.UpdatePipeline()
+dec.UpdatePropertyInformation()
+check(dec.GetProperty("GridDimension").GetData() == 300,
+      "two-stage's automatic grid %r" % dec.GetProperty("GridDimension").GetData())
+check(dec.GetProperty("OutputTriangles").GetData() <= 500, "two-stage's triangles %r" %
+      dec.GetProperty("OutputTriangles").GetData())
 
 for e in errors:
     print("FAIL:", e)

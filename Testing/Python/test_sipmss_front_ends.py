@@ -191,6 +191,9 @@ class FrontEnds(unittest.TestCase):
                 self.assertEqual(f.GetPrunedTriangles(), stats["pruned_triangles"])
                 self.assertEqual(f.GetPrunedComponents(), 1 if "PruneSize" in props else 0)
                 self.assertEqual(f.GetErrorDiagonal(), stats["diagonal"])
+                self.assertEqual(f.GetGridDimension(), stats["grid"] or 0)
+                self.assertEqual(f.GetGridDimension() > 0,
+                                 cls is vtkSIPMSSCluster or props.get("PreClusterGridDimension", 0) != 0)
                 self.assertGreater(f.GetAchievedError(), 0)
                 if "MaximumError" in props:
                     bound = props["MaximumError"] / (f.GetErrorDiagonal() if props.get("AbsoluteError") else 1)

@@ -483,10 +483,10 @@ int RunSimplify(const SimplifyArgs& a)
   {
     nlohmann::json j;
     j["algorithm"] = a.algorithm;
-    // The grid cluster and two-stage ran on (two-stage's default follows the target).
-    if (request.algorithm != algorithms::Algorithm::Decimate)
+    // The grid cluster and two-stage ran on (two-stage's default follows a large target).
+    if (stats.gridDimension > 0)
     {
-      j["grid"] = request.EffectiveGrid();
+      j["grid"] = stats.gridDimension;
     }
     else
     {
@@ -604,9 +604,9 @@ int RunSimplify(const SimplifyArgs& a)
       std::snprintf(error, sizeof(error), ", error %.3g of the diagonal", stats.achievedError);
     }
     std::string algorithm = a.algorithm;
-    if (request.algorithm != algorithms::Algorithm::Decimate)
+    if (stats.gridDimension > 0)
     {
-      algorithm += " (grid " + std::to_string(request.EffectiveGrid()) + ")";
+      algorithm += " (grid " + std::to_string(stats.gridDimension) + ")";
     }
     std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices%s) in %.2f s, peak RSS "
                 "%.1f MB, %s%s\n",

@@ -274,6 +274,10 @@ struct RunStats
   // for, divided by errorDiagonal, the input's bounding-box diagonal (-1: not measured, no run).
   double achievedError = -1;
   double errorDiagonal = 0;
+  // The grid the run clustered on (cluster, two-stage's stage 1; as Simplify() chose it from the
+  // request, SimplifyRequest::EffectiveGrid); 0: no clustering (decimation, or a core called
+  // directly).
+  int gridDimension = 0;
   std::vector<PhaseStat> phases;
   std::vector<PassStat> passes; // the decimation's passes, in order (none for a clustering)
   storage::Stats storage; // the DML's statistics at the end of the run (peak, hits, misses, ...)
