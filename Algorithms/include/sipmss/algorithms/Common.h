@@ -137,7 +137,7 @@ bool ClusterGoesOutOfCore(const ClusterOptions& options, std::uint64_t V, std::u
 // Defaults and ranges shared by every front end (SimplifyRequest, Simplify.h) and the cores'
 // option structs.
 constexpr int kDefaultClusterGrid = 50;   // cluster: cells along the longest axis
-constexpr int kDefaultTwoStageGrid = 300; // two-stage: stage 1's grid, and its finest default
+constexpr int kDefaultTwoStageGrid = 300; // two-stage: stage 1's grid (the coarsest automatic one)
 // Two-stage with a triangle target T and no grid given: stage 1's grid is 300, or finer when the
 // target needs it: the grid whose clustered mesh has about kTwoStageClusteredPerTarget * T
 // triangles, a scan's clustered mesh having about kClusteredTrianglesPerGridSquare * g^2
