@@ -1,5 +1,5 @@
 // A nested run's progress inside its caller's (two-stage's stages, the distributed decimation's
-// passes). Internal to the algorithm cores.
+// passes), and its statistics added to the caller's. Internal to the algorithm cores.
 #pragma once
 
 #include "sipmss/algorithms/Common.h"
@@ -48,4 +48,20 @@ private:
   std::function<double(std::uint64_t, std::uint64_t)> share_;
   std::string label_;
 };
+
+// Appends the phases and the passes of a nested run (a stage, a piece) to its caller's, named
+// with `prefix` ("stage 2 ", "piece ", ...).
+inline void AddNestedRun(RunStats& to, const RunStats& from, const char* prefix)
+{
+  for (PhaseStat p : from.phases)
+  {
+    p.name = prefix + p.name;
+    to.phases.push_back(std::move(p));
+  }
+  for (PassStat p : from.passes)
+  {
+    p.run = prefix + p.run;
+    to.passes.push_back(std::move(p));
+  }
+}
 } // namespace sipmss::algorithms::detail

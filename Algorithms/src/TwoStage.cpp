@@ -20,17 +20,10 @@ namespace sipmss::algorithms
 {
 namespace
 {
+using detail::AddNestedRun;
 using detail::StageProgress;
 using storage::Array;
 using storage::DML;
-
-void Prefix(std::vector<PhaseStat>& phases, std::size_t from, const char* prefix)
-{
-  for (std::size_t i = from; i < phases.size(); ++i)
-  {
-    phases[i].name = prefix + phases[i].name;
-  }
-}
 } // namespace
 
 namespace
@@ -108,17 +101,10 @@ RunStats RunStageTwo(detail::StoredMesh& handoff, io::MeshSink& output, const De
   Progress& progress, const OnLevel& onLevel, const RunStats& s1, RunStats& stats)
 {
   StageProgress p2(progress, "stage 2: ");
-  const std::size_t from = stats.phases.size();
   RunStats s2 = Decimate(
     [&handoff](io::MeshSink& sink, const io::ReadOptions& ro) { return handoff.Replay(sink, ro); },
     output, dopt, p2, onLevel);
-  stats.phases.insert(stats.phases.end(), s2.phases.begin(), s2.phases.end());
-  Prefix(stats.phases, from, "stage 2 ");
-  for (PassStat p : s2.passes)
-  {
-    p.run = "stage 2 " + p.run;
-    stats.passes.push_back(std::move(p));
-  }
+  AddNestedRun(stats, s2, "stage 2 ");
   stats.outputVertices = s2.outputVertices;
   stats.outputTriangles = s2.outputTriangles;
   stats.prunedComponents = s2.prunedComponents; // (pieces of the clustered mesh)
@@ -160,8 +146,7 @@ RunStats TwoStageDistributed(const MeshSource& input, io::MeshSink& output,
     stats.inputVertices = s1.inputVertices;
     stats.inputTriangles = s1.inputTriangles;
     stats.droppedInputFaces = s1.droppedInputFaces;
-    stats.phases = s1.phases;
-    Prefix(stats.phases, 0, "stage 1 ");
+    AddNestedRun(stats, s1, "stage 1 ");
   }
   dml.Reconfigure();
 
@@ -280,9 +265,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     stats.inputVertices = s1.inputVertices;
     stats.inputTriangles = s1.inputTriangles;
     stats.droppedInputFaces = s1.droppedInputFaces;
-    const std::size_t from1 = stats.phases.size();
-    stats.phases.insert(stats.phases.end(), s1.phases.begin(), s1.phases.end());
-    Prefix(stats.phases, from1, "stage 1 ");
+    AddNestedRun(stats, s1, "stage 1 ");
   }
   dml.Reconfigure(); // stage 1's input-sized blocks are gone
 #if defined(__GLIBC__)

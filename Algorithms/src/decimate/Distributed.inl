@@ -156,21 +156,6 @@ struct PieceSample
   std::uint64_t vertex;
 };
 
-// The phases and the passes of a run that is part of this one, named with `prefix`.
-void AddPhases(RunStats& to, const RunStats& from, const char* prefix)
-{
-  for (PhaseStat p : from.phases)
-  {
-    p.name = prefix + p.name;
-    to.phases.push_back(std::move(p));
-  }
-  for (PassStat p : from.passes)
-  {
-    p.run = prefix + p.run;
-    to.passes.push_back(std::move(p));
-  }
-}
-
 RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
   const DecimateOptions& given, Progress& progress,
   const std::function<void(int level, const std::function<void(io::MeshSink&)>& emit)>& onLevel)
@@ -320,7 +305,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
       StageProgress p1(progress, "piece: ", [](std::uint64_t, std::uint64_t) { return 0.6; });
       RunStats s1;
       RunOnOwnState(o, p1, s1, input, mine, nullptr);
-      AddPhases(stats, s1, "piece ");
+      detail::AddNestedRun(stats, s1, "piece ");
       stats.droppedInputFaces = s1.droppedInputFaces;
       err = s1.achievedError;
     });
@@ -636,7 +621,7 @@ RunStats DecimateDistributed(const MeshSource& input, io::MeshSink& output,
       return gathered->Replay(js, ro);
     };
     RunOnOwnState(o, p2, s2, source, output, onLevel);
-    AddPhases(stats, s2, "gathered ");
+    detail::AddNestedRun(stats, s2, "gathered ");
     err = std::max(err, s2.achievedError);
   });
   rounds.Agree();
