@@ -187,6 +187,37 @@ void OptimalCellAttributes(ClusterState& cluster, const double p[3], std::vector
 void AddFaceAttributeTerms(ClusterState& cluster, const std::uint32_t* f, const VertexRec& a,
   const VertexRec& b, const VertexRec& c, double area);
 
+// The cell records' first size. In core, from the header: the occupied cells a scan is expected
+// to have (EstimatedCells, at most the Config's declared maximum). An in-core block is zeroed
+// lazily (calloc), so only the records in use are ever touched, and the growth's copies into
+// fresh memory, which these machines make slow on first touch, are not made (Dragon-size at
+// grid 300: 175K cells of 256 bytes, grown from 1,024 by halves). Out of core (or without
+// counts) the records grow from 1,024.
+std::uint64_t InitialCells(const ClusterState& cluster, const io::MeshHeader& h)
+{
+  constexpr std::uint64_t kFirst = 1024;
+  if (!h.vertexCount || cluster.dml.GetMode() != storage::Mode::InCore)
+  {
+    return kFirst;
+  }
+  const std::uint64_t gridCells =
+    std::uint64_t(cluster.grid.dims[0]) * cluster.grid.dims[1] * cluster.grid.dims[2];
+  const int m = int(std::max({ cluster.grid.dims[0], cluster.grid.dims[1], cluster.grid.dims[2] }));
+  std::uint64_t cells = std::min({ std::uint64_t(EstimatedCells(h.vertexCount, m)), gridCells,
+    std::uint64_t(kNoCell - 1) });
+  // (within half of what the budget has left, with the candidates' share: an estimate must not
+  // be what moves a run out of core)
+  const std::uint64_t budget = cluster.dml.GetProfile().memoryBudget;
+  if (budget)
+  {
+    const std::uint64_t held = cluster.dml.GetStats().bytesHeld;
+    const std::uint64_t room = budget > held ? (budget - held) / 2 : 0;
+    const double perCell = sizeof(CellRec) + kWork::kCandidatesPerCell * sizeof(TriSlot);
+    cells = std::min<std::uint64_t>(cells, std::uint64_t(double(room) / perCell));
+  }
+  return std::max(kFirst, cells);
+}
+
 void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
 {
   cluster.channels = AttributeChannels(h.layout, cluster.options.attributes);
@@ -206,10 +237,21 @@ void BeginInput(ClusterState& cluster, const io::MeshHeader& h)
   cluster.attrStride = (h.layout.normals ? 3 : 0) + (h.layout.colors ? 4 : 0) +
     (h.layout.texcoords ? 2 : 0) + h.layout.scalars.size();
   cluster.vertices = Array<VertexRec>(cluster.dml, std::max<std::uint64_t>(h.vertexCount, 1024));
-  cluster.cells = Array<CellRec>(cluster.dml, 1024);
+  std::uint64_t cells = InitialCells(cluster, h);
+  try
+  {
+    cluster.cells = Array<CellRec>(cluster.dml, cells);
+  }
+  catch (const std::bad_alloc&)
+  {
+    cells = 1024; // (an estimate the system would not map: grown as they come instead)
+    cluster.cells = Array<CellRec>(cluster.dml, cells);
+  }
+  cluster.triangles.Presize(
+    std::uint64_t(kWork::kCandidatesPerCell * double(cells)), h.faceCount);
   if (cluster.attrStride)
   {
-    cluster.attrBlock = cluster.dml.OpenBlock(cluster.attrStride * sizeof(float), 1024);
+    cluster.attrBlock = cluster.dml.OpenBlock(cluster.attrStride * sizeof(float), cells);
     cluster.attrBuf.assign(cluster.attrStride, 0.f);
   }
   if (cluster.xSize)

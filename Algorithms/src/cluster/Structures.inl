@@ -385,6 +385,24 @@ public:
     }
     this->candidates_.Set(this->numCandidates_++, TriSlot{ { a, b, c }, 1 });
   }
+  // Before the first Append, in core: room for `expected` candidates (at most `faces`), zeroed
+  // lazily like the cells (BeginInput), instead of growing from 1,024 by doubling.
+  void Presize(std::uint64_t expected, std::uint64_t faces)
+  {
+    const std::uint64_t n = std::min(expected, faces);
+    if (this->numCandidates_ == 0 && n > this->candidates_.Size() &&
+      this->dml_.GetMode() == storage::Mode::InCore)
+    {
+      try
+      {
+        this->candidates_ = Array<TriSlot>(this->dml_, n);
+      }
+      catch (const std::bad_alloc&)
+      {
+        // (left to grow as they come)
+      }
+    }
+  }
   // Whether the next Append resizes the block.
   bool Full() const { return this->numCandidates_ == this->candidates_.Size(); }
 
