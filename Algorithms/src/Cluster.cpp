@@ -1569,7 +1569,10 @@ void OptimalCellAttributes(ClusterState& cluster, const double p[3], std::vector
 }
 
 // Minimizes the cell quadric with a pseudo-inverse about the cell's mean (Lindstrom); when the
-// minimizer leaves the cell (by more than placementSlack), the fallback is used.
+// minimizer leaves the cell (by more than placementSlack), the fallback is used. The eigen-
+// decomposition is Eigen's closed form for 3x3 matrices (computeDirect): the iterative one took
+// a tenth of a one-thread two-stage run on Dragon-size, and the written points were the same
+// floats but one coordinate of Dragon-size's clustering (docs/benchmarks.md).
 void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q, double p[3])
 {
   // The mean of the corners (exact sums, one rounding), about the centre as the quadric is.
@@ -1588,7 +1591,8 @@ void Representative(ClusterState& cluster, const CellRec& rec, const Quadric& Q,
   A << q[0], q[1], q[2], q[1], q[4], q[5], q[2], q[5], q[7];
   const Eigen::Vector3d b(q[3], q[6], q[8]);
   Eigen::Vector3d x = mean;
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(A);
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+  es.computeDirect(A);
   const Eigen::Vector3d ev = es.eigenvalues();
   const double maxEv = ev.cwiseAbs().maxCoeff();
   if (maxEv > 0)
