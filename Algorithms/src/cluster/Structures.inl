@@ -180,8 +180,8 @@ struct PlainSums
 struct CellRec
 {
   std::uint64_t corners;   // corners of faces in the cell (the mean's count)
-  std::uint64_t triangles; // candidate output triangles whose smallest cell is this one; later
-                           // the end of its bucket
+  std::uint64_t triangles; // candidate output triangles whose smallest cell is this one (the
+                           // size of its bucket in TriangleSet::Finish)
   // The cell's plane quadric sums (Quadric.h) about FixedUnits::centre, and the sum of its faces'
   // corners: exact (q and sum; FixedUnits::position from the grid's origin), or in doubles
   // (plain). What a face's update touches comes first: with plain sums the record's first
@@ -410,15 +410,19 @@ public:
   // with the distinct triangles, sorted by (smallest cell, second, third).
   void Finish(Array<CellRec>& cells, std::uint32_t numCells, Progress& progress)
   {
-    // bucket ends by prefix sums
+    // Bucket ends by prefix sums, in an array of their own: the scatter then updates 8 bytes a
+    // candidate, not a 256-byte cell record read and written back.
+    Array<std::uint64_t> ends(this->dml_, std::uint64_t(numCells) + 1);
     std::uint64_t total = 0;
-    for (std::uint32_t c = 0; c < numCells; ++c)
-    {
-      CellRec r = cells.Get(c);
-      total += r.triangles;
-      r.triangles = total; // end of the bucket; decremented while scattering
-      cells.Set(c, r);
-    }
+    cells.ForEachChunk(0, numCells, storage::Access::Read,
+      [&](CellRec* d, std::uint64_t first, std::uint64_t count) {
+        for (std::uint64_t j = 0; j < count; ++j)
+        {
+          total += d[j].triangles;
+          ends.Set(first + j, total); // decremented while scattering: then the bucket's start
+        }
+      });
+    ends.Set(numCells, total);
     Array<TriSlot> buckets(this->dml_, std::max<std::uint64_t>(total, 1));
     const std::uint64_t n = this->numCandidates_;
     this->candidates_.ForEachChunk(0, n, storage::Access::Read,
@@ -429,25 +433,27 @@ public:
           {
             progress.Tick(0.5 * double(first + j) / double(std::max<std::uint64_t>(n, 1)));
           }
-          CellRec r = cells.Get(d[j].v[0]);
-          buckets.Set(--r.triangles, d[j]);
-          cells.Set(d[j].v[0], r);
+          const std::uint64_t at = ends.Get(d[j].v[0]) - 1;
+          ends.Set(d[j].v[0], at);
+          buckets.Set(at, d[j]);
         }
       });
     this->candidates_.Close();
-    // each bucket [begin, end) now starts at cells[c].triangles; dedup within it
+    // each bucket [begin, end) now starts at ends[c] (and ends where the next starts, the last at
+    // ends[numCells]); dedup within it
     this->order_ = Array<TriSlot>(this->dml_, std::max<std::uint64_t>(total, 1));
     std::vector<TriSlot> bucket;
+    std::uint64_t begin = numCells ? ends.Get(0) : 0;
     for (std::uint32_t c = 0; c < numCells; ++c)
     {
-      const std::uint64_t begin = cells.Get(c).triangles;
-      const std::uint64_t end = c + 1 < numCells ? cells.Get(c + 1).triangles : total;
+      const std::uint64_t end = ends.Get(std::uint64_t(c) + 1);
       if (begin == end)
       {
         continue;
       }
       bucket.resize(end - begin);
       buckets.Read(begin, end - begin, bucket.data());
+      begin = end;
       std::sort(bucket.begin(), bucket.end(), [](const TriSlot& x, const TriSlot& y) {
         return x.v[1] != y.v[1] ? x.v[1] < y.v[1] : x.v[2] < y.v[2];
       });
