@@ -107,8 +107,10 @@ public:
    * clustered mesh, kept in the storage layer, is then decimated. Much faster on huge inputs at
    * the same quality (measured). -1: two-stage on the automatic grid, as the command line's
    * two-stage without --grid: 300, or with a TargetNumberOfTriangles T above 19,125 the grid
-   * whose clustered mesh has about 16 T triangles, ceil(sqrt(16 T / 3.4)). 0 (default):
-   * decimate the input directly.
+   * whose clustered mesh has about 16 T triangles, ceil(sqrt(16 T / 3.4)); when that finer grid
+   * would keep at least 0.7 of the input's triangles (3.4 g^2 of them), stage 1 is skipped and
+   * the input decimated directly (GetGridDimension() is then 0). 0 (default): decimate the
+   * input directly.
    */
   vtkSetClampMacro(PreClusterGridDimension, int, -1, 65535);
   vtkGetMacro(PreClusterGridDimension, int);

@@ -150,7 +150,8 @@ public:
   vtkGetMacro(AchievedError, double);
   vtkGetMacro(ErrorDiagonal, double);
   // The grid the last run clustered on (vtkSIPMSSCluster's, or two-stage's stage 1: with
-  // vtkSIPMSSDecimate's PreClusterGridDimension -1 the automatic one); 0: no clustering.
+  // vtkSIPMSSDecimate's PreClusterGridDimension -1 the automatic one); 0: no clustering (also an
+  // automatic two-stage that skipped stage 1).
   vtkGetMacro(GridDimension, int);
   // Disconnected pieces the run removed (vtkSIPMSSDecimate's PruneSize) and their triangles.
   vtkGetMacro(PrunedComponents, vtkTypeUInt64);

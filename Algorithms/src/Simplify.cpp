@@ -258,6 +258,7 @@ RunStats Run(const SimplifyRequest& r, const storage::Profile& profile, const Me
   }
   TwoStageOptions t;
   t.gridDimension = r.EffectiveGrid();
+  t.automaticGrid = r.grid <= 0;
   t.threads = r.threads;
   t.decimate = o;
   return TwoStage(input, output, t, progress, onLevel);
@@ -272,7 +273,10 @@ RunStats Simplify(const SimplifyRequest& request, const MeshSource& input, io::M
     progress, profile, [&] { return Run(request, profile, input, output, progress, onLevel); });
   stats.memoryBudgetBytes = profile.memoryBudget;
   stats.memoryBudgetOrigin = profile.budgetOrigin;
-  stats.gridDimension = request.algorithm == Algorithm::Decimate ? 0 : request.EffectiveGrid();
+  if (request.algorithm != Algorithm::TwoStage) // (two-stage reports the grid it ran, or 0)
+  {
+    stats.gridDimension = request.algorithm == Algorithm::Decimate ? 0 : request.EffectiveGrid();
+  }
   return stats;
 }
 

@@ -158,8 +158,18 @@ RunStats TwoStageDistributed(const MeshSource& input, io::MeshSink& output,
   // This rank's traffic in both stages.
   stats.communication = s2.communication;
   stats.communication.Add(s1.communication);
+  stats.gridDimension = options.gridDimension;
   stats.storage = dml.GetStats();
   return stats;
+}
+
+// TwoStageOptions::automaticGrid: whether stage 1 would keep too much of the input to pay.
+bool SkipsStageOne(const TwoStageOptions& options, const detail::LayoutProbe& probe)
+{
+  const double g = double(options.gridDimension);
+  return options.automaticGrid && options.gridDimension > kDefaultTwoStageGrid &&
+    probe.faces > 0 &&
+    kClusteredTrianglesPerGridSquare * g * g >= kStageOneSkipFraction * double(probe.faces);
 }
 
 RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoStageOptions& options,
@@ -183,6 +193,18 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
   {
     PhaseTimer timer(stats, dml, "stage 1 bounds");
     probe = detail::ProbeLayout(input, progress);
+  }
+  if (SkipsStageOne(options, probe))
+  {
+    // The decimation alone, on the input as it is (its own DML; this one holds nothing yet).
+    RunStats alone = Decimate(input, output, options.decimate, progress, onLevel);
+    for (PhaseStat& phase : stats.phases)
+    {
+      phase.name = "probe"; // (the bounds pass that measured the input)
+    }
+    alone.phases.insert(alone.phases.begin(), stats.phases.begin(), stats.phases.end());
+    alone.gridDimension = 0;
+    return alone;
   }
   auto stage1OutOfCore = [&] {
     // (a header without sizes, the probe stopped before the end: an input of unknown size)
@@ -297,6 +319,7 @@ RunStats TwoStageRun(const MeshSource& input, io::MeshSink& output, const TwoSta
     quadrics.Close();
   };
   RunStageTwo(handoff, output, dopt, progress, onLevel, s1, stats);
+  stats.gridDimension = options.gridDimension;
   stats.storage = dml.GetStats();
   return stats;
 }

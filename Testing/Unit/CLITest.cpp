@@ -543,28 +543,50 @@ TEST_F(CLI, StatsListTheDecimationPasses)
 
 // Two-stage without --grid: with --target T the grid whose clustered mesh has about 16 T
 // triangles, max(300, ceil(sqrt(16 T / 3.4))), without --target 300; the grid run is in the
-// statistics ("grid") and the summary line.
+// statistics ("grid") and the summary line. A grid finer than 300 whose clustered mesh would
+// keep at least 0.7 of the input's triangles (3.4 g^2 of them) skips stage 1: the decimation
+// alone, byte for byte, "grid" null. A given grid always runs stage 1.
 TEST_F(CLI, TwoStageGridFollowsTheTarget)
 {
   const std::string in = this->P("bumps.ply");
-  WriteGrid(in, 160); // (51,200 triangles)
+  const double faces = 2.0 * 500 * 500;
+  WriteGrid(in, 500);
   auto number = [](const std::string& json, const std::string& key) {
     const std::size_t k = json.find("\"" + key + "\": ");
     EXPECT_NE(k, std::string::npos) << key << "\n" << json;
     return k == std::string::npos ? -1.0 : std::stod(json.substr(k + key.size() + 4));
   };
-  for (const int target : { 1000, 40000 })
+  for (const int target : { 1000, 20000, 40000 })
   {
     Result r = RunCli("simplify " + in + " " + this->P("out.ply") + " --algorithm two-stage --target " +
       std::to_string(target) + " --stats-json " + this->P("s.json"));
     ASSERT_EQ(r.status, 0) << r.out;
     const int grid = std::max(300, int(std::ceil(std::sqrt(16.0 * target / 3.4))));
-    EXPECT_EQ(grid, target == 1000 ? 300 : 434);
+    EXPECT_EQ(grid, target == 1000 ? 300 : target == 20000 ? 307 : 434);
+    const bool skipped = grid > 300 && 3.4 * grid * grid >= 0.7 * faces;
+    EXPECT_EQ(skipped, target == 40000);
     const std::string j = ReadAll(this->P("s.json"));
-    EXPECT_EQ(number(j, "grid"), grid) << j;
-    EXPECT_NE(r.out.find("two-stage (grid " + std::to_string(grid) + ")"), std::string::npos) << r.out;
     EXPECT_LE(number(j, "output_triangles"), target);
     EXPECT_GE(number(j, "output_triangles"), target - 2);
+    if (!skipped)
+    {
+      EXPECT_EQ(number(j, "grid"), grid) << j;
+      EXPECT_NE(r.out.find("two-stage (grid " + std::to_string(grid) + ")"), std::string::npos)
+        << r.out;
+      continue;
+    }
+    EXPECT_NE(j.find("\"grid\": null"), std::string::npos) << j;
+    EXPECT_NE(r.out.find("two-stage (stage 1 skipped"), std::string::npos) << r.out;
+    Result d = RunCli("simplify " + in + " " + this->P("alone.ply") +
+      " --algorithm decimate --quiet --target " + std::to_string(target));
+    ASSERT_EQ(d.status, 0) << d.out;
+    EXPECT_EQ(ReadAll(this->P("out.ply")), ReadAll(this->P("alone.ply")));
+    // The same grid given: stage 1 runs.
+    r = RunCli("simplify " + in + " " + this->P("out.ply") + " --algorithm two-stage --grid " +
+      std::to_string(grid) + " --target " + std::to_string(target) + " --stats-json " +
+      this->P("s.json"));
+    ASSERT_EQ(r.status, 0) << r.out;
+    EXPECT_EQ(number(ReadAll(this->P("s.json")), "grid"), grid);
   }
   Result r = RunCli("simplify " + in + " " + this->P("out.ply") +
     " --algorithm two-stage --reduction 0.5 --stats-json " + this->P("s.json"));

@@ -608,6 +608,10 @@ int RunSimplify(const SimplifyArgs& a)
     {
       algorithm += " (grid " + std::to_string(stats.gridDimension) + ")";
     }
+    else if (a.algorithm == "two-stage")
+    {
+      algorithm += " (stage 1 skipped: its grid would keep most of the input)";
+    }
     std::printf("sipmss: %s %s: %llu -> %llu triangles (%llu vertices%s) in %.2f s, peak RSS "
                 "%.1f MB, %s%s\n",
       algorithm.c_str(), a.input.c_str(), (unsigned long long)stats.inputTriangles,
@@ -846,7 +850,8 @@ int main(int argc, char** argv)
   auto* grid = clustering->add_option("--grid", rq.grid,
     "maximum grid dimension (cells along the longest axis; cluster: default 50; two-stage: "
     "default 300, or with a --target T above 19125 the grid whose clustered mesh has about 16 T "
-    "triangles, ceil(sqrt(16 T / 3.4)), e.g. 686 for 100000)");
+    "triangles, ceil(sqrt(16 T / 3.4)), e.g. 686 for 100000; when that grid would keep at least 0.7 "
+    "of the input's triangles, stage 1 is skipped)");
   auto* bounds = clustering->add_option("--bounds", sa.bounds,
     "cluster: the grid's box, xmin xmax ymin ymax zmin zmax (default: the input's bounds)")
     ->expected(6)

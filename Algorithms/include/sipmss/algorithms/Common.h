@@ -145,6 +145,11 @@ constexpr int kDefaultTwoStageGrid = 300; // two-stage: stage 1's grid (the coar
 // 3.4))), finer than 300 from 19,126 triangles on (docs/architecture.md, "Two-stage's grid").
 constexpr double kTwoStageClusteredPerTarget = 16;
 constexpr double kClusteredTrianglesPerGridSquare = 3.4;
+// Two-stage with an automatic grid finer than kDefaultTwoStageGrid (a large target) skips stage 1
+// and decimates the input as it is when the clustered mesh would keep at least this fraction of
+// the input's triangles (TwoStageOptions::automaticGrid): clustering then saves stage 2 little
+// and costs more than it saves (docs/architecture.md, "Two-stage's grid").
+constexpr double kStageOneSkipFraction = 0.7;
 int AutomaticTwoStageGrid(std::uint64_t targetTriangles);
 constexpr int kMaximumGrid = 65535;
 constexpr double kDefaultTargetReduction = 0.9;
@@ -275,8 +280,8 @@ struct RunStats
   double achievedError = -1;
   double errorDiagonal = 0;
   // The grid the run clustered on (cluster, two-stage's stage 1; as Simplify() chose it from the
-  // request, SimplifyRequest::EffectiveGrid); 0: no clustering (decimation, or a core called
-  // directly).
+  // request, SimplifyRequest::EffectiveGrid, or as TwoStage() ran it); 0: no clustering
+  // (decimation, a two-stage run that skipped stage 1, or a clustering core called directly).
   int gridDimension = 0;
   std::vector<PhaseStat> phases;
   std::vector<PassStat> passes; // the decimation's passes, in order (none for a clustering)

@@ -19,6 +19,12 @@ struct TwoStageOptions
   // measures worse (Lucy-size to 10K: RMS 1.66e-4 with, 1.50e-4 without; David-size 1.60e-4 /
   // 1.46e-4; Dragon-size 3.32e-4 / 3.25e-4).
   bool carryQuadrics = false;
+  // gridDimension was chosen for the target (AutomaticTwoStageGrid): when it is finer than
+  // kDefaultTwoStageGrid and its clustered mesh would keep at least kStageOneSkipFraction of the
+  // input's triangles (kClusteredTrianglesPerGridSquare * g^2 against the header's count; on one
+  // rank, with the automatic layout), stage 1 is skipped and the input decimated as it is
+  // (RunStats::gridDimension 0). A given grid always runs stage 1.
+  bool automaticGrid = false;
   int threads = 0;             // stage 1 threads (see ClusterOptions::threads)
   DecimateOptions decimate;    // stage 2: target, levels, boundary, ... and the storage profile
 };
