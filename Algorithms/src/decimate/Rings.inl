@@ -612,6 +612,17 @@ void FaceAttributes(const MeshState& mesh, const Views& w, const Tri& t, Attribu
     0.5 * std::sqrt(Dot(n, n)), as.x.data());
 }
 
+// BuildQuadrics' cache of face planes (each face is gathered by its three corners, nearby in
+// the vertex order of a scan or of a clustered mesh): direct-mapped by face id, per thread.
+struct FacePlane
+{
+  std::uint32_t face = kNone;
+  Vec3 n{ 0, 0, 0 };
+  double d = 0;
+  double area = 0; // 0: no plane (a degenerate face)
+};
+constexpr std::size_t kFacePlanes = 4096; // (192 KiB a thread)
+
 void BuildQuadrics(RunContext& ctx, MeshState& mesh)
 {
   PhaseTimer timer(ctx.stats, mesh.dml, "quadrics");
@@ -637,7 +648,7 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
   auto vertex = [&, bw](Views& w, std::uint32_t u, std::vector<Tri>& tris,
                   std::vector<std::uint32_t>& next, std::vector<std::uint32_t>& prev,
                   LinkTally& tally, const std::atomic<bool>& stop, bool caller,
-                  AttributeScratch& as) {
+                  AttributeScratch& as, std::vector<FacePlane>& planes) {
     // A vertex of very high valence takes long: the calling thread polls inside it (an abort
     // throws), another thread stops early when the run is being stopped.
     auto stopped = [&, caller](std::size_t i) {
@@ -663,7 +674,8 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
       {
         return;
       }
-      const Tri t = w.F.Get(w.RF.Get(k));
+      const std::uint32_t f = w.RF.Get(k);
+      const Tri t = w.F.Get(f);
       if (!Alive(t))
       {
         continue;
@@ -672,13 +684,27 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
       tris.push_back(t);
       next.push_back(t.v[kNextCorner[c]]);
       prev.push_back(t.v[kPrevCorner[c]]);
-      const Vec3 a = w.P.Get(t.v[0]);
-      Vec3 nn = Cross(w.P.Get(t.v[1]) - a, w.P.Get(t.v[2]) - a);
-      const double len = std::sqrt(Dot(nn, nn));
-      if (len > 0)
+      // The face's plane, computed by the first of its corners that comes here (the same
+      // doubles for the other two, whatever the cache holds).
+      FacePlane& plane = planes[f & (kFacePlanes - 1)];
+      if (plane.face != f)
       {
-        nn = (1.0 / len) * nn;
-        AddPlane(Q, nn, -Dot(nn, a), 0.5 * len);
+        const Vec3 a = w.P.Get(t.v[0]);
+        Vec3 nn = Cross(w.P.Get(t.v[1]) - a, w.P.Get(t.v[2]) - a);
+        const double len = std::sqrt(Dot(nn, nn));
+        plane.face = f;
+        plane.area = 0;
+        if (len > 0)
+        {
+          nn = (1.0 / len) * nn;
+          plane.n = nn;
+          plane.d = -Dot(nn, a);
+          plane.area = 0.5 * len;
+        }
+      }
+      if (plane.area > 0)
+      {
+        AddPlane(Q, plane.n, plane.d, plane.area);
       }
     }
     // (a caller's quadric replaces the face planes: set aside, added back if it has none)
@@ -863,6 +889,7 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
       std::vector<std::uint32_t> next, prev;
       LinkTally tally;
       AttributeScratch as(mesh);
+      std::vector<FacePlane> planes(kFacePlanes);
       WithAccess(
         [&](auto RO, auto RF, auto F, auto P) {
           for (std::uint64_t u = lo; u < hi && !stop.load(std::memory_order_relaxed); ++u)
@@ -893,7 +920,7 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
                 }
               }
             }
-            vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0, as);
+            vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0, as, planes);
           }
         },
         w.RO, w.RF, w.F, w.P);
