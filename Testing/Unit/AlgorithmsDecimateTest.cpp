@@ -1055,6 +1055,29 @@ TEST(AlgorithmsDecimate, AHelperThreadThatThrashesGivesWay)
   EXPECT_TRUE(sipmss::storage::testing::ListDir(dir.Path()).empty()); // no file left behind
 }
 
+TEST(AlgorithmsDecimate, ASweepThatGivesWayCountsItsWorkOnce)
+{
+  // At 512 KiB the first pass's forked sweep passes its miss limit midway and runs again on one
+  // thread from the start (AHelperThreadThatThrashesGivesWay): the pass's statistics count its
+  // vertices and edges once, as one thread's run does (they were counted twice).
+  Mesh s = FacesByLowestVertex(SortedAlongZ(ColoredSphere(7)));
+  alg::DecimateOptions o;
+  sipmss::storage::testing::TempDir dir;
+  o.storage.directories = { dir.Path() };
+  o.storage.memoryBudget = 1 << 19;
+  Outcome one = Simplify(MemorySource(s), o);
+  o.threads = 2;
+  Outcome two = Simplify(MemorySource(s), o);
+  EXPECT_GT(two.stats.storage.forks, 0u);
+  ExpectSameOutput(one, two, "2 threads");
+  ASSERT_EQ(one.stats.passes.size(), two.stats.passes.size());
+  for (std::size_t i = 0; i < one.stats.passes.size(); ++i)
+  {
+    EXPECT_EQ(one.stats.passes[i].activeVertices, two.stats.passes[i].activeVertices) << i;
+    EXPECT_EQ(one.stats.passes[i].edgesPlaced, two.stats.passes[i].edgesPlaced) << i;
+  }
+}
+
 TEST(AlgorithmsDecimate, StepChunksDoNotDependOnThreadsOrMode)
 {
   // 10,242 vertices along z in chunks of 512: the collapse step of the first passes runs chunk

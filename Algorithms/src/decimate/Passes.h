@@ -543,8 +543,10 @@ struct alignas(kCacheLine) Scratch
   EdgeBatch batch;                        // the sweep's edges waiting for their placement
   Views* w = nullptr; // the views this thread uses; nullptr: the mesh's
   double achievedErr2 = 0; // the largest error of this thread's collapses (Compact gathers it)
-  // This pass's step-1 counts (RunStats::passes; Pass gathers and resets them).
-  std::uint64_t active = 0, placed = 0;
+  // This pass's step-1 counts (RunStats::passes; Pass gathers and resets them); promoted: the
+  // placements of promoted second bests among `placed` (made once: a sweep run again after its
+  // threads gave way finds them done).
+  std::uint64_t active = 0, placed = 0, promoted = 0;
 };
 
 // A worker's views for the scratch it uses, for the scope of its range.

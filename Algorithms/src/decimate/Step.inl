@@ -1021,7 +1021,7 @@ public:
     this->stat.goal = goal;
     for (Scratch& s : pass.scratch)
     {
-      s.active = s.placed = 0;
+      s.active = s.placed = s.promoted = 0;
     }
   }
   ~PassRecord()

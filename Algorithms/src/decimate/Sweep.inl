@@ -271,6 +271,14 @@ void Sweep(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t nv)
   }
   if (started < T || thrash)
   {
+    // (the sequential sweep evaluates every vertex again: what the stopped threads counted of
+    // the pass's vertices and edges goes, but for the promoted placements they made, which
+    // stay made)
+    for (Scratch& s : pass.scratch)
+    {
+      s.active = 0;
+      s.placed = s.promoted;
+    }
     sequential();
   }
 }
@@ -306,6 +314,7 @@ void Evaluate(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint32_t u
         AddTo(Q, w.Q.Get(u));
         EdgeQuadric(mesh, w, u, v, Q, s);
         ++s.placed;
+        ++s.promoted;
         const Placement pl = Place(Q, w.P.Get(u), w.P.Get(v), su, w.S.Get(v));
         // c.cost stays: the same edge's cost as computed before (equal up to rounding), which
         // keeps the outcome independent of whether an offer to u came before or after this.
