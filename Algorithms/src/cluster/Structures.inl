@@ -185,8 +185,9 @@ struct CellRec
   // The cell's plane quadric sums (Quadric.h) about FixedUnits::centre, and the sum of its faces'
   // corners: exact (q and sum; FixedUnits::position from the grid's origin), or in doubles
   // (plain). What a face's update touches comes first: with plain sums the record's first
-  // kPlainBytes (120), two cache lines of a record that starts on one (256-byte records, in
-  // blocks aligned to cache lines: DML::Resize).
+  // kPlainBytes (120), two cache lines of a record that starts on one (256-byte records: a block
+  // grown by DML::Resize starts on a huge page; the presized in-core block, InitialCells, comes
+  // from calloc and starts 16 bytes past a page, three lines then: docs/architecture.md).
   union
   {
     FixedQuadric q;
