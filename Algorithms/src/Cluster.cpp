@@ -1950,7 +1950,7 @@ RunStats ClusterReordered(const MeshSource& source, io::MeshSink& output,
 RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOptions& options,
   Progress& progress)
 {
-  return TranslateOutOfMemory(progress, options.storage, [&] {
+  RunStats stats = TranslateOutOfMemory(progress, options.storage, [&] {
     if (options.communicator)
     {
       if (options.exportQuadric || !options.exactSums)
@@ -1974,5 +1974,7 @@ RunStats Cluster(const MeshSource& source, io::MeshSink& output, const ClusterOp
       return ClusterReordered(source, output, options, progress);
     }
   });
+  stats.gridDimension = options.maximumGridDimension;
+  return stats;
 }
 } // namespace sipmss::algorithms

@@ -273,10 +273,6 @@ RunStats Simplify(const SimplifyRequest& request, const MeshSource& input, io::M
     progress, profile, [&] { return Run(request, profile, input, output, progress, onLevel); });
   stats.memoryBudgetBytes = profile.memoryBudget;
   stats.memoryBudgetOrigin = profile.budgetOrigin;
-  if (request.algorithm != Algorithm::TwoStage) // (two-stage reports the grid it ran, or 0)
-  {
-    stats.gridDimension = request.algorithm == Algorithm::Decimate ? 0 : request.EffectiveGrid();
-  }
   return stats;
 }
 

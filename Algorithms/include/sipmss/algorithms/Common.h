@@ -279,9 +279,9 @@ struct RunStats
   // for, divided by errorDiagonal, the input's bounding-box diagonal (-1: not measured, no run).
   double achievedError = -1;
   double errorDiagonal = 0;
-  // The grid the run clustered on (cluster, two-stage's stage 1; as Simplify() chose it from the
-  // request, SimplifyRequest::EffectiveGrid, or as TwoStage() ran it); 0: no clustering
-  // (decimation, a two-stage run that skipped stage 1, or a clustering core called directly).
+  // The grid the run clustered on (Cluster's maximumGridDimension, two-stage's stage 1; through
+  // Simplify() the one SimplifyRequest::EffectiveGrid chose); 0: no clustering (decimation, a
+  // two-stage run that skipped stage 1).
   int gridDimension = 0;
   std::vector<PhaseStat> phases;
   std::vector<PassStat> passes; // the decimation's passes, in order (none for a clustering)
