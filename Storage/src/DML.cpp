@@ -96,7 +96,7 @@ DML::Impl::Impl(std::unique_ptr<FileBackend> b)
   , blocks(detail::Counted<Block>(&this->acc))
   , dirs(detail::Counted<detail::PrivateDir>(&this->acc))
   , bases(detail::Counted<void*>(&this->acc))
-  , fast(detail::Counted<FastPage>(&this->acc))
+  , fast(detail::Counted<FastBlock>(&this->acc))
   , cache(&this->acc)
 {
   this->acc.owner = this;
@@ -199,43 +199,40 @@ void DML::Impl::SyncBases() noexcept
 
 void DML::Impl::SyncFast(BlockId id) noexcept
 {
-  if (id < 0 || static_cast<std::size_t>(id) * kFastPages >= this->fast.size())
+  if (id < 0 || static_cast<std::size_t>(id) >= this->fast.size())
   {
     return;
   }
-  FastPage* e = &this->fast[static_cast<std::size_t>(id) * kFastPages];
+  FastBlock& p = this->fast[static_cast<std::size_t>(id)];
+  p = FastBlock{};
   const Block& b = this->blocks[static_cast<std::size_t>(id)];
-  const bool none = b.kind != Kind::Plain || b.mem || !this->cache.built ||
-    this->replacement == Replacement::Lru; // (LRU moves the frame on every access: the slow path)
-  for (std::size_t k = 0; k < kFastPages; ++k)
+  if (!this->FastServed(id, b))
   {
-    FastPage& p = e[k];
-    p = FastPage{};
-    if (none || b.recentFrame[k] < 0 || b.recentFirst[k] >= b.count)
-    {
-      continue;
-    }
-    detail::Frame& f = this->cache.frames[static_cast<std::size_t>(b.recentFrame[k])];
-    p.data = f.data;
-    p.first = b.recentFirst[k];
-    p.count = std::min<std::uint64_t>(b.perPage, b.count - b.recentFirst[k]);
-    p.elementSize = b.elementSize;
-    p.ref = &f.ref;
-    p.dirty = &f.dirty;
+    return;
   }
+  p.magic = ~std::uint64_t(0) / b.perPage + 1; // ceil(2^64 / perPage): perPage is at least 2
+  p.perPage = b.perPage;
+  p.count = b.count;
+  p.tagBase = FastTagBase(id, this->cache.generation) | kFastWritable;
+  p.salt = FastSalt(id);
+  p.elementSize = b.elementSize;
 }
 
 void DML::Impl::SyncAllFast() noexcept
 {
   // Within capacity (reserved in NewSlot, like bases): resize does not allocate.
-  const std::size_t n = std::min(this->blocks.size(), this->fast.capacity() / kFastPages);
-  this->fast.resize(n * kFastPages);
+  const std::size_t n = std::min(this->blocks.size(), this->fast.capacity());
+  this->fast.resize(n);
   for (std::size_t i = 0; i < n; ++i)
   {
     this->SyncFast(static_cast<BlockId>(i));
   }
+  static const FastEntry kEmptyTable[1] = {};
   this->owner->fast_ = this->fast.data();
   this->owner->fastCount_ = n;
+  const bool table = this->cache.built && !this->cache.table.empty();
+  this->owner->table_ = table ? this->cache.table.data() : kEmptyTable;
+  this->owner->tableMask_ = table ? this->cache.table.size() - 1 : 0;
 }
 
 Block& DML::Impl::Get(BlockId id, Kind kind)
@@ -271,9 +268,9 @@ BlockId DML::Impl::NewSlot(Kind kind, std::size_t elementSize, double weight)
     {
       const std::size_t cap = std::max<std::size_t>(8, this->blocks.capacity() * 2);
       this->ReleaseFrames(HeapCost(cap * sizeof(Block)) + HeapCost(cap * sizeof(void*)) +
-        HeapCost(cap * kFastPages * sizeof(FastPage)));
+        HeapCost(cap * sizeof(FastBlock)));
       this->bases.reserve(cap);
-      this->fast.reserve(cap * kFastPages);
+      this->fast.reserve(cap);
       this->blocks.reserve(cap);
     }
     this->blocks.emplace_back();
@@ -1457,8 +1454,8 @@ Block& CheckRange(DML::Impl& I, BlockId id, std::uint64_t first, std::uint64_t c
 }
 } // namespace
 
-// The slow paths of the inline Read/Write (DML.h), which serve the published last page: here
-// in core, checks, and any other page (PageFor keeps its own one-entry cache too).
+// The slow paths of the inline Read/Write (DML.h), which serve the pages in the published table:
+// here in core, checks, and any other page (PageFor keeps its own recent pages too).
 void DML::ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
   Impl& I = *this->impl_;
@@ -1673,7 +1670,7 @@ std::unique_ptr<DML> DML::Fork(std::uint64_t bytes, const std::vector<Range>& ch
     const std::size_t n = I.blocks.size();
     K.blocks.reserve(std::max<std::size_t>(n, 1));
     K.bases.reserve(std::max<std::size_t>(n, 1));
-    K.fast.reserve(std::max<std::size_t>(n, 1) * kFastPages);
+    K.fast.reserve(std::max<std::size_t>(n, 1));
     for (std::size_t i = 0; i < n; ++i)
     {
       const Block& src = I.blocks[i];

@@ -141,6 +141,8 @@ enum class Kind : std::uint8_t
   Plain // an element block opened by the user
 };
 
+constexpr std::size_t kRecentPages = 4;
+
 struct Block
 {
   Kind kind = Kind::Closed;
@@ -159,11 +161,10 @@ struct Block
   std::uint64_t perPage = 1; // elements per page: floor(pageSize / elementSize)
 
   // Page-cache state of this block.
-  // The last kFastPages pages used, most recent first (loops over neighbouring elements move
-  // between a few pages): looked up before the hash table, and published for the inline access.
-  std::int32_t recentFrame[kFastPages] = {}; // -1: none (ClearRecent)
-  std::uint64_t recentPage[kFastPages] = {};
-  std::uint64_t recentFirst[kFastPages] = {}; // recentPage * perPage: its first element
+  // The last kRecentPages pages the slow path used, most recent first (loops over neighbouring
+  // elements move between a few pages): looked up before the hash table.
+  std::int32_t recentFrame[kRecentPages] = {}; // -1: none (ClearRecent)
+  std::uint64_t recentPage[kRecentPages] = {};
   Block() { this->ClearRecent(); }
   void ClearRecent()
   {
@@ -210,15 +211,17 @@ struct Cache
   CVector<Frame> frames;          // fixed number of slots, sized from the budget
   CVector<std::int32_t> buckets;  // hash (block, page) -> first frame of the chain
   CVector<std::uint64_t> ghosts;  // Adaptive: direct-mapped tags of recently evicted pages
+  CVector<FastEntry> table;       // the inline access's pages (DML.h), 2 to 4 entries a slot
   std::int32_t freeData = -1;     // slots with data but no page
   std::int32_t freeEmpty = -1;    // slots without data
   std::uint32_t withData = 0;
   std::uint32_t pinnedFrames = 0;
   std::uint64_t epochMisses = 0;
+  std::uint8_t generation = 0; // builds of the cache (FastTagBase)
   bool quotasDirty = true;
 
   explicit Cache(Accountant* a) : frames(Counted<Frame>(a)), buckets(Counted<std::int32_t>(a)),
-    ghosts(Counted<std::uint64_t>(a))
+    ghosts(Counted<std::uint64_t>(a)), table(Counted<FastEntry>(a))
   {
   }
 };
@@ -257,9 +260,9 @@ struct DML::Impl
   // Mirror of the in-core base pointers read by the inline DML::BasePointer(); its capacity
   // follows blocks' capacity so SyncBases() never allocates.
   detail::CVector<void*> bases;
-  // Mirror of the out-of-core blocks' last pages read by the inline DML::Read/Write (same
+  // Mirror of the out-of-core blocks' parameters read by the inline DML::Read/Write (same
   // capacity rule as bases).
-  detail::CVector<FastPage> fast;
+  detail::CVector<FastBlock> fast;
   DML* owner = nullptr;
   std::uint64_t nextFileSeq = 0;
   std::uint64_t nextDir = 0; // round robin over profile.directories
@@ -315,6 +318,13 @@ struct DML::Impl
   void SyncBases() noexcept; // also SyncAllFast
   void SyncFast(BlockId id) noexcept;
   void SyncAllFast() noexcept;
+  // The inline access's table (DML.h): a frame's entry goes in when the slow path has set its
+  // reference bit (with the write tag when dirty); it goes out when the reference bit is
+  // cleared or the frame evicted, and the write tag when the page is written back.
+  bool FastServed(BlockId id, const detail::Block& b) const;
+  void FastInstall(BlockId id, const detail::Block& b, std::int32_t fi);
+  void FastRemove(std::int32_t fi);
+  void FastClearWrite(std::int32_t fi);
 
   // --- PageCache.cpp
   void EnsureCache();

@@ -63,8 +63,10 @@ constexpr int kMaxWritesPerSweep = 4;
 constexpr std::uint64_t kMinPage = 512;
 constexpr std::uint64_t kMaxPage = std::uint64_t(64) * 1024;
 constexpr std::uint64_t kTargetPages = 16;
-// Per-slot metadata besides the page buffer: the Frame, <= 2 bucket entries, <= 4 ghost tags.
-constexpr std::uint64_t kSlotMeta = sizeof(Frame) + 2 * sizeof(std::int32_t) + 4 * sizeof(std::uint64_t);
+// Per-slot metadata besides the page buffer: the Frame, <= 2 bucket entries, <= 4 ghost tags,
+// <= 4 entries of the inline access's table.
+constexpr std::uint64_t kSlotMeta = sizeof(Frame) + 2 * sizeof(std::int32_t) +
+  4 * sizeof(std::uint64_t) + 4 * sizeof(FastEntry);
 } // namespace
 
 std::size_t DML::Impl::ChoosePageSize() const
@@ -103,7 +105,7 @@ void DML::Impl::EnsureCache()
   }
   C.pageSize = this->ChoosePageSize();
   const std::uint64_t avail = this->acc.budget ? this->acc.Room() : detail::kUnboundedPool;
-  const std::uint64_t tables = 3 * HeapCost(0) + 64; // allocation overheads of the three tables
+  const std::uint64_t tables = 4 * HeapCost(0) + 64; // allocation overheads of the four tables
   const std::uint64_t slots =
     avail > tables ? (avail - tables) / (HeapCost(C.pageSize) + kSlotMeta) : 0;
   if (slots < 2)
@@ -115,6 +117,7 @@ void DML::Impl::EnsureCache()
   {
     C.frames.assign(slots, Frame{});
     C.buckets.assign(Pow2AtLeast(slots), -1);
+    C.table.assign(Pow2AtLeast(2 * slots), FastEntry{});
     if (this->profile.pagePolicy == PagePolicy::Adaptive)
     {
       C.ghosts.assign(Pow2AtLeast(2 * slots), 0);
@@ -124,6 +127,7 @@ void DML::Impl::EnsureCache()
   {
     detail::CVector<Frame>(detail::Counted<Frame>(&this->acc)).swap(C.frames);
     detail::CVector<std::int32_t>(detail::Counted<std::int32_t>(&this->acc)).swap(C.buckets);
+    detail::CVector<FastEntry>(detail::Counted<FastEntry>(&this->acc)).swap(C.table);
     throw;
   }
   for (std::size_t i = 0; i < slots; ++i)
@@ -144,6 +148,7 @@ void DML::Impl::EnsureCache()
   }
   C.built = true;
   C.quotasDirty = true;
+  ++C.generation;
   this->SyncAllFast();
 }
 
@@ -181,6 +186,7 @@ void DML::Impl::DestroyCache(bool writeBack)
   detail::CVector<Frame>(detail::Counted<Frame>(&this->acc)).swap(C.frames);
   detail::CVector<std::int32_t>(detail::Counted<std::int32_t>(&this->acc)).swap(C.buckets);
   detail::CVector<std::uint64_t>(detail::Counted<std::uint64_t>(&this->acc)).swap(C.ghosts);
+  detail::CVector<FastEntry>(detail::Counted<FastEntry>(&this->acc)).swap(C.table);
   C.freeData = C.freeEmpty = -1;
   C.withData = C.pinnedFrames = 0;
   C.built = false;
@@ -194,6 +200,7 @@ std::uint64_t DML::Impl::CacheCost() const
   c += C.frames.capacity() ? HeapCost(C.frames.capacity() * sizeof(Frame)) : 0;
   c += C.buckets.capacity() ? HeapCost(C.buckets.capacity() * sizeof(std::int32_t)) : 0;
   c += C.ghosts.capacity() ? HeapCost(C.ghosts.capacity() * sizeof(std::uint64_t)) : 0;
+  c += C.table.capacity() ? HeapCost(C.table.capacity() * sizeof(FastEntry)) : 0;
   return c;
 }
 
@@ -262,6 +269,59 @@ void DML::Impl::RingRemove(Block& b, std::int32_t fi)
   f.next = f.prev = -1;
 }
 
+bool DML::Impl::FastServed(BlockId id, const Block& b) const
+{
+  return b.kind == Kind::Plain && !b.mem && this->cache.built && !this->cache.table.empty() &&
+    this->replacement != Replacement::Lru && // (LRU moves the frame on every access)
+    id >= 0 && static_cast<std::uint64_t>(id) < kFastBlocks && b.perPage > 1 &&
+    b.count < (std::uint64_t(1) << 39);
+}
+
+void DML::Impl::FastInstall(BlockId id, const Block& b, std::int32_t fi)
+{
+  if (!this->FastServed(id, b))
+  {
+    return;
+  }
+  const Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
+  auto& T = this->cache.table;
+  FastEntry& e = T[(f.page + FastSalt(id)) & (T.size() - 1)];
+  e.tag = f.page | FastTagBase(id, this->cache.generation) | (f.dirty ? kFastWritable : 0);
+  e.data = f.data;
+}
+
+void DML::Impl::FastRemove(std::int32_t fi)
+{
+  auto& T = this->cache.table;
+  const Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
+  if (T.empty() || f.block < 0)
+  {
+    return;
+  }
+  FastEntry& e = T[(f.page + FastSalt(f.block)) & (T.size() - 1)];
+  if ((e.tag | kFastWritable) ==
+    (f.page | FastTagBase(f.block, this->cache.generation) | kFastWritable))
+  {
+    e = FastEntry{};
+  }
+}
+
+void DML::Impl::FastClearWrite(std::int32_t fi)
+{
+  auto& T = this->cache.table;
+  const Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
+  if (T.empty() || f.block < 0)
+  {
+    return;
+  }
+  FastEntry& e = T[(f.page + FastSalt(f.block)) & (T.size() - 1)];
+  if ((e.tag | kFastWritable) ==
+    (f.page | FastTagBase(f.block, this->cache.generation) | kFastWritable))
+  {
+    e.tag &= ~kFastWritable;
+  }
+}
+
 unsigned char* DML::Impl::PageFor(BlockId id, Block& b, std::uint64_t page, bool write, bool fetch)
 {
   std::int32_t fi = -1;
@@ -275,18 +335,18 @@ unsigned char* DML::Impl::PageFor(BlockId id, Block& b, std::uint64_t page, bool
     // One of the other recent pages, else the hash table, else a fault (which may evict some of
     // the recent pages: Evict clears their entries). The page becomes the most recent.
     std::size_t k = 1;
-    while (k < kFastPages && !(b.recentFrame[k] >= 0 && b.recentPage[k] == page))
+    while (k < detail::kRecentPages && !(b.recentFrame[k] >= 0 && b.recentPage[k] == page))
     {
       ++k;
     }
-    if (k < kFastPages)
+    if (k < detail::kRecentPages)
     {
       fi = b.recentFrame[k];
       ++this->stats.hits;
     }
     else
     {
-      k = kFastPages - 1; // the oldest entry goes
+      k = detail::kRecentPages - 1; // the oldest entry goes
       fi = this->Lookup(id, page);
       if (fi >= 0)
       {
@@ -302,16 +362,14 @@ unsigned char* DML::Impl::PageFor(BlockId id, Block& b, std::uint64_t page, bool
     {
       b.recentFrame[k] = b.recentFrame[k - 1];
       b.recentPage[k] = b.recentPage[k - 1];
-      b.recentFirst[k] = b.recentFirst[k - 1];
     }
     b.recentFrame[0] = fi;
     b.recentPage[0] = page;
-    b.recentFirst[0] = page * b.perPage;
-    this->SyncFast(id);
   }
   Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
   f.ref = true;
   f.dirty = f.dirty || write;
+  this->FastInstall(id, b, fi);
   if (this->replacement == Replacement::Lru && b.hand >= 0)
   {
     // Move to the most recently used end (just behind the hand, which marks the LRU end).
@@ -582,6 +640,7 @@ std::int32_t DML::Impl::SweepVictim(Block& v)
     if (f.ref)
     {
       f.ref = false;
+      this->FastRemove(fi);
       f.lastUse = v.vtime;
       continue;
     }
@@ -657,6 +716,7 @@ void DML::Impl::WriteBack(std::int32_t fi)
     }
   }
   f.dirty = false;
+  this->FastClearWrite(fi);
 }
 
 void DML::Impl::Evict(std::int32_t fi, bool writeBack)
@@ -678,19 +738,14 @@ void DML::Impl::Evict(std::int32_t fi, bool writeBack)
   f.hashNext = -1;
   this->RingRemove(b, fi);
   --b.resident;
-  bool recent = false;
   for (std::int32_t& r : b.recentFrame)
   {
     if (r == fi)
     {
       r = -1;
-      recent = true;
     }
   }
-  if (recent)
-  {
-    this->SyncFast(f.block);
-  }
+  this->FastRemove(fi);
   if (f.pins > 0)
   {
     --C.pinnedFrames;

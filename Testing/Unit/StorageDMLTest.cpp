@@ -172,11 +172,12 @@ TEST(StorageDML, InlineElementAccessFollowsThePageCache)
   EXPECT_GT(st.misses, 0u);
 }
 
-TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
+TEST(StorageDML, CachedPagesAreServedInlineUntilEvicted)
 {
-  // Out of core, the last kFastPages pages a block used are served inline, so a loop that
-  // alternates between a few pages (the neighbours of a vertex) stays off the slow path. Each
-  // of them, not only the last one, must stop being used when its frame is evicted.
+  // Out of core, every cached page whose reference bit is set is served inline (the published
+  // table of pages), so a loop that moves between several pages (the neighbours of a vertex in
+  // a subdivided scan's index ranges) stays off the slow path. Each of them must stop being used
+  // when its frame is evicted.
   TempDir tmp;
   DML dml;
   dml.Config(MakeProfile(tmp.Path(), 64 * 1024, ModePolicy::OutOfCore));
@@ -190,10 +191,14 @@ TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
   dml.WriteRange(a.Id(), 0, n, init.data()); // straight to the file: a holds no frames yet
   const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
   ASSERT_GT(per, 4u);
-  ASSERT_GE(kFastPages, 2u);
-  // Alternate between kFastPages pages of a: after the first round, every access is inline.
-  std::uint64_t pages[kFastPages];
-  for (std::size_t k = 0; k < kFastPages; ++k)
+  constexpr std::size_t kPages = 6;
+  ASSERT_GE(DMLTestAccess::FrameSlots(dml), 2 * kPages);
+  ASSERT_GT(n / per, 2 + 3 * kPages);
+  // Alternate between kPages pages of a (more than the slow path's recent pages): after the
+  // first round, every access is inline. The first read of a page and the first write (which
+  // marks it dirty) go through the slow path.
+  std::uint64_t pages[kPages];
+  for (std::size_t k = 0; k < kPages; ++k)
   {
     pages[k] = 2 + 3 * k;
   }
@@ -207,14 +212,15 @@ TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
       a.Set(i, a.Get(i) + 1);
     }
   }
-  EXPECT_GE(DMLTestAccess::InlineHits(dml) - inlineBefore, 2 * per * kFastPages - 2 * kFastPages);
-  EXPECT_EQ(dml.GetStats().misses, missesBefore + kFastPages);
-  // A run inside a recent page is inline too (a vertex's list of faces), and writing one marks
-  // the page dirty: here a page that was only read so far (it must be written back below).
+  EXPECT_EQ(DMLTestAccess::InlineHits(dml) - inlineBefore, 2 * per * kPages - 2 * kPages);
+  EXPECT_EQ(dml.GetStats().misses, missesBefore + kPages);
+  // A run inside a cached page is inline too (a vertex's list of faces). Writing a page that
+  // was only read so far goes through the slow path once, which marks it dirty (it must be
+  // written back below); the next write of it is inline.
   std::vector<bool> plus1000(n, false);
   {
     const std::uint64_t clean = 40;
-    ASSERT_EQ(a.Get(clean * per), 3 * clean * per); // a miss; the page becomes the most recent
+    ASSERT_EQ(a.Get(clean * per), 3 * clean * per); // a miss
     std::vector<std::uint64_t> run(per / 2);
     const std::uint64_t hits = DMLTestAccess::InlineHits(dml);
     const std::uint64_t first = clean * per + per / 4;
@@ -224,9 +230,11 @@ TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
       ASSERT_EQ(run[j], 3 * (first + j)) << j;
       run[j] += 1000;
     }
-    dml.WriteRange(a.Id(), first, run.size(), run.data());
+    dml.WriteRange(a.Id(), first, run.size() / 2, run.data());
+    dml.WriteRange(a.Id(), first + run.size() / 2, run.size() - run.size() / 2,
+      run.data() + run.size() / 2);
     EXPECT_EQ(DMLTestAccess::InlineHits(dml), hits + 2);
-    EXPECT_EQ(dml.GetStats().misses, missesBefore + kFastPages + 1);
+    EXPECT_EQ(dml.GetStats().misses, missesBefore + kPages + 1);
     for (std::size_t j = 0; j < run.size(); ++j)
     {
       plus1000[first + j] = true;
@@ -257,7 +265,7 @@ TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
     }
     return 3 * i + extra;
   };
-  for (std::size_t k = kFastPages; k-- > 0;)
+  for (std::size_t k = kPages; k-- > 0;)
   {
     for (std::uint64_t j = 0; j < per; ++j)
     {
@@ -276,6 +284,61 @@ TEST(StorageDML, RecentPagesAreServedInlineUntilEvicted)
       ASSERT_EQ(others[k].Get(i), 7 * i + k) << k << " " << i;
     }
   }
+}
+
+TEST(StorageDML, APageWrittenBackIsMarkedDirtyAgainByItsNextWrite)
+{
+  // A page written inline, then written back without being evicted (a fork writes the parent's
+  // dirty pages back), is clean: the next write must go through the slow path and mark it dirty
+  // again, or that write would be lost when the page is evicted.
+  TempDir tmp;
+  DML dml;
+  const std::uint64_t budget = 1 << 20;
+  dml.Config(MakeProfile(tmp.Path(), budget, ModePolicy::OutOfCore));
+  constexpr std::uint64_t n = 1000000; // 8 MB of zeros, none cached
+  Array<std::uint64_t> a(dml, n);
+  ASSERT_EQ(a.Get(n - 1), 0u); // (the page cache exists from here on)
+  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  ASSERT_GT(per, 8u);
+  const std::uint64_t i0 = 3 * per + 1;
+  auto forkAndJoin = [&](std::uint64_t bytes) {
+    std::unique_ptr<DML> child = dml.Fork(bytes, {});
+    ASSERT_NE(child, nullptr);
+    dml.Join(*child);
+  };
+  // (a child's page buffers come from this DML, and come back free at Join: a smaller fork
+  // later takes those, and page 3 stays cached)
+  forkAndJoin(budget / 4);
+  a.Set(i0, 1);     // a miss: read, then marked dirty
+  std::uint64_t hits = DMLTestAccess::InlineHits(dml);
+  a.Set(i0 + 1, 2); // inline
+  EXPECT_EQ(DMLTestAccess::InlineHits(dml), hits + 1);
+  forkAndJoin(budget / 8); // page 3 is written back, and stays cached
+  hits = DMLTestAccess::InlineHits(dml);
+  const std::uint64_t cachedMisses = dml.GetStats().misses;
+  a.Set(i0 + 2, 3); // the page is cached but clean: the slow path
+  EXPECT_EQ(DMLTestAccess::InlineHits(dml), hits);
+  EXPECT_EQ(dml.GetStats().misses, cachedMisses);
+  a.Set(i0 + 3, 4); // dirty again: inline
+  EXPECT_EQ(DMLTestAccess::InlineHits(dml), hits + 1);
+  // Every other page of a, twice: page 3 is evicted (and must be written back first).
+  const std::uint64_t missesBefore = dml.GetStats().misses;
+  for (int round = 0; round < 2; ++round)
+  {
+    for (std::uint64_t i = 0; i < n; i += per / 2)
+    {
+      if (i / per != 3) // (a page of a's 8 MB: each is read twice, so every frame turns over)
+      {
+        ASSERT_EQ(a.Get(i), 0u) << i;
+      }
+    }
+  }
+  ASSERT_GT(dml.GetStats().misses, missesBefore + DMLTestAccess::FrameSlots(dml));
+  EXPECT_EQ(a.Get(i0), 1u);
+  EXPECT_EQ(a.Get(i0 + 1), 2u);
+  EXPECT_EQ(a.Get(i0 + 2), 3u);
+  EXPECT_EQ(a.Get(i0 + 3), 4u);
+  EXPECT_EQ(a.Get(i0 + 4), 0u);
 }
 
 TEST(StorageDML, ElementsLargerThanAPage)

@@ -3,7 +3,7 @@
 //   View<T>         an accessor of one block through one DML (the algorithm's, or a forked one a
 //                   helper thread uses), chosen at run time: the block's memory in core, the
 //                   DML's page cache out of core. Refresh() after anything that may change the
-//                   mode or move the block (OpenBlock, Resize, Reconfigure).
+//                   mode, move or resize the block (OpenBlock, Resize, Reconfigure).
 //   CoreAccess<T>   the same interface, resolved at compile time: raw memory (in core).
 //   PagedAccess<T>  the same interface, resolved at compile time: the page cache (out of core).
 //   PinWindow<T>    in-place access by reference (T& At(block, i)) through a few pinned pages.
@@ -114,7 +114,15 @@ public:
   {
     this->Refresh();
   }
-  void Refresh() { this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_)); }
+  void Refresh()
+  {
+    this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_));
+    this->fast_ = this->base_ ? FastBlock{} : this->dml_->FastParams(this->id_);
+    if (this->fast_.elementSize != sizeof(T))
+    {
+      this->fast_ = FastBlock{};
+    }
+  }
   bool IsBound() const { return this->dml_ != nullptr; }
   // Whether the block is in this DML's memory (then CoreAccess serves it).
   bool InCore() const { return this->base_ != nullptr; }
@@ -131,6 +139,12 @@ public:
       return this->base_[i];
     }
     T v;
+    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(&v, p, sizeof(T));
+      return v;
+    }
     this->dml_->Read(this->id_, sizeof(T), i, &v);
     return v;
   }
@@ -140,6 +154,12 @@ public:
     if (this->base_)
     {
       this->base_[i] = v;
+      return;
+    }
+    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), i, 1))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(p, &v, sizeof(T));
       return;
     }
     this->dml_->Write(this->id_, sizeof(T), i, &v);
@@ -155,6 +175,12 @@ public:
       std::memcpy(dst, this->base_ + first, n * sizeof(T));
       return;
     }
+    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), first, n))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(dst, p, n * sizeof(T));
+      return;
+    }
     this->dml_->ReadRange(this->id_, first, n, dst);
   }
   void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
@@ -167,6 +193,12 @@ public:
     if (this->base_)
     {
       std::memcpy(this->base_ + first, src, n * sizeof(T));
+      return;
+    }
+    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), first, n))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(p, src, n * sizeof(T));
       return;
     }
     this->dml_->WriteRange(this->id_, first, n, src);
@@ -208,6 +240,7 @@ private:
   BlockId id_ = -1;
   T* base_ = nullptr;
   WriteBounds bounds_;
+  FastBlock fast_; // out of core: the block's inline access, as of Refresh()
 };
 
 // In core: the block's memory, no test per element.
@@ -252,7 +285,8 @@ private:
   WriteBounds bounds_;
 };
 
-// Out of core: the DML's page cache (its inline fast path on the block's recent pages).
+// Out of core: the DML's page cache, through its inline table of cached pages with the block's
+// parameters kept here (the accessor lives for one phase body, in which no block is resized).
 template <class T>
 class PagedAccess
 {
@@ -263,38 +297,73 @@ public:
     , id_(v.Id())
     , bounds_(v.Bounds())
   {
+    if (this->dml_)
+    {
+      this->fast_ = this->dml_->FastParams(this->id_);
+      if (this->fast_.elementSize != sizeof(T))
+      {
+        this->fast_ = FastBlock{};
+      }
+    }
   }
   SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const
   {
     T v;
+    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(&v, p, sizeof(T));
+      return v;
+    }
     this->dml_->Read(this->id_, sizeof(T), i, &v);
     return v;
   }
   SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
   {
     detail::CheckWrite(this->id_, this->bounds_, i, 1);
+    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), i, 1))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(p, &v, sizeof(T));
+      return;
+    }
     this->dml_->Write(this->id_, sizeof(T), i, &v);
   }
   void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
   {
-    if (n)
+    if (n == 0)
     {
-      this->dml_->ReadRange(this->id_, first, n, dst);
+      return;
     }
+    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), first, n))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(dst, p, n * sizeof(T));
+      return;
+    }
+    this->dml_->ReadRange(this->id_, first, n, dst);
   }
   void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
   {
-    if (n)
+    if (n == 0)
     {
-      detail::CheckWrite(this->id_, this->bounds_, first, n);
-      this->dml_->WriteRange(this->id_, first, n, src);
+      return;
     }
+    detail::CheckWrite(this->id_, this->bounds_, first, n);
+    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), first, n))
+    {
+      this->dml_->CountFastHit();
+      std::memcpy(p, src, n * sizeof(T));
+      return;
+    }
+    this->dml_->WriteRange(this->id_, first, n, src);
   }
 
 private:
   DML* dml_;
   BlockId id_;
   WriteBounds bounds_;
+  FastBlock fast_;
 };
 
 } // inline namespace SIPMSS_ACCESS_NAMESPACE

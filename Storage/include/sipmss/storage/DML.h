@@ -150,19 +150,51 @@ enum class Access : std::uint8_t
   Write // the page is marked dirty
 };
 
-// Out of core: a block's last kFastPages used pages, published by the DML for the inline element
-// access of Read and Write (the same bookkeeping as PageFor's recent pages: reference bit, dirty
-// bit, hit count). count == 0: none.
-constexpr std::size_t kFastPages = 4;
-struct FastPage
+// Out of core: the inline element access (Read, Write, ReadRange, WriteRange, and the accessors
+// of Access.h) finds a cached page through a direct-mapped table of the cache's pages, published
+// by the DML, at slot (page + FastSalt(block)) mod its size (2 to 4 entries a frame slot). An
+// entry is there only while its frame holds the page with the reference bit set, and it allows
+// writes (kFastWritable) only while the page is dirty, so a hit needs no bookkeeping: the WSClock
+// hand that clears a reference bit and an eviction take the entry out, a write-back clears
+// kFastWritable, and the next access goes through the slow path, which sets the bits and puts
+// the entry back. Two pages on one slot take turns through the slow path.
+// A tag is page | FastTagBase(block, generation), with kFastWritable while dirty; 0 is empty.
+constexpr std::uint64_t kFastWritable = std::uint64_t(1) << 39;
+struct FastEntry
 {
+  std::uint64_t tag = 0;
   unsigned char* data = nullptr;
-  std::uint64_t first = 0; // element index of data[0]
-  std::uint64_t count = 0; // elements valid from data (never past the block's end)
-  std::size_t elementSize = 0;
-  bool* ref = nullptr;
-  bool* dirty = nullptr;
 };
+// A block's parameters for the inline access. tagBase == kNoFastTag: never served inline (in
+// core, no cache, LRU replacement, one element a page).
+constexpr std::uint64_t kNoFastTag = ~std::uint64_t(0);
+struct FastBlock
+{
+  std::uint64_t magic = 0;   // ceil(2^64 / perPage): page = high 64 bits of index * magic
+  std::uint64_t perPage = 1; // elements per page
+  std::uint64_t count = 0;   // elements of the block
+  std::uint64_t tagBase = kNoFastTag; // FastTagBase | kFastWritable
+  std::uint64_t salt = 0;    // added to the page for the table slot
+  std::uint64_t elementSize = 0;
+};
+// Block ids served inline: below kFastBlocks. A tag keeps the block id in its top 16 bits, the
+// cache's generation (a count of its builds, whose page sizes may differ) in the next 8, then
+// kFastWritable, and the page below them: blocks of fewer than 2^39 elements.
+constexpr std::uint64_t kFastBlocks = 0xFFFE;
+inline std::uint64_t FastTagBase(std::int32_t id, std::uint8_t generation)
+{
+  return (std::uint64_t(id + 1) << 48) | (std::uint64_t(generation) << 40);
+}
+inline std::uint64_t FastSalt(std::int32_t id)
+{
+  return (std::uint64_t(id) * 0x9E3779B97F4A7C15ull) >> 40;
+}
+// floor(a * b / 2^64): with b = ceil(2^64 / d), floor(a / d) for every a below 2^64 / d (the
+// rounding adds less than a / 2^64, under 1 / d).
+SIPMSS_ALWAYS_INLINE std::uint64_t MulHigh(std::uint64_t a, std::uint64_t b)
+{
+  return static_cast<std::uint64_t>((static_cast<unsigned __int128>(a) * b) >> 64);
+}
 
 // A pinned run of consecutive elements of one block (never crosses a page).
 struct Span
@@ -271,33 +303,65 @@ private:
   // date by Impl so that BasePointer() is inline: a compare and two loads, no call.
   void* const* bases_ = nullptr;
   std::size_t baseCount_ = 0;
-  // The same for the out-of-core blocks' last used pages, kFastPages entries per block (kept up to
-  // date by Impl: every change of a block's recent pages, eviction, resize, mode switch or cache
-  // rebuild re-publishes them).
-  const FastPage* fast_ = nullptr;
+  // The out-of-core blocks' inline access (kept up to date by Impl: every change of a block's
+  // count, mode or the cache re-publishes them): per block its FastBlock, and the cache's table
+  // of pages (never null: an empty one-entry table without a cache).
+  const FastBlock* fast_ = nullptr;
   std::size_t fastCount_ = 0; // blocks
+  const FastEntry* table_ = nullptr;
+  std::uint64_t tableMask_ = 0;
   std::uint64_t fastHits_ = 0;
   void ReadElement(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst);
   void WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
   void ReadRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
   void WriteRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, const void* src);
-  // The published recent page of block id holding elements [first, first + count), or nullptr
-  // (the fast path of Read/Write and ReadRange/WriteRange).
-  SIPMSS_ALWAYS_INLINE const FastPage* FastRange(
-    BlockId id, std::uint64_t first, std::uint64_t count) const
+  // The cached page of block id holding elements [first, first + count) (count > 0), as its
+  // element `first`, or nullptr (the fast path of Read/Write and ReadRange/WriteRange). Write:
+  // only a page already dirty.
+  template <bool Write>
+  SIPMSS_ALWAYS_INLINE unsigned char* FastData(
+    BlockId id, std::size_t elementSize, std::uint64_t first, std::uint64_t count) const
   {
-    if (static_cast<std::size_t>(id) < this->fastCount_ && count > 0)
+    if (static_cast<std::size_t>(id) >= this->fastCount_)
     {
-      const FastPage* e = this->fast_ + static_cast<std::size_t>(id) * kFastPages;
-      for (std::size_t k = 0; k < kFastPages; ++k)
-      {
-        if (first - e[k].first < e[k].count && count <= e[k].count - (first - e[k].first))
-        {
-          return e + k;
-        }
-      }
+      return nullptr;
     }
-    return nullptr;
+    const FastBlock& b = this->fast_[static_cast<std::size_t>(id)];
+    return elementSize == b.elementSize ? this->FastAt<Write>(b, elementSize, first, count)
+                                        : nullptr;
+  }
+
+public:
+  // The inline access for callers that keep a block's FastBlock (FastParams, a snapshot valid
+  // until the block is resized or closed; the table itself is read on every access, so a mode
+  // switch or a cache rebuild only sends accesses to the slow path). `size` is the block's
+  // element size.
+  FastBlock FastParams(BlockId id) const
+  {
+    return static_cast<std::size_t>(id) < this->fastCount_ ? this->fast_[static_cast<std::size_t>(id)]
+                                                            : FastBlock{};
+  }
+  template <bool Write>
+  SIPMSS_ALWAYS_INLINE unsigned char* FastAt(
+    const FastBlock& b, std::size_t size, std::uint64_t first, std::uint64_t count) const
+  {
+    const std::uint64_t page = MulHigh(first, b.magic);
+    const FastEntry& e = this->table_[(page + b.salt) & this->tableMask_];
+    if ((Write ? e.tag : e.tag | kFastWritable) != (page | b.tagBase) || first >= b.count ||
+      count > b.count - first || (count > 1 && MulHigh(first + count - 1, b.magic) != page))
+    {
+      return nullptr;
+    }
+    return e.data + (first - page * b.perPage) * size;
+  }
+  void CountFastHit() { ++this->fastHits_; }
+
+private:
+  std::size_t FastElementSize(BlockId id) const
+  {
+    return static_cast<std::size_t>(id) < this->fastCount_
+      ? static_cast<std::size_t>(this->fast_[static_cast<std::size_t>(id)].elementSize)
+      : 0;
   }
 };
 
@@ -306,17 +370,14 @@ SIPMSS_ALWAYS_INLINE void* DML::BasePointer(BlockId id) const
   return static_cast<std::size_t>(id) < this->baseCount_ ? this->bases_[id] : nullptr;
 }
 
-// One element: inline when out of core on one of the block's last kFastPages used pages (the hot
-// case of loops over neighbouring elements), else ReadElement/WriteElement (in core, other
-// pages, errors).
+// One element: inline when out of core on a cached page (the hot case), else
+// ReadElement/WriteElement (in core, pages not in the table, errors).
 SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
-  const FastPage* p = this->FastRange(id, index, 1);
-  if (p && elementSize == p->elementSize)
+  if (const unsigned char* p = this->FastData<false>(id, elementSize, index, 1))
   {
-    *p->ref = true;
     ++this->fastHits_;
-    std::memcpy(dst, p->data + (index - p->first) * elementSize, elementSize);
+    std::memcpy(dst, p, elementSize);
     return;
   }
   this->ReadElement(id, elementSize, index, dst);
@@ -325,28 +386,25 @@ SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::ui
 SIPMSS_ALWAYS_INLINE void DML::Write(
   BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
 {
-  const FastPage* p = this->FastRange(id, index, 1);
-  if (p && elementSize == p->elementSize)
+  if (unsigned char* p = this->FastData<true>(id, elementSize, index, 1))
   {
-    *p->ref = true;
-    *p->dirty = true;
     ++this->fastHits_;
-    std::memcpy(p->data + (index - p->first) * elementSize, src, elementSize);
+    std::memcpy(p, src, elementSize);
     return;
   }
   this->WriteElement(id, elementSize, index, src);
 }
 
-// A run of elements: inline when out of core within one of the block's recent pages (a vertex's
-// list of faces), else ReadRangeSlow/WriteRangeSlow.
+// A run of elements: inline when out of core within one cached page (a vertex's list of faces),
+// else ReadRangeSlow/WriteRangeSlow.
 SIPMSS_ALWAYS_INLINE void DML::ReadRange(
   BlockId id, std::uint64_t first, std::uint64_t count, void* dst)
 {
-  if (const FastPage* p = this->FastRange(id, first, count))
+  const std::size_t size = this->FastElementSize(id);
+  if (const unsigned char* p = count > 0 ? this->FastData<false>(id, size, first, count) : nullptr)
   {
-    *p->ref = true;
     ++this->fastHits_;
-    std::memcpy(dst, p->data + (first - p->first) * p->elementSize, count * p->elementSize);
+    std::memcpy(dst, p, count * size);
     return;
   }
   this->ReadRangeSlow(id, first, count, dst);
@@ -355,12 +413,11 @@ SIPMSS_ALWAYS_INLINE void DML::ReadRange(
 SIPMSS_ALWAYS_INLINE void DML::WriteRange(
   BlockId id, std::uint64_t first, std::uint64_t count, const void* src)
 {
-  if (const FastPage* p = this->FastRange(id, first, count))
+  const std::size_t size = this->FastElementSize(id);
+  if (unsigned char* p = count > 0 ? this->FastData<true>(id, size, first, count) : nullptr)
   {
-    *p->ref = true;
-    *p->dirty = true;
     ++this->fastHits_;
-    std::memcpy(p->data + (first - p->first) * p->elementSize, src, count * p->elementSize);
+    std::memcpy(p, src, count * size);
     return;
   }
   this->WriteRangeSlow(id, first, count, src);
