@@ -323,6 +323,7 @@ struct DML::Impl
   // cleared or the frame evicted, and the write tag when the page is written back.
   bool FastServed(BlockId id, const detail::Block& b) const;
   void FastInstall(BlockId id, const detail::Block& b, std::int32_t fi);
+  FastEntry* FastEntryOf(std::int32_t fi);
   void FastRemove(std::int32_t fi);
   void FastClearWrite(std::int32_t fi);
 

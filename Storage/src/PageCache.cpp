@@ -290,35 +290,34 @@ void DML::Impl::FastInstall(BlockId id, const Block& b, std::int32_t fi)
   e.data = f.data;
 }
 
-void DML::Impl::FastRemove(std::int32_t fi)
+// The table's entry of frame fi's page when it names that frame (nullptr otherwise).
+FastEntry* DML::Impl::FastEntryOf(std::int32_t fi)
 {
   auto& T = this->cache.table;
   const Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
   if (T.empty() || f.block < 0)
   {
-    return;
+    return nullptr;
   }
   FastEntry& e = T[(f.page + FastSalt(f.block)) & (T.size() - 1)];
-  if ((e.tag | kFastWritable) ==
-    (f.page | FastTagBase(f.block, this->cache.generation) | kFastWritable))
+  const bool ours = (e.tag | kFastWritable) ==
+    (f.page | FastTagBase(f.block, this->cache.generation) | kFastWritable);
+  return ours ? &e : nullptr;
+}
+
+void DML::Impl::FastRemove(std::int32_t fi)
+{
+  if (FastEntry* e = this->FastEntryOf(fi))
   {
-    e = FastEntry{};
+    *e = FastEntry{};
   }
 }
 
 void DML::Impl::FastClearWrite(std::int32_t fi)
 {
-  auto& T = this->cache.table;
-  const Frame& f = this->cache.frames[static_cast<std::size_t>(fi)];
-  if (T.empty() || f.block < 0)
+  if (FastEntry* e = this->FastEntryOf(fi))
   {
-    return;
-  }
-  FastEntry& e = T[(f.page + FastSalt(f.block)) & (T.size() - 1)];
-  if ((e.tag | kFastWritable) ==
-    (f.page | FastTagBase(f.block, this->cache.generation) | kFastWritable))
-  {
-    e.tag &= ~kFastWritable;
+    e->tag &= ~kFastWritable;
   }
 }
 

@@ -100,6 +100,32 @@ SIPMSS_ALWAYS_INLINE void CheckWrite(
   }
 #endif
 }
+// The accessors' inline access out of core: elements [first, first + n) on a page in the DML's
+// table copied out (FastRead) or in (FastWrite: a dirty page), else false (the DML's own path).
+template <class T>
+SIPMSS_ALWAYS_INLINE bool FastRead(
+  DML& dml, const FastBlock& b, std::uint64_t first, std::uint64_t n, T* dst)
+{
+  if (const unsigned char* p = dml.template FastAt<false>(b, sizeof(T), first, n))
+  {
+    dml.CountFastHit();
+    std::memcpy(dst, p, n * sizeof(T));
+    return true;
+  }
+  return false;
+}
+template <class T>
+SIPMSS_ALWAYS_INLINE bool FastWrite(
+  DML& dml, const FastBlock& b, std::uint64_t first, std::uint64_t n, const T* src)
+{
+  if (unsigned char* p = dml.template FastAt<true>(b, sizeof(T), first, n))
+  {
+    dml.CountFastHit();
+    std::memcpy(p, src, n * sizeof(T));
+    return true;
+  }
+  return false;
+}
 } // namespace detail
 
 template <class T>
@@ -139,13 +165,10 @@ public:
       return this->base_[i];
     }
     T v;
-    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1))
+    if (!detail::FastRead(*this->dml_, this->fast_, i, 1, &v))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(&v, p, sizeof(T));
-      return v;
+      this->dml_->Read(this->id_, sizeof(T), i, &v);
     }
-    this->dml_->Read(this->id_, sizeof(T), i, &v);
     return v;
   }
   SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
@@ -156,13 +179,10 @@ public:
       this->base_[i] = v;
       return;
     }
-    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), i, 1))
+    if (!detail::FastWrite(*this->dml_, this->fast_, i, 1, &v))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(p, &v, sizeof(T));
-      return;
+      this->dml_->Write(this->id_, sizeof(T), i, &v);
     }
-    this->dml_->Write(this->id_, sizeof(T), i, &v);
   }
   void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
   {
@@ -175,13 +195,10 @@ public:
       std::memcpy(dst, this->base_ + first, n * sizeof(T));
       return;
     }
-    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), first, n))
+    if (!detail::FastRead(*this->dml_, this->fast_, first, n, dst))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(dst, p, n * sizeof(T));
-      return;
+      this->dml_->ReadRange(this->id_, first, n, dst);
     }
-    this->dml_->ReadRange(this->id_, first, n, dst);
   }
   void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
   {
@@ -195,13 +212,10 @@ public:
       std::memcpy(this->base_ + first, src, n * sizeof(T));
       return;
     }
-    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), first, n))
+    if (!detail::FastWrite(*this->dml_, this->fast_, first, n, src))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(p, src, n * sizeof(T));
-      return;
+      this->dml_->WriteRange(this->id_, first, n, src);
     }
-    this->dml_->WriteRange(this->id_, first, n, src);
   }
   // The elements [first, first + n) to read: in place in core, else copied into `buffer`.
   const T* Run(std::uint64_t first, std::uint64_t n, std::vector<T>& buffer) const
@@ -309,25 +323,19 @@ public:
   SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const
   {
     T v;
-    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1))
+    if (!detail::FastRead(*this->dml_, this->fast_, i, 1, &v))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(&v, p, sizeof(T));
-      return v;
+      this->dml_->Read(this->id_, sizeof(T), i, &v);
     }
-    this->dml_->Read(this->id_, sizeof(T), i, &v);
     return v;
   }
   SIPMSS_ALWAYS_INLINE void Set(std::uint64_t i, const T& v)
   {
     detail::CheckWrite(this->id_, this->bounds_, i, 1);
-    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), i, 1))
+    if (!detail::FastWrite(*this->dml_, this->fast_, i, 1, &v))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(p, &v, sizeof(T));
-      return;
+      this->dml_->Write(this->id_, sizeof(T), i, &v);
     }
-    this->dml_->Write(this->id_, sizeof(T), i, &v);
   }
   void GetRange(std::uint64_t first, std::uint64_t n, T* dst) const
   {
@@ -335,13 +343,10 @@ public:
     {
       return;
     }
-    if (const unsigned char* p = this->dml_->template FastAt<false>(this->fast_, sizeof(T), first, n))
+    if (!detail::FastRead(*this->dml_, this->fast_, first, n, dst))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(dst, p, n * sizeof(T));
-      return;
+      this->dml_->ReadRange(this->id_, first, n, dst);
     }
-    this->dml_->ReadRange(this->id_, first, n, dst);
   }
   void SetRange(std::uint64_t first, std::uint64_t n, const T* src)
   {
@@ -350,13 +355,10 @@ public:
       return;
     }
     detail::CheckWrite(this->id_, this->bounds_, first, n);
-    if (unsigned char* p = this->dml_->template FastAt<true>(this->fast_, sizeof(T), first, n))
+    if (!detail::FastWrite(*this->dml_, this->fast_, first, n, src))
     {
-      this->dml_->CountFastHit();
-      std::memcpy(p, src, n * sizeof(T));
-      return;
+      this->dml_->WriteRange(this->id_, first, n, src);
     }
-    this->dml_->WriteRange(this->id_, first, n, src);
   }
 
 private:
