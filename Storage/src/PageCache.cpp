@@ -274,6 +274,7 @@ bool DML::Impl::FastServed(BlockId id, const Block& b) const
   return b.kind == Kind::Plain && !b.mem && this->cache.built && !this->cache.table.empty() &&
     this->replacement != Replacement::Lru && // (LRU moves the frame on every access)
     id >= 0 && static_cast<std::uint64_t>(id) < kFastBlocks && b.perPage > 1 &&
+    b.perPage < (std::uint64_t(1) << 24) && // (MulHigh exact: count * perPage < 2^64)
     b.count < (std::uint64_t(1) << 39);
 }
 

@@ -341,6 +341,74 @@ TEST(StorageDML, APageWrittenBackIsMarkedDirtyAgainByItsNextWrite)
   EXPECT_EQ(a.Get(i0 + 4), 0u);
 }
 
+TEST(StorageDML, AJoinTakesThisDMLsCopyOfTheChildsElementsOutOfTheInlineTable)
+{
+  // A page this DML holds clean and serves inline, inside the range a forked child writes: at
+  // Join the copy is dropped, and the next read must see the child's elements, not the copy.
+  TempDir tmp;
+  DML dml;
+  const std::uint64_t budget = 1 << 20;
+  dml.Config(MakeProfile(tmp.Path(), budget, ModePolicy::OutOfCore));
+  constexpr std::uint64_t n = 1000000; // 8 MB of zeros
+  Array<std::uint64_t> a(dml, n);
+  ASSERT_EQ(a.Get(n - 1), 0u);
+  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  ASSERT_GT(per, 8u);
+  {
+    // (buffers to spare: the fork below takes those, not this DML's cached page)
+    std::unique_ptr<DML> child = dml.Fork(budget / 4, {});
+    ASSERT_NE(child, nullptr);
+    dml.Join(*child);
+  }
+  const std::uint64_t i0 = 5 * per + 3;
+  ASSERT_EQ(a.Get(i0), 0u); // a miss: cached, clean
+  std::uint64_t hits = DMLTestAccess::InlineHits(dml);
+  ASSERT_EQ(a.Get(i0 + 1), 0u);
+  ASSERT_EQ(DMLTestAccess::InlineHits(dml), hits + 1); // served inline
+  std::unique_ptr<DML> child = dml.Fork(budget / 8, { { a.Id(), 5 * per, per } });
+  ASSERT_NE(child, nullptr);
+  const std::uint64_t misses = dml.GetStats().misses;
+  for (std::uint64_t k = 0; k < 4; ++k)
+  {
+    const std::uint64_t v = 40 + k;
+    child->Write(a.Id(), sizeof(v), i0 + k, &v);
+  }
+  dml.Join(*child);
+  child.reset();
+  for (std::uint64_t k = 0; k < 4; ++k)
+  {
+    EXPECT_EQ(a.Get(i0 + k), 40 + k) << k;
+  }
+  EXPECT_EQ(a.Get(i0 + 4), 0u);
+  EXPECT_GT(dml.GetStats().misses, misses); // (the copy was dropped: read again)
+}
+
+TEST(StorageDML, ElementsCutByAShrinkReadZeroAfterAGrowth)
+{
+  // Out of core, the elements a Resize cuts from a cached, dirty page (served inline) must read
+  // zero once the block grows again.
+  TempDir tmp;
+  DML dml;
+  dml.Config(MakeProfile(tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
+  constexpr std::uint64_t n = 100000;
+  Array<std::uint64_t> a(dml, n);
+  ASSERT_EQ(a.Get(0), 0u);
+  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  ASSERT_GT(per, 8u);
+  ASSERT_GT(n, 4 * per);
+  for (std::uint64_t i = n - 2 * per; i < n; ++i)
+  {
+    a.Set(i, 7);
+  }
+  const std::uint64_t m = n - per / 2 - 1; // (inside a page)
+  a.Resize(m);
+  a.Resize(n);
+  for (std::uint64_t i = n - 2 * per; i < n; ++i)
+  {
+    ASSERT_EQ(a.Get(i), i < m ? 7u : 0u) << i;
+  }
+}
+
 TEST(StorageDML, ElementsLargerThanAPage)
 {
   TempDir tmp;

@@ -178,8 +178,11 @@ struct FastBlock
   std::uint64_t elementSize = 0;
 };
 // Block ids served inline: below kFastBlocks. A tag keeps the block id in its top 16 bits, the
-// cache's generation (a count of its builds, whose page sizes may differ) in the next 8, then
-// kFastWritable, and the page below them: blocks of fewer than 2^39 elements.
+// cache's generation (a count of its builds, whose page sizes may differ, modulo 256) in the
+// next 8, then kFastWritable, and the page below them: blocks of fewer than 2^39 elements and
+// pages of fewer than 2^24. The generation keeps an accessor that missed its Refresh after a
+// rebuild off the new table's pages, except after a multiple of 256 rebuilds: Refresh is the
+// rule (Access.h).
 constexpr std::uint64_t kFastBlocks = 0xFFFE;
 inline std::uint64_t FastTagBase(std::int32_t id, std::uint8_t generation)
 {
