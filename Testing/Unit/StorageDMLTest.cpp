@@ -33,6 +33,23 @@ Profile MakeProfile(const std::string& dir, std::uint64_t budget, ModePolicy pol
   return p;
 }
 
+// An out-of-core DML in a temporary directory with one block `a` of n 8-byte zeros, its page
+// cache built (`per` elements a page).
+struct PagedZeros
+{
+  TempDir tmp;
+  DML dml;
+  Array<std::uint64_t> a;
+  std::uint64_t per = 0;
+  PagedZeros(std::uint64_t budget, std::uint64_t n)
+  {
+    this->dml.Config(MakeProfile(this->tmp.Path(), budget, ModePolicy::OutOfCore));
+    this->a = Array<std::uint64_t>(this->dml, n);
+    EXPECT_EQ(this->a.Get(n - 1), 0u);
+    this->per = DMLTestAccess::PageSize(this->dml) / sizeof(std::uint64_t);
+  }
+};
+
 TEST(StorageDML, InCoreBasics)
 {
   DML dml;
@@ -291,14 +308,12 @@ TEST(StorageDML, APageWrittenBackIsMarkedDirtyAgainByItsNextWrite)
   // A page written inline, then written back without being evicted (a fork writes the parent's
   // dirty pages back), is clean: the next write must go through the slow path and mark it dirty
   // again, or that write would be lost when the page is evicted.
-  TempDir tmp;
-  DML dml;
   const std::uint64_t budget = 1 << 20;
-  dml.Config(MakeProfile(tmp.Path(), budget, ModePolicy::OutOfCore));
-  constexpr std::uint64_t n = 1000000; // 8 MB of zeros, none cached
-  Array<std::uint64_t> a(dml, n);
-  ASSERT_EQ(a.Get(n - 1), 0u); // (the page cache exists from here on)
-  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  constexpr std::uint64_t n = 1000000; // 8 MB of zeros
+  PagedZeros z(budget, n);
+  DML& dml = z.dml;
+  Array<std::uint64_t>& a = z.a;
+  const std::uint64_t per = z.per;
   ASSERT_GT(per, 8u);
   const std::uint64_t i0 = 3 * per + 1;
   auto forkAndJoin = [&](std::uint64_t bytes) {
@@ -345,14 +360,11 @@ TEST(StorageDML, AJoinTakesThisDMLsCopyOfTheChildsElementsOutOfTheInlineTable)
 {
   // A page this DML holds clean and serves inline, inside the range a forked child writes: at
   // Join the copy is dropped, and the next read must see the child's elements, not the copy.
-  TempDir tmp;
-  DML dml;
   const std::uint64_t budget = 1 << 20;
-  dml.Config(MakeProfile(tmp.Path(), budget, ModePolicy::OutOfCore));
-  constexpr std::uint64_t n = 1000000; // 8 MB of zeros
-  Array<std::uint64_t> a(dml, n);
-  ASSERT_EQ(a.Get(n - 1), 0u);
-  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  PagedZeros z(budget, 1000000); // 8 MB of zeros
+  DML& dml = z.dml;
+  Array<std::uint64_t>& a = z.a;
+  const std::uint64_t per = z.per;
   ASSERT_GT(per, 8u);
   {
     // (buffers to spare: the fork below takes those, not this DML's cached page)
@@ -387,13 +399,10 @@ TEST(StorageDML, ElementsCutByAShrinkReadZeroAfterAGrowth)
 {
   // Out of core, the elements a Resize cuts from a cached, dirty page (served inline) must read
   // zero once the block grows again.
-  TempDir tmp;
-  DML dml;
-  dml.Config(MakeProfile(tmp.Path(), 256 * 1024, ModePolicy::OutOfCore));
   constexpr std::uint64_t n = 100000;
-  Array<std::uint64_t> a(dml, n);
-  ASSERT_EQ(a.Get(0), 0u);
-  const std::uint64_t per = DMLTestAccess::PageSize(dml) / sizeof(std::uint64_t);
+  PagedZeros z(256 * 1024, n);
+  Array<std::uint64_t>& a = z.a;
+  const std::uint64_t per = z.per;
   ASSERT_GT(per, 8u);
   ASSERT_GT(n, 4 * per);
   for (std::uint64_t i = n - 2 * per; i < n; ++i)
