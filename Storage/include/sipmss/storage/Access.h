@@ -143,11 +143,7 @@ public:
   void Refresh()
   {
     this->base_ = static_cast<T*>(this->dml_->BasePointer(this->id_));
-    this->fast_ = this->base_ ? FastBlock{} : this->dml_->FastParams(this->id_);
-    if (this->fast_.elementSize != sizeof(T))
-    {
-      this->fast_ = FastBlock{};
-    }
+    this->fast_ = this->base_ ? FastBlock{} : this->dml_->FastParams(this->id_, sizeof(T));
   }
   bool IsBound() const { return this->dml_ != nullptr; }
   // Whether the block is in this DML's memory (then CoreAccess serves it).
@@ -313,11 +309,7 @@ public:
   {
     if (this->dml_)
     {
-      this->fast_ = this->dml_->FastParams(this->id_);
-      if (this->fast_.elementSize != sizeof(T))
-      {
-        this->fast_ = FastBlock{};
-      }
+      this->fast_ = this->dml_->FastParams(this->id_, sizeof(T));
     }
   }
   SIPMSS_ALWAYS_INLINE T Get(std::uint64_t i) const

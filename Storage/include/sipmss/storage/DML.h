@@ -318,31 +318,29 @@ private:
   void WriteElement(BlockId id, std::size_t elementSize, std::uint64_t index, const void* src);
   void ReadRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, void* dst);
   void WriteRangeSlow(BlockId id, std::uint64_t first, std::uint64_t count, const void* src);
-  // The cached page of block id holding elements [first, first + count) (count > 0), as its
-  // element `first`, or nullptr (the fast path of Read/Write and ReadRange/WriteRange). Write:
-  // only a page already dirty.
-  template <bool Write>
-  SIPMSS_ALWAYS_INLINE unsigned char* FastData(
-    BlockId id, std::size_t elementSize, std::uint64_t first, std::uint64_t count) const
+  // Block id's published parameters when its elements are elementSize bytes (0: any), else
+  // nullptr.
+  const FastBlock* FastBlockOf(BlockId id, std::size_t elementSize) const
   {
     if (static_cast<std::size_t>(id) >= this->fastCount_)
     {
       return nullptr;
     }
     const FastBlock& b = this->fast_[static_cast<std::size_t>(id)];
-    return elementSize == b.elementSize ? this->FastAt<Write>(b, elementSize, first, count)
-                                        : nullptr;
+    return elementSize == 0 || elementSize == b.elementSize ? &b : nullptr;
   }
 
 public:
-  // The inline access for callers that keep a block's FastBlock (FastParams, a snapshot valid
-  // until the block is resized or closed; the table itself is read on every access, so a mode
-  // switch or a cache rebuild only sends accesses to the slow path). `size` is the block's
-  // element size.
-  FastBlock FastParams(BlockId id) const
+  // The inline access for callers that keep a block's FastBlock (FastParams: a snapshot valid
+  // until the block is resized or closed, none when its elements are not elementSize bytes; the
+  // table itself is read on every access, so a mode switch or a cache rebuild only sends
+  // accesses to the slow path). FastAt: the cached page holding elements [first, first + count)
+  // (count > 0), as its element `first`, or nullptr; Write: only a page already dirty. `size`
+  // is the block's element size.
+  FastBlock FastParams(BlockId id, std::size_t elementSize) const
   {
-    return static_cast<std::size_t>(id) < this->fastCount_ ? this->fast_[static_cast<std::size_t>(id)]
-                                                            : FastBlock{};
+    const FastBlock* b = this->FastBlockOf(id, elementSize);
+    return b ? *b : FastBlock{};
   }
   template <bool Write>
   SIPMSS_ALWAYS_INLINE unsigned char* FastAt(
@@ -358,14 +356,6 @@ public:
     return e.data + (first - page * b.perPage) * size;
   }
   void CountFastHit() { ++this->fastHits_; }
-
-private:
-  std::size_t FastElementSize(BlockId id) const
-  {
-    return static_cast<std::size_t>(id) < this->fastCount_
-      ? static_cast<std::size_t>(this->fast_[static_cast<std::size_t>(id)].elementSize)
-      : 0;
-  }
 };
 
 SIPMSS_ALWAYS_INLINE void* DML::BasePointer(BlockId id) const
@@ -377,7 +367,8 @@ SIPMSS_ALWAYS_INLINE void* DML::BasePointer(BlockId id) const
 // ReadElement/WriteElement (in core, pages not in the table, errors).
 SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::uint64_t index, void* dst)
 {
-  if (const unsigned char* p = this->FastData<false>(id, elementSize, index, 1))
+  const FastBlock* b = elementSize ? this->FastBlockOf(id, elementSize) : nullptr;
+  if (const unsigned char* p = b ? this->FastAt<false>(*b, elementSize, index, 1) : nullptr)
   {
     ++this->fastHits_;
     std::memcpy(dst, p, elementSize);
@@ -389,7 +380,8 @@ SIPMSS_ALWAYS_INLINE void DML::Read(BlockId id, std::size_t elementSize, std::ui
 SIPMSS_ALWAYS_INLINE void DML::Write(
   BlockId id, std::size_t elementSize, std::uint64_t index, const void* src)
 {
-  if (unsigned char* p = this->FastData<true>(id, elementSize, index, 1))
+  const FastBlock* b = elementSize ? this->FastBlockOf(id, elementSize) : nullptr;
+  if (unsigned char* p = b ? this->FastAt<true>(*b, elementSize, index, 1) : nullptr)
   {
     ++this->fastHits_;
     std::memcpy(p, src, elementSize);
@@ -403,11 +395,11 @@ SIPMSS_ALWAYS_INLINE void DML::Write(
 SIPMSS_ALWAYS_INLINE void DML::ReadRange(
   BlockId id, std::uint64_t first, std::uint64_t count, void* dst)
 {
-  const std::size_t size = this->FastElementSize(id);
-  if (const unsigned char* p = count > 0 ? this->FastData<false>(id, size, first, count) : nullptr)
+  const FastBlock* b = count > 0 ? this->FastBlockOf(id, 0) : nullptr;
+  if (const unsigned char* p = b ? this->FastAt<false>(*b, b->elementSize, first, count) : nullptr)
   {
     ++this->fastHits_;
-    std::memcpy(dst, p, count * size);
+    std::memcpy(dst, p, count * b->elementSize);
     return;
   }
   this->ReadRangeSlow(id, first, count, dst);
@@ -416,11 +408,11 @@ SIPMSS_ALWAYS_INLINE void DML::ReadRange(
 SIPMSS_ALWAYS_INLINE void DML::WriteRange(
   BlockId id, std::uint64_t first, std::uint64_t count, const void* src)
 {
-  const std::size_t size = this->FastElementSize(id);
-  if (unsigned char* p = count > 0 ? this->FastData<true>(id, size, first, count) : nullptr)
+  const FastBlock* b = count > 0 ? this->FastBlockOf(id, 0) : nullptr;
+  if (unsigned char* p = b ? this->FastAt<true>(*b, b->elementSize, first, count) : nullptr)
   {
     ++this->fastHits_;
-    std::memcpy(p, src, count * size);
+    std::memcpy(p, src, count * b->elementSize);
     return;
   }
   this->WriteRangeSlow(id, first, count, src);
