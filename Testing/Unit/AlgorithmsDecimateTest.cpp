@@ -1020,13 +1020,31 @@ TEST(AlgorithmsDecimate, OutOfCoreHelperThreadsDoNotChangeTheResult)
   EXPECT_TRUE(one.stats.storage.usedOutOfCore);
   EXPECT_EQ(one.stats.storage.forks, 0u);
   ExpectSameOutput(a, one, "out of core, 1 thread");
+  EXPECT_EQ(one.stats.achievedError, a.stats.achievedError); // (measured in the lazy sums)
   o.threads = 2;
   Outcome two = Simplify(MemorySource(s), o);
   EXPECT_TRUE(two.stats.storage.usedOutOfCore);
-  // At least: rings (4), quadrics, and per pass the sweep, the rounds, compaction (3).
+  // At least: rings (4), quadrics, and per pass the sweep, the rounds, compaction (4: the lazy
+  // sums, the degrees, the moves, the rings).
   EXPECT_GE(two.stats.storage.forks, 12u);
   EXPECT_LE(two.stats.storage.peakBytes, o.storage.memoryBudget);
   ExpectSameOutput(a, two, "out of core, 2 threads");
+  EXPECT_EQ(two.stats.achievedError, a.stats.achievedError);
+  // With attributes in the error: the lazy sums also add the extensions, each thread those of
+  // its own vertices.
+  o.attributes = { { "quality", 2.0 }, { "colors", 0.5 } };
+  o.threads = 1;
+  o.storage.memoryBudget = 0;
+  Outcome aa = Simplify(MemorySource(s), o);
+  EXPECT_FALSE(aa.stats.storage.usedOutOfCore);
+  o.threads = 2;
+  o.storage.memoryBudget = 2 << 20;
+  Outcome ab = Simplify(MemorySource(s), o);
+  EXPECT_TRUE(ab.stats.storage.usedOutOfCore);
+  EXPECT_GE(ab.stats.storage.forks, 12u);
+  ExpectSameOutput(aa, ab, "attributes, out of core, 2 threads");
+  EXPECT_EQ(ab.stats.achievedError, aa.stats.achievedError);
+  EXPECT_FALSE(aa.out.tris == a.out.tris); // (the attributes changed the collapses)
   EXPECT_TRUE(fs::is_empty(dir)); // no file left behind
   fs::remove_all(dir);
 }

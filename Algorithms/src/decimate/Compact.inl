@@ -4,6 +4,73 @@ namespace sipmss::algorithms
 {
 namespace
 {
+// The sums a pass with lazy sums left to the compaction (PassState::lazySums), while every
+// record is still in place: each survivor of the pass (a live vertex, its degree in the old
+// ring offsets) adds its partner's quadric, and extension, to its own, and the collapse's error
+// is measured as Collapse measures it without lazy sums (its cost per unit of the summed
+// quadric's trace). On the vertex ranges of up to two threads (out of core the upper one
+// through a forked DML): a survivor writes only its own records, and reads its partner's,
+// which nothing writes here (a partner is removed by its collapse, in no other one).
+void LazySums(RunContext& ctx, MeshState& mesh, std::uint64_t nv)
+{
+  const std::size_t xs = mesh.xSize;
+  storage::Phase phase;
+  phase.elements = nv;
+  phase.threads = std::min(ctx.threads, 2);
+  phase.inCoreMin = kParallelCompactMin;
+  phase.writes = { mesh.quad.Id() };
+  if (xs)
+  {
+    const std::uint64_t mid = nv / 2; // (Phase::helperFirst's default)
+    phase.helperWrites.push_back({ mesh.extra.Id(), mid * xs, (nv - mid) * xs });
+  }
+  std::vector<double> err(2, 0.0); // each worker's largest error
+  Workers workers(mesh.dml, phase);
+  workers.Run([&](int t, std::uint64_t lo, std::uint64_t hi, const std::atomic<bool>& stop) {
+    Views w;
+    mesh.BindViews(w, workers, t);
+    std::vector<double> xsum, xa, xb;
+    double e = 0;
+    for (std::uint64_t v = lo; v < hi; ++v)
+    {
+      if ((v & 4095) == 0)
+      {
+        if (stop.load(std::memory_order_relaxed))
+        {
+          return;
+        }
+        if (t == 0)
+        {
+          ctx.progress.Poll();
+        }
+      }
+      if (!(w.S.Get(v) & kCollapsed) || w.RO.Get(v) == 0)
+      {
+        continue;
+      }
+      const Cand c = w.C.Get(v);
+      Quadric Q = w.Q.Get(v);
+      AddTo(Q, w.Q.Get(c.partner));
+      w.Q.Set(v, Q);
+      if (xs)
+      {
+        SumExtension(w.X, xs, v, c.partner, xsum, xa, xb);
+        w.X.SetRange(v * xs, xs, xsum.data());
+      }
+      const double trace = Trace(Q);
+      if (trace > 0)
+      {
+        e = std::max(e, KeyError(xs, double(c.cost), trace));
+      }
+    }
+    err[std::size_t(t)] = std::max(err[std::size_t(t)], e); // (t < 2)
+  });
+  for (const double e : err)
+  {
+    ctx.achievedErr2 = std::max(ctx.achievedErr2, e);
+  }
+}
+
 // Renumbers the live vertices and faces after a pass, in place: compaction keeps the order, so
 // every element moves to an index <= its own and ascending loops never overwrite what they still
 // have to read. The blocks then shrink (Resize: no copy) and the DML re-evaluates its mode with
@@ -31,9 +98,13 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   // new number, with the top bit for the survivors of this pass (their old state is overwritten
   // below before their neighbours look at it).
   constexpr std::uint32_t kTop = 0x80000000u;
+  if (pass.lazySums)
+  {
+    LazySums(ctx, mesh, nv);
+    pass.lazySums = false;
+  }
   std::uint64_t k = 0;
   std::uint32_t end = 0;
-  std::vector<double> xsum, xa, xb; // (lazy sums of the attribute extensions)
   for (std::uint64_t v = 0; v < nv; ++v)
   {
     ctx.Tick(nf + v, total);
@@ -47,29 +118,8 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     mesh.views.RO.Set(k, end);
     const bool survivor = (mesh.views.S.Get(v) & kCollapsed) != 0;
     R.Set(v, std::uint32_t(k) | (survivor ? kTop : 0u));
-    if (survivor && pass.lazySums)
-    {
-      // Its collapse's candidate (and partner) is still in place: nothing moved yet. The
-      // collapse's error, as Collapse measures it without lazy sums: its cost per unit of the
-      // summed quadric's trace.
-      const Cand c = mesh.views.C.Get(v);
-      Quadric Q = mesh.views.Q.Get(v);
-      AddTo(Q, mesh.views.Q.Get(c.partner));
-      mesh.views.Q.Set(v, Q);
-      const double trace = Trace(Q);
-      if (mesh.xSize)
-      {
-        SumExtension(mesh.views.X, mesh.xSize, v, c.partner, xsum, xa, xb);
-        mesh.views.X.SetRange(v * mesh.xSize, mesh.xSize, xsum.data());
-      }
-      if (trace > 0)
-      {
-        ctx.achievedErr2 = std::max(ctx.achievedErr2, KeyError(mesh.xSize, double(c.cost), trace));
-      }
-    }
     ++k;
   }
-  pass.lazySums = false;
   for (Scratch& s : pass.scratch)
   {
     ctx.achievedErr2 = std::max(ctx.achievedErr2, s.achievedErr2);
