@@ -128,11 +128,10 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   const std::uint64_t nv2 = k;
   mesh.views.RO.Set(nv2, end);
   TrackSamples(mesh, R); // (the removed vertices' candidates still name their survivors)
-  // 3. Vertex data, and the candidates carried to the next pass.
-  // (S, C, R: access of either kind, see WithAccess)
-  auto carry = [&, kTop](const auto& S, const auto& C, const auto& R, std::uint64_t v,
-                 State& flags, Cand& c) {
-    const State sv = S.Get(v);
+  // 3. Vertex data, and the candidates carried to the next pass: a vertex's state sv and
+  // candidate cv give its new flags and candidate c (R: its partners' new numbers).
+  auto carry = [&, kTop](const View<std::uint32_t>& R, State sv, const Cand& cv, State& flags,
+                 Cand& c) {
     flags = State(sv & (kBoundary | kLocked | kFixed | kNeedsLegal | kComplex | kMerged));
     c = kNoCandidate;
     if (sv & kCollapsed)
@@ -149,7 +148,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
       // edges to the collapsed pairs (the survivors offer the new ones): its best and second
       // best stay exact unless they pointed at one of them. A lost best is replaced by the
       // second best when that one is known and still valid.
-      c = C.Get(v);
+      c = cv;
       auto valid = [&R, kTop](std::uint32_t partner, std::uint32_t& mapped) {
         mapped = partner == kNone ? kNone : R.Get(partner);
         return partner == kNone || (mapped != kNone && !(mapped & kTop));
@@ -198,93 +197,189 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     }
   };
   const std::size_t rec = mesh.recSize;
+  const std::size_t xs = mesh.xSize;
   std::uint64_t f2 = 0;
+  // The moves go by runs of kMoveRun elements, read and written as ranges (a table lookup per
+  // run and page, not per element). A run's live elements land next to each other, at or
+  // below their old indices (the order is kept), so each run is read whole before any of it is
+  // written; those that do not move (all before the first removed one) come first in a run and
+  // are not written back unless their records change.
+  constexpr std::uint64_t kMoveRun = 256;
+  auto progressAt = [&](std::uint64_t at, std::uint64_t i) {
+    if ((i & 1023) == 0)
+    {
+      ctx.progress.Tick(double(at + i) / double(total));
+    }
+  };
   // 4. Faces, ascending: new index f2 <= f (they read only R and the faces).
   auto moveFaces = [&](Views& wv, const View<std::uint32_t>& RR, bool tick) {
-    for (std::uint64_t f = 0; f < nf; ++f)
+    std::vector<Tri> in(kMoveRun), out(kMoveRun);
+    for (std::uint64_t f0 = 0; f0 < nf; f0 += kMoveRun)
     {
       if (tick)
       {
-        ctx.Tick(nf + 2 * nv + f, total);
+        progressAt(nf + 2 * nv, f0);
       }
-      Tri t = wv.F.Get(f);
-      if (!Alive(t))
+      const std::size_t n = std::size_t(std::min(kMoveRun, nf - f0));
+      wv.F.GetRange(f0, n, in.data());
+      std::size_t m = 0;
+      for (std::size_t i = 0; i < n; ++i)
+      {
+        Tri t = in[i];
+        if (!Alive(t))
+        {
+          continue;
+        }
+        for (int c = 0; c < 3; ++c)
+        {
+          t.v[c] = RR.Get(t.v[c]) & ~kTop;
+        }
+        out[m++] = t;
+      }
+      // (faces that stay are written too: their corners are renumbered)
+      wv.F.SetRange(f2, m, out.data());
+      f2 += m;
+    }
+  };
+  // The live vertices of the run [v0, v0 + n) with new numbers r: the first one's new number
+  // (wLive, kNone for none) and the first moved one's index in the run (n for none).
+  auto runOf = [kTop](const std::uint32_t* r, std::uint64_t v0, std::size_t n,
+                 std::uint64_t& wLive, std::size_t& firstMoved) {
+    wLive = kNone;
+    firstMoved = n;
+    for (std::size_t i = 0; i < n; ++i)
+    {
+      if (r[i] == kNone)
       {
         continue;
       }
-      for (int c = 0; c < 3; ++c)
+      const std::uint64_t w = r[i] & ~kTop;
+      if (wLive == kNone)
       {
-        t.v[c] = RR.Get(t.v[c]) & ~kTop;
+        wLive = w;
       }
-      wv.F.Set(f2++, t);
+      if (w != v0 + i)
+      {
+        firstMoved = i;
+        return;
+      }
     }
   };
-  // The quadrics, in place and downwards.
+  // The quadrics (and attribute extensions), in place and downwards.
   auto moveQuadrics = [&](Views& wv, const View<std::uint32_t>& RR, bool tick, bool poll) {
-    const std::size_t xs = mesh.xSize;
-    std::vector<double> xbuf(xs);
-    WithAccess(
-      [&](auto Q, auto RA) {
-        for (std::uint64_t v = 0; v < nv; ++v)
+    std::vector<std::uint32_t> r(kMoveRun);
+    std::vector<Quadric> q(kMoveRun);
+    std::vector<double> x(kMoveRun * xs);
+    for (std::uint64_t v0 = 0; v0 < nv; v0 += kMoveRun)
+    {
+      if (tick)
+      {
+        progressAt(nf + nv, v0);
+      }
+      else if (poll && (v0 & 4095) == 0)
+      {
+        ctx.progress.Poll();
+      }
+      const std::size_t n = std::size_t(std::min(kMoveRun, nv - v0));
+      RR.GetRange(v0, n, r.data());
+      std::uint64_t wLive;
+      std::size_t i0;
+      runOf(r.data(), v0, n, wLive, i0);
+      if (i0 == n)
+      {
+        continue; // nothing moves
+      }
+      wv.Q.GetRange(v0 + i0, n - i0, q.data());
+      if (xs)
+      {
+        wv.X.GetRange((v0 + i0) * xs, (n - i0) * xs, x.data());
+      }
+      const std::uint64_t w0 = r[i0] & ~kTop;
+      std::size_t m = 0;
+      for (std::size_t i = i0; i < n; ++i)
+      {
+        if (r[i] != kNone)
         {
-          if (tick)
+          q[m] = q[i - i0];
+          if (xs)
           {
-            ctx.Tick(nf + nv + v, total);
+            std::copy_n(&x[(i - i0) * xs], xs, &x[m * xs]);
           }
-          else if (poll && (v & 4095) == 0)
-          {
-            ctx.progress.Poll();
-          }
-          const std::uint32_t rv = RA.Get(v);
-          const std::uint64_t w = rv & ~kTop;
-          if (rv != kNone && w != v)
-          {
-            Q.Set(w, Q.Get(v));
-            if (xs)
-            {
-              wv.X.GetRange(v * xs, xs, xbuf.data());
-              wv.X.SetRange(w * xs, xs, xbuf.data());
-            }
-          }
+          ++m;
         }
-      },
-      wv.Q, RR);
+      }
+      wv.Q.SetRange(w0, m, q.data());
+      if (xs)
+      {
+        wv.X.SetRange(w0 * xs, m * xs, x.data());
+      }
+    }
   };
-  // The states and candidates (carried), the positions and the point data, in place and
-  // downwards (carry reads only the vertex's own records and R).
+  // The states and candidates (carried: every live vertex's change), the positions and the
+  // point data (the moved ones), in place and downwards.
   auto moveRest = [&](Views& wv, const View<std::uint32_t>& RR, bool tick) {
-    std::vector<std::uint8_t> buf(rec);
-    WithAccess(
-      [&](auto S, auto C, auto P, auto A, auto RA) {
-        for (std::uint64_t v = 0; v < nv; ++v)
+    std::vector<std::uint32_t> r(kMoveRun);
+    std::vector<State> sIn(kMoveRun), sOut(kMoveRun);
+    std::vector<Cand> cIn(kMoveRun), cOut(kMoveRun);
+    std::vector<Vec3> p(kMoveRun);
+    std::vector<std::uint8_t> a(kMoveRun * rec);
+    for (std::uint64_t v0 = 0; v0 < nv; v0 += kMoveRun)
+    {
+      if (tick)
+      {
+        progressAt(nf + nv, v0);
+      }
+      const std::size_t n = std::size_t(std::min(kMoveRun, nv - v0));
+      RR.GetRange(v0, n, r.data());
+      std::uint64_t wLive;
+      std::size_t i0;
+      runOf(r.data(), v0, n, wLive, i0);
+      if (wLive == kNone)
+      {
+        continue; // no live vertex
+      }
+      wv.S.GetRange(v0, n, sIn.data());
+      wv.C.GetRange(v0, n, cIn.data());
+      std::size_t m = 0;
+      for (std::size_t i = 0; i < n; ++i)
+      {
+        if (r[i] != kNone)
         {
-          if (tick)
-          {
-            ctx.Tick(nf + nv + v, total);
-          }
-          const std::uint32_t rv = RA.Get(v);
-          if (rv == kNone)
-          {
-            continue;
-          }
-          const std::uint64_t w = rv & ~kTop;
-          State flags;
-          Cand c;
-          carry(S, C, RA, v, flags, c); // (reads v's records: not in place)
-          S.Set(w, flags);
-          C.Set(w, c);
-          if (w != v)
-          {
-            P.Set(w, P.Get(v));
-            if (rec)
-            {
-              A.GetRange(v * rec, rec, buf.data());
-              A.SetRange(w * rec, rec, buf.data());
-            }
-          }
+          carry(RR, sIn[i], cIn[i], sOut[m], cOut[m]);
+          ++m;
         }
-      },
-      wv.S, wv.C, wv.P, wv.A, RR);
+      }
+      wv.S.SetRange(wLive, m, sOut.data());
+      wv.C.SetRange(wLive, m, cOut.data());
+      if (i0 == n)
+      {
+        continue; // no position or point data moves
+      }
+      wv.P.GetRange(v0 + i0, n - i0, p.data());
+      if (rec)
+      {
+        wv.A.GetRange((v0 + i0) * rec, (n - i0) * rec, a.data());
+      }
+      const std::uint64_t w0 = r[i0] & ~kTop;
+      std::size_t k2 = 0;
+      for (std::size_t i = i0; i < n; ++i)
+      {
+        if (r[i] != kNone)
+        {
+          p[k2] = p[i - i0];
+          if (rec)
+          {
+            std::memmove(&a[k2 * rec], &a[(i - i0) * rec], rec);
+          }
+          ++k2;
+        }
+      }
+      wv.P.SetRange(w0, k2, p.data());
+      if (rec)
+      {
+        wv.A.SetRange(w0 * rec, k2 * rec, a.data());
+      }
+    }
   };
   // The arrays are independent: on two threads one moves the quadrics and then the faces, the
   // other carries and moves the rest (memory-bound: one thread per stream; out of core the
