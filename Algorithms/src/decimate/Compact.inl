@@ -103,22 +103,40 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     LazySums(ctx, mesh, nv);
     pass.lazySums = false;
   }
+  // (by runs of kRenumberRun vertices read and written as ranges: a run's new offsets land at
+  // or below its vertices, which it has read)
+  constexpr std::uint64_t kRenumberRun = 256;
   std::uint64_t k = 0;
   std::uint32_t end = 0;
-  for (std::uint64_t v = 0; v < nv; ++v)
   {
-    ctx.Tick(nf + v, total);
-    const std::uint32_t deg = mesh.views.RO.Get(v);
-    if (deg == 0)
+    std::vector<std::uint32_t> deg(kRenumberRun), ends(kRenumberRun), r(kRenumberRun);
+    std::vector<State> st(kRenumberRun);
+    for (std::uint64_t v0 = 0; v0 < nv; v0 += kRenumberRun)
     {
-      R.Set(v, kNone);
-      continue;
+      if ((v0 & 1023) == 0)
+      {
+        ctx.progress.Tick(double(nf + v0) / double(total));
+      }
+      const std::size_t n = std::size_t(std::min(kRenumberRun, nv - v0));
+      mesh.views.RO.GetRange(v0, n, deg.data());
+      mesh.views.S.GetRange(v0, n, st.data());
+      const std::uint64_t k0 = k;
+      for (std::size_t i = 0; i < n; ++i)
+      {
+        if (deg[i] == 0)
+        {
+          r[i] = kNone;
+          continue;
+        }
+        end += deg[i];
+        ends[k - k0] = end;
+        const bool survivor = (st[i] & kCollapsed) != 0;
+        r[i] = std::uint32_t(k) | (survivor ? kTop : 0u);
+        ++k;
+      }
+      mesh.views.RO.SetRange(k0, k - k0, ends.data());
+      R.SetRange(v0, n, r.data());
     }
-    end += deg;
-    mesh.views.RO.Set(k, end);
-    const bool survivor = (mesh.views.S.Get(v) & kCollapsed) != 0;
-    R.Set(v, std::uint32_t(k) | (survivor ? kTop : 0u));
-    ++k;
   }
   for (Scratch& s : pass.scratch)
   {

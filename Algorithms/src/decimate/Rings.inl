@@ -12,6 +12,23 @@ namespace
 // and counts only its own vertices (no atomics; a worker never writes another's counter, not
 // even adding zero). With a `spare` block of nv counters and workers that share memory, two of
 // them count half of the faces each instead, the second into `spare`, which is then added.
+// The faces [first, first + n) to read: in place in core, else copied into buf (n at most its
+// size): out of core one table lookup per run and page instead of one per face.
+constexpr std::uint64_t kFaceRun = 256;
+template <class FA>
+const Tri* FaceRun(const FA& F, std::uint64_t first, std::size_t n, Tri* buf)
+{
+  if constexpr (FA::kInCore)
+  {
+    return F.Data() + first;
+  }
+  else
+  {
+    F.GetRange(first, n, buf);
+    return buf;
+  }
+}
+
 void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t parallelMin,
   std::uint64_t tickBase, std::uint64_t tickTotal, const Array<std::uint32_t>* spare)
 {
@@ -59,15 +76,25 @@ void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint6
                 Ca.Set(v, 0u);
               }
             }
-            for (std::uint64_t f = task == 0 ? 0 : nf / 2; f < (task == 0 ? nf / 2 : nf) &&
-                 tick(t, f, stop); ++f)
+            Tri buf[kFaceRun];
+            const std::uint64_t fEnd = task == 0 ? nf / 2 : nf;
+            for (std::uint64_t f0 = task == 0 ? 0 : nf / 2; f0 < fEnd; f0 += kFaceRun)
             {
-              const Tri t3 = Fa.Get(f);
-              if (Alive(t3))
+              const std::size_t n = std::size_t(std::min(kFaceRun, fEnd - f0));
+              const Tri* run = FaceRun(Fa, f0, n, buf);
+              for (std::size_t j = 0; j < n; ++j)
               {
-                for (int c = 0; c < 3; ++c)
+                if (!tick(t, f0 + j, stop))
                 {
-                  Ca.Set(t3.v[c], Ca.Get(t3.v[c]) + 1);
+                  return;
+                }
+                const Tri& t3 = run[j];
+                if (Alive(t3))
+                {
+                  for (int c = 0; c < 3; ++c)
+                  {
+                    Ca.Set(t3.v[c], Ca.Get(t3.v[c]) + 1);
+                  }
                 }
               }
             }
@@ -105,17 +132,27 @@ void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint6
     const View<std::uint32_t> RO = workers.Bind(t, mesh.ringOff);
     WithAccess(
       [&](auto Fa, auto ROa) {
-        for (std::uint64_t f = 0; f < nf && tick(t, f, stop); ++f)
+        Tri buf[kFaceRun];
+        for (std::uint64_t f0 = 0; f0 < nf; f0 += kFaceRun)
         {
-          const Tri t3 = Fa.Get(f);
-          if (Alive(t3))
+          const std::size_t n = std::size_t(std::min(kFaceRun, nf - f0));
+          const Tri* run = FaceRun(Fa, f0, n, buf);
+          for (std::size_t j = 0; j < n; ++j)
           {
-            for (int c = 0; c < 3; ++c)
+            if (!tick(t, f0 + j, stop))
             {
-              const std::uint32_t x = t3.v[c];
-              if (x >= lo && x < hi)
+              return;
+            }
+            const Tri& t3 = run[j];
+            if (Alive(t3))
+            {
+              for (int c = 0; c < 3; ++c)
               {
-                ROa.Set(x, ROa.Get(x) + 1);
+                const std::uint32_t x = t3.v[c];
+                if (x >= lo && x < hi)
+                {
+                  ROa.Set(x, ROa.Get(x) + 1);
+                }
               }
             }
           }
@@ -152,35 +189,44 @@ void FillRings(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t
     const View<std::uint32_t> RF = workers.Bind(th, mesh.ringFace);
     WithAccess(
       [&](auto Fa, auto ROa, auto RFa) {
-        for (std::uint64_t i = nf; i-- > 0;)
+        Tri buf[kFaceRun];
+        for (std::uint64_t f1 = nf; f1 > 0;)
         {
-          if ((i & 4095) == 0)
+          const std::size_t n = std::size_t(std::min(kFaceRun, f1));
+          const std::uint64_t f0 = f1 - n;
+          const Tri* run = FaceRun(Fa, f0, n, buf);
+          for (std::size_t j = n; j-- > 0;)
           {
-            if (stop.load(std::memory_order_relaxed))
+            const std::uint64_t i = f0 + j;
+            if ((i & 4095) == 0)
             {
-              return;
+              if (stop.load(std::memory_order_relaxed))
+              {
+                return;
+              }
+              if (th == 0 && tickTotal)
+              {
+                // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
+                ctx.progress.Tick(double(tickBase + (nf - i)) / double(tickTotal));
+              }
             }
-            if (th == 0 && tickTotal)
+            const Tri& t = run[j];
+            if (!Alive(t))
             {
-              // (strided: Tick's own 1-in-1024 filter would miss; abort is checked here too)
-              ctx.progress.Tick(double(tickBase + (nf - i)) / double(tickTotal));
+              continue;
+            }
+            for (int k = 0; k < 3; ++k)
+            {
+              const std::uint32_t x = t.v[k];
+              if (x >= lo && x < hi)
+              {
+                const std::uint32_t e = ROa.Get(x) - 1;
+                ROa.Set(x, e);
+                RFa.Set(e, std::uint32_t(i));
+              }
             }
           }
-          const Tri t = Fa.Get(i);
-          if (!Alive(t))
-          {
-            continue;
-          }
-          for (int k = 0; k < 3; ++k)
-          {
-            const std::uint32_t x = t.v[k];
-            if (x >= lo && x < hi)
-            {
-              const std::uint32_t e = ROa.Get(x) - 1;
-              ROa.Set(x, e);
-              RFa.Set(e, std::uint32_t(i));
-            }
-          }
+          f1 = f0;
         }
       },
       F, RO, RF);
