@@ -1092,14 +1092,24 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   ctx.progress.BeginPhase("collapse", wOrder, wStep + wCompact + workAfter);
   std::fill(pass.hist.begin(), pass.hist.end(), 0u);
   std::uint64_t candidates = 0;
-  for (std::uint64_t u = 0; u < nv; ++u)
+  // (the candidates by runs read as ranges: out of core one table lookup per run and page)
+  constexpr std::uint64_t kOrderRun = 256;
+  Cand cands[kOrderRun];
+  for (std::uint64_t u0 = 0; u0 < nv; u0 += kOrderRun)
   {
-    ctx.Tick(u, 2 * nv);
-    const Cand c = mesh.views.C.Get(u);
-    if (c.partner != kNone)
+    if ((u0 & 1023) == 0)
     {
-      ++pass.hist[CostBin(c.cost)];
-      ++candidates;
+      ctx.progress.Tick(double(u0) / double(2 * nv));
+    }
+    const std::size_t n = std::size_t(std::min(kOrderRun, nv - u0));
+    mesh.views.C.GetRange(u0, n, cands);
+    for (std::size_t j = 0; j < n; ++j)
+    {
+      if (cands[j].partner != kNone)
+      {
+        ++pass.hist[CostBin(cands[j].cost)];
+        ++candidates;
+      }
     }
   }
   if (candidates == 0)
@@ -1146,18 +1156,25 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
     sum += n;
   }
   mesh.BindViews();
-  for (std::uint64_t u = 0; u < nv; ++u)
+  for (std::uint64_t u0 = 0; u0 < nv; u0 += kOrderRun)
   {
-    ctx.Tick(nv + u, 2 * nv);
-    const Cand c = mesh.views.C.Get(u);
-    if (c.partner == kNone)
+    if ((u0 & 1023) == 0)
     {
-      continue;
+      ctx.progress.Tick(double(nv + u0) / double(2 * nv));
     }
-    const std::uint32_t b = CostBin(c.cost);
-    if (b <= lastBin)
+    const std::size_t n = std::size_t(std::min(kOrderRun, nv - u0));
+    mesh.views.C.GetRange(u0, n, cands);
+    for (std::size_t j = 0; j < n; ++j)
     {
-      mesh.views.O.Set(start[pass.hist[b]]++, std::uint32_t(u));
+      if (cands[j].partner == kNone)
+      {
+        continue;
+      }
+      const std::uint32_t b = CostBin(cands[j].cost);
+      if (b <= lastBin)
+      {
+        mesh.views.O.Set(start[pass.hist[b]]++, std::uint32_t(u0 + j));
+      }
     }
   }
   // 3. Collapse in cost order, endpoints of earlier collapses excluded. Legality is checked
