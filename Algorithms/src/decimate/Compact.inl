@@ -223,8 +223,15 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   // written; those that do not move (all before the first removed one) come first in a run and
   // are not written back unless their records change.
   constexpr std::uint64_t kMoveRun = 256;
-  auto progressAt = [&](std::uint64_t at, std::uint64_t i) {
-    if ((i & 1023) == 0)
+  // (vertex runs are shorter with large records: their point data or extensions in a run take
+  // about kMoveBytes at most, outside the budget like any scratch; one record may take 160 KB,
+  // 40,000 properties)
+  constexpr std::size_t kMoveBytes = std::size_t(64) << 10;
+  const std::uint64_t vRun = std::clamp<std::uint64_t>(
+    kMoveBytes / std::max<std::size_t>({ rec, xs * sizeof(double), 1 }), 1, kMoveRun);
+  // (once per 1,024 elements: i advances by at most step <= 1,024)
+  auto progressAt = [&](std::uint64_t at, std::uint64_t i, std::uint64_t step) {
+    if ((i & 1023) < step)
     {
       ctx.progress.Tick(double(at + i) / double(total));
     }
@@ -236,7 +243,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
     {
       if (tick)
       {
-        progressAt(nf + 2 * nv, f0);
+        progressAt(nf + 2 * nv, f0, kMoveRun);
       }
       const std::size_t n = std::size_t(std::min(kMoveRun, nf - f0));
       wv.F.GetRange(f0, n, in.data());
@@ -285,20 +292,20 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   };
   // The quadrics (and attribute extensions), in place and downwards.
   auto moveQuadrics = [&](Views& wv, const View<std::uint32_t>& RR, bool tick, bool poll) {
-    std::vector<std::uint32_t> r(kMoveRun);
-    std::vector<Quadric> q(kMoveRun);
-    std::vector<double> x(kMoveRun * xs);
-    for (std::uint64_t v0 = 0; v0 < nv; v0 += kMoveRun)
+    std::vector<std::uint32_t> r(vRun);
+    std::vector<Quadric> q(vRun);
+    std::vector<double> x(vRun * xs);
+    for (std::uint64_t v0 = 0; v0 < nv; v0 += vRun)
     {
       if (tick)
       {
-        progressAt(nf + nv, v0);
+        progressAt(nf + nv, v0, vRun);
       }
-      else if (poll && (v0 & 4095) == 0)
+      else if (poll && (v0 & 4095) < vRun)
       {
         ctx.progress.Poll();
       }
-      const std::size_t n = std::size_t(std::min(kMoveRun, nv - v0));
+      const std::size_t n = std::size_t(std::min(vRun, nv - v0));
       RR.GetRange(v0, n, r.data());
       std::uint64_t wLive;
       std::size_t i0;
@@ -336,18 +343,18 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   // The states and candidates (carried: every live vertex's change), the positions and the
   // point data (the moved ones), in place and downwards.
   auto moveRest = [&](Views& wv, const View<std::uint32_t>& RR, bool tick) {
-    std::vector<std::uint32_t> r(kMoveRun);
-    std::vector<State> sIn(kMoveRun), sOut(kMoveRun);
-    std::vector<Cand> cIn(kMoveRun), cOut(kMoveRun);
-    std::vector<Vec3> p(kMoveRun);
-    std::vector<std::uint8_t> a(kMoveRun * rec);
-    for (std::uint64_t v0 = 0; v0 < nv; v0 += kMoveRun)
+    std::vector<std::uint32_t> r(vRun);
+    std::vector<State> sIn(vRun), sOut(vRun);
+    std::vector<Cand> cIn(vRun), cOut(vRun);
+    std::vector<Vec3> p(vRun);
+    std::vector<std::uint8_t> a(vRun * rec);
+    for (std::uint64_t v0 = 0; v0 < nv; v0 += vRun)
     {
       if (tick)
       {
-        progressAt(nf + nv, v0);
+        progressAt(nf + nv, v0, vRun);
       }
-      const std::size_t n = std::size_t(std::min(kMoveRun, nv - v0));
+      const std::size_t n = std::size_t(std::min(vRun, nv - v0));
       RR.GetRange(v0, n, r.data());
       std::uint64_t wLive;
       std::size_t i0;
