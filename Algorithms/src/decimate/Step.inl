@@ -737,30 +737,38 @@ void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t 
   const std::uint64_t mid = n / 2 * size;
   std::int64_t diff = 0, best = 0;
   std::uint64_t below = 0, bestAt = 0;
-  for (std::uint64_t f = 0; f < mesh.nf; ++f)
+  // (the faces by runs read as ranges: out of core one table lookup per run and page)
+  constexpr std::uint64_t kRun = 256;
+  Tri run[kRun];
+  for (std::uint64_t f0 = 0; f0 < mesh.nf; f0 += kRun)
   {
-    const Tri t = mesh.views.F.Get(f);
-    if (!Alive(t))
+    const std::size_t n = std::size_t(std::min(kRun, mesh.nf - f0));
+    mesh.views.F.GetRange(f0, n, run);
+    for (std::size_t j = 0; j < n; ++j)
     {
-      continue;
-    }
-    if (t.v[0] < mid && t.v[1] < mid && t.v[2] < mid)
-    {
-      ++below;
-      --diff;
-    }
-    else if (t.v[0] >= mid && t.v[1] >= mid && t.v[2] >= mid)
-    {
-      ++diff;
-    }
-    else
-    {
-      continue;
-    }
-    if (diff < best)
-    {
-      best = diff;
-      bestAt = f + 1;
+      const Tri& t = run[j];
+      if (!Alive(t))
+      {
+        continue;
+      }
+      if (t.v[0] < mid && t.v[1] < mid && t.v[2] < mid)
+      {
+        ++below;
+        --diff;
+      }
+      else if (t.v[0] >= mid && t.v[1] >= mid && t.v[2] >= mid)
+      {
+        ++diff;
+      }
+      else
+      {
+        continue;
+      }
+      if (diff < best)
+      {
+        best = diff;
+        bestAt = f0 + j + 1;
+      }
     }
   }
   const std::uint64_t wrong = std::uint64_t(std::int64_t(below) + best);
