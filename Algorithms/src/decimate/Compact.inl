@@ -87,9 +87,10 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   mesh.remap.Resize(std::max<std::uint64_t>(nv, 1));
   mesh.BindViews();
   View<std::uint32_t> R(mesh.dml, mesh.remap);
-  // On several threads (Workers): the degrees (CountDegrees), the rings by vertex range (each
-  // thread scans all faces and writes only its own vertices), the moves (in place, downwards)
-  // one array group per thread. Same result either way.
+  // On several threads (Workers): the degrees (CountDegrees), out of core the lazy sums by
+  // vertex range (LazySums), the rings by vertex range (each thread scans all faces and writes
+  // only its own vertices), the moves (in place, downwards) one array group per thread. Same
+  // result either way.
   // 1. Degrees of the live faces, counted in the old ring offsets (the rings are done with);
   // the candidate order is free until the next pass: CountDegrees' second counter array.
   FillBlock(mesh.dml, mesh.ringOff, std::uint32_t(0));
@@ -217,11 +218,12 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   const std::size_t rec = mesh.recSize;
   const std::size_t xs = mesh.xSize;
   std::uint64_t f2 = 0;
-  // The moves go by runs of kMoveRun elements, read and written as ranges (a table lookup per
-  // run and page, not per element). A run's live elements land next to each other, at or
-  // below their old indices (the order is kept), so each run is read whole before any of it is
-  // written; those that do not move (all before the first removed one) come first in a run and
-  // are not written back unless their records change.
+  // The moves go by runs of up to kMoveRun elements, read and written as ranges (a table
+  // lookup per run and page, not per element). A run's live elements land next to each other,
+  // at or below their old indices (the order is kept), and what a run writes is read first.
+  // Those that do not move (all before the first removed one) come first in a run: their
+  // quadrics, positions and point data are neither read nor written; every live vertex's state
+  // and candidate are written (carried), and every live face (renumbered).
   constexpr std::uint64_t kMoveRun = 256;
   // (vertex runs are shorter with large records: their point data or extensions in a run take
   // about kMoveBytes at most, outside the budget like any scratch; one record may take 160 KB,

@@ -7,11 +7,6 @@ namespace
 // ---------------------------------------------------------------------------------------------
 // rings
 
-// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before), on the workers
-// of a phase over the vertices (from parallelMin vertices in core): each worker scans every face
-// and counts only its own vertices (no atomics; a worker never writes another's counter, not
-// even adding zero). With a `spare` block of nv counters and workers that share memory, two of
-// them count half of the faces each instead, the second into `spare`, which is then added.
 // The faces [first, first + n) to read: in place in core, else copied into buf (n at most its
 // size): out of core one table lookup per run and page instead of one per face.
 constexpr std::uint64_t kFaceRun = 256;
@@ -29,6 +24,11 @@ const Tri* FaceRun(const FA& F, std::uint64_t first, std::size_t n, Tri* buf)
   }
 }
 
+// Adds the live faces [0, nf) to the degrees in the ring offsets (zero before), on the workers
+// of a phase over the vertices (from parallelMin vertices in core): each worker scans every face
+// and counts only its own vertices (no atomics; a worker never writes another's counter, not
+// even adding zero). With a `spare` block of nv counters and workers that share memory, two of
+// them count half of the faces each instead, the second into `spare`, which is then added.
 void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t parallelMin,
   std::uint64_t tickBase, std::uint64_t tickTotal, const Array<std::uint32_t>* spare)
 {

@@ -742,9 +742,9 @@ void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t 
   Tri run[kRun];
   for (std::uint64_t f0 = 0; f0 < mesh.nf; f0 += kRun)
   {
-    const std::size_t n = std::size_t(std::min(kRun, mesh.nf - f0));
-    mesh.views.F.GetRange(f0, n, run);
-    for (std::size_t j = 0; j < n; ++j)
+    const std::size_t count = std::size_t(std::min(kRun, mesh.nf - f0));
+    mesh.views.F.GetRange(f0, count, run);
+    for (std::size_t j = 0; j < count; ++j)
     {
       const Tri& t = run[j];
       if (!Alive(t))
