@@ -7,22 +7,9 @@ namespace
 // ---------------------------------------------------------------------------------------------
 // rings
 
-// The faces [first, first + n) to read: in place in core, else copied into buf (n at most its
-// size): out of core one table lookup per run and page instead of one per face.
+// Faces are read by runs of kFaceRun (the accessors' Run: in place in core, else one table lookup
+// per run and page instead of one per face).
 constexpr std::uint64_t kFaceRun = 256;
-template <class FA>
-const Tri* FaceRun(const FA& F, std::uint64_t first, std::size_t n, Tri* buf)
-{
-  if constexpr (FA::kInCore)
-  {
-    return F.Data() + first;
-  }
-  else
-  {
-    F.GetRange(first, n, buf);
-    return buf;
-  }
-}
 
 // Adds the live faces [0, nf) to the degrees in the ring offsets (zero before), on the workers
 // of a phase over the vertices (from parallelMin vertices in core): each worker scans every face
@@ -76,12 +63,12 @@ void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint6
                 Ca.Set(v, 0u);
               }
             }
-            Tri buf[kFaceRun];
+            std::vector<Tri> buf(kFaceRun);
             const std::uint64_t fEnd = task == 0 ? nf / 2 : nf;
             for (std::uint64_t f0 = task == 0 ? 0 : nf / 2; f0 < fEnd; f0 += kFaceRun)
             {
               const std::size_t n = std::size_t(std::min(kFaceRun, fEnd - f0));
-              const Tri* run = FaceRun(Fa, f0, n, buf);
+              const Tri* run = Fa.Run(f0, n, buf);
               for (std::size_t j = 0; j < n; ++j)
               {
                 if (!tick(t, f0 + j, stop))
@@ -132,11 +119,11 @@ void CountDegrees(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint6
     const View<std::uint32_t> RO = workers.Bind(t, mesh.ringOff);
     WithAccess(
       [&](auto Fa, auto ROa) {
-        Tri buf[kFaceRun];
+        std::vector<Tri> buf(kFaceRun);
         for (std::uint64_t f0 = 0; f0 < nf; f0 += kFaceRun)
         {
           const std::size_t n = std::size_t(std::min(kFaceRun, nf - f0));
-          const Tri* run = FaceRun(Fa, f0, n, buf);
+          const Tri* run = Fa.Run(f0, n, buf);
           for (std::size_t j = 0; j < n; ++j)
           {
             if (!tick(t, f0 + j, stop))
@@ -189,12 +176,12 @@ void FillRings(RunContext& ctx, MeshState& mesh, std::uint64_t nf, std::uint64_t
     const View<std::uint32_t> RF = workers.Bind(th, mesh.ringFace);
     WithAccess(
       [&](auto Fa, auto ROa, auto RFa) {
-        Tri buf[kFaceRun];
+        std::vector<Tri> buf(kFaceRun);
         for (std::uint64_t f1 = nf; f1 > 0;)
         {
           const std::size_t n = std::size_t(std::min(kFaceRun, f1));
           const std::uint64_t f0 = f1 - n;
-          const Tri* run = FaceRun(Fa, f0, n, buf);
+          const Tri* run = Fa.Run(f0, n, buf);
           for (std::size_t j = n; j-- > 0;)
           {
             const std::uint64_t i = f0 + j;

@@ -288,6 +288,11 @@ public:
   }
   // The elements' memory, for reading in place and for prefetch hints.
   SIPMSS_ALWAYS_INLINE const T* Data() const { return this->base_; }
+  // As View::Run: in place (`buffer` unused).
+  const T* Run(std::uint64_t first, std::uint64_t, std::vector<T>&) const
+  {
+    return this->base_ + first;
+  }
 
 private:
   T* base_;
@@ -351,6 +356,13 @@ public:
     {
       this->dml_->WriteRange(this->id_, first, n, src);
     }
+  }
+  // As View::Run: copied into `buffer` (one table lookup per page, not per element).
+  const T* Run(std::uint64_t first, std::uint64_t n, std::vector<T>& buffer) const
+  {
+    buffer.resize(n);
+    this->GetRange(first, n, buffer.data());
+    return buffer.data();
   }
 
 private:
