@@ -71,6 +71,25 @@ void LazySums(RunContext& ctx, MeshState& mesh, std::uint64_t nv)
   }
 }
 
+// Packs the live ones of a run's elements i0..n-1 (r[i] != kNone), `per` items each in
+// `items` from the run's element i0 on, to the front of `items`; returns how many. In place
+// and forwards: an element only moves down.
+template <class T>
+std::size_t PackLive(
+  const std::uint32_t* r, std::size_t i0, std::size_t n, T* items, std::size_t per)
+{
+  std::size_t m = 0;
+  for (std::size_t i = i0; i < n; ++i)
+  {
+    if (r[i] != kNone)
+    {
+      std::copy_n(items + (i - i0) * per, per, items + m * per);
+      ++m;
+    }
+  }
+  return m;
+}
+
 // Renumbers the live vertices and faces after a pass, in place: compaction keeps the order, so
 // every element moves to an index <= its own and ascending loops never overwrite what they still
 // have to read. The blocks then shrink (Resize: no copy) and the DML re-evaluates its mode with
@@ -240,7 +259,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
   };
   // 4. Faces, ascending: new index f2 <= f (they read only R and the faces).
   auto moveFaces = [&](Views& wv, const View<std::uint32_t>& RR, bool tick) {
-    std::vector<Tri> in(kMoveRun), out(kMoveRun);
+    std::vector<Tri> buf, out(kMoveRun);
     for (std::uint64_t f0 = 0; f0 < nf; f0 += kMoveRun)
     {
       if (tick)
@@ -248,7 +267,7 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
         progressAt(nf + 2 * nv, f0, kMoveRun);
       }
       const std::size_t n = std::size_t(std::min(kMoveRun, nf - f0));
-      wv.F.GetRange(f0, n, in.data());
+      const Tri* in = wv.F.Run(f0, n, buf); // (read whole before the run's faces are written)
       std::size_t m = 0;
       for (std::size_t i = 0; i < n; ++i)
       {
@@ -322,22 +341,11 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
         wv.X.GetRange((v0 + i0) * xs, (n - i0) * xs, x.data());
       }
       const std::uint64_t w0 = r[i0] & ~kTop;
-      std::size_t m = 0;
-      for (std::size_t i = i0; i < n; ++i)
-      {
-        if (r[i] != kNone)
-        {
-          q[m] = q[i - i0];
-          if (xs)
-          {
-            std::copy_n(&x[(i - i0) * xs], xs, &x[m * xs]);
-          }
-          ++m;
-        }
-      }
+      const std::size_t m = PackLive(r.data(), i0, n, q.data(), 1);
       wv.Q.SetRange(w0, m, q.data());
       if (xs)
       {
+        PackLive(r.data(), i0, n, x.data(), xs);
         wv.X.SetRange(w0 * xs, m * xs, x.data());
       }
     }
@@ -388,22 +396,11 @@ void Compact(RunContext& ctx, MeshState& mesh, PassState& pass)
         wv.A.GetRange((v0 + i0) * rec, (n - i0) * rec, a.data());
       }
       const std::uint64_t w0 = r[i0] & ~kTop;
-      std::size_t k2 = 0;
-      for (std::size_t i = i0; i < n; ++i)
-      {
-        if (r[i] != kNone)
-        {
-          p[k2] = p[i - i0];
-          if (rec)
-          {
-            std::memmove(&a[k2 * rec], &a[(i - i0) * rec], rec);
-          }
-          ++k2;
-        }
-      }
+      const std::size_t k2 = PackLive(r.data(), i0, n, p.data(), 1);
       wv.P.SetRange(w0, k2, p.data());
       if (rec)
       {
+        PackLive(r.data(), i0, n, a.data(), rec);
         wv.A.SetRange(w0 * rec, k2 * rec, a.data());
       }
     }

@@ -737,13 +737,11 @@ void FaceSplit(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t 
   const std::uint64_t mid = n / 2 * size;
   std::int64_t diff = 0, best = 0;
   std::uint64_t below = 0, bestAt = 0;
-  // (the faces by runs read as ranges: out of core one table lookup per run and page)
-  constexpr std::uint64_t kRun = 256;
-  Tri run[kRun];
-  for (std::uint64_t f0 = 0; f0 < mesh.nf; f0 += kRun)
+  std::vector<Tri> buf;
+  for (std::uint64_t f0 = 0; f0 < mesh.nf; f0 += kFaceRun)
   {
-    const std::size_t count = std::size_t(std::min(kRun, mesh.nf - f0));
-    mesh.views.F.GetRange(f0, count, run);
+    const std::size_t count = std::size_t(std::min(kFaceRun, mesh.nf - f0));
+    const Tri* run = mesh.views.F.Run(f0, count, buf);
     for (std::size_t j = 0; j < count; ++j)
     {
       const Tri& t = run[j];
@@ -1100,9 +1098,9 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   ctx.progress.BeginPhase("collapse", wOrder, wStep + wCompact + workAfter);
   std::fill(pass.hist.begin(), pass.hist.end(), 0u);
   std::uint64_t candidates = 0;
-  // (the candidates by runs read as ranges: out of core one table lookup per run and page)
+  // (the candidates by runs: in place in core, else one table lookup per run and page)
   constexpr std::uint64_t kOrderRun = 256;
-  Cand cands[kOrderRun];
+  std::vector<Cand> buf;
   for (std::uint64_t u0 = 0; u0 < nv; u0 += kOrderRun)
   {
     if ((u0 & 1023) == 0)
@@ -1110,7 +1108,7 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
       ctx.progress.Tick(double(u0) / double(2 * nv));
     }
     const std::size_t n = std::size_t(std::min(kOrderRun, nv - u0));
-    mesh.views.C.GetRange(u0, n, cands);
+    const Cand* cands = mesh.views.C.Run(u0, n, buf);
     for (std::size_t j = 0; j < n; ++j)
     {
       if (cands[j].partner != kNone)
@@ -1171,7 +1169,7 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
       ctx.progress.Tick(double(nv + u0) / double(2 * nv));
     }
     const std::size_t n = std::size_t(std::min(kOrderRun, nv - u0));
-    mesh.views.C.GetRange(u0, n, cands);
+    const Cand* cands = mesh.views.C.Run(u0, n, buf);
     for (std::size_t j = 0; j < n; ++j)
     {
       if (cands[j].partner == kNone)
