@@ -219,6 +219,7 @@ struct Cache
   std::uint64_t epochMisses = 0;
   std::uint8_t generation = 0; // builds of the cache (FastTagBase)
   bool quotasDirty = true;
+  std::size_t clockHand = 0; // PagePolicy::Clock: the next frame slot the hand looks at
 
   explicit Cache(Accountant* a) : frames(Counted<Frame>(a)), buckets(Counted<std::int32_t>(a)),
     ghosts(Counted<std::uint64_t>(a)), table(Counted<FastEntry>(a))
@@ -338,6 +339,7 @@ struct DML::Impl
   std::int32_t Fault(BlockId id, detail::Block& b, std::uint64_t page, bool fetch);
   std::int32_t AcquireFrame(BlockId requester);
   std::int32_t FindVictim(BlockId requester);
+  std::int32_t ClockVictim();
   std::int32_t SweepVictim(detail::Block& v);
   void WriteBack(std::int32_t fi);
   void Evict(std::int32_t fi, bool writeBack);

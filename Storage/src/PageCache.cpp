@@ -9,7 +9,13 @@
 // its page buffer lazily, charged to the accountant, so a small working set holds little memory;
 // when metadata must grow, ReleaseFrames() gives buffers back (writing dirty pages first).
 //
-// Shares: each block has a quota of frames. StaticWeight follows the paper: the quota is
+// Replacement by PagePolicy::Clock (the default): no shares. One clock hand goes round every frame
+// slot, whatever block holds its page: a referenced page gets its bit cleared, the first
+// unreferenced unpinned page goes (a dirty one is written back first). A block gets as many
+// pages as it keeps using, which the shares below did not give (docs/storage.md: a block's
+// share, fixed while it was at it, froze the split of a phase's pages).
+//
+// Shares (PagePolicy::StaticWeight and Adaptive): each block has a quota of frames. StaticWeight follows the paper: the quota is
 // proportional to the block's weight (its file size relative to the mean, or the weight given at
 // OpenBlock). Adaptive re-weights every epoch by the block's recent re-reference misses (misses on
 // pages it evicted recently, detected with a direct-mapped table of evicted page tags): a block
@@ -43,6 +49,9 @@ using detail::Kind;
 
 namespace
 {
+// PagePolicy::Clock: the reference bits the hand clears at most on one fault (ClockVictim).
+constexpr std::size_t kClockScan = 8;
+
 std::uint64_t Pow2AtLeast(std::uint64_t n)
 {
   std::uint64_t p = 1;
@@ -139,6 +148,7 @@ void DML::Impl::EnsureCache()
   C.withData = 0;
   C.pinnedFrames = 0;
   C.epochMisses = 0;
+  C.clockHand = 0;
   for (auto& b : this->blocks)
   {
     b.perPage = std::max<std::uint64_t>(1, C.pageSize / std::max<std::size_t>(b.elementSize, 1));
@@ -530,8 +540,56 @@ void DML::Impl::RecomputeQuotas()
   }
 }
 
+// PagePolicy::Clock: one hand over every frame slot, whatever block holds its page: a
+// referenced page gets its bit cleared (and its inline entry taken out, so that its next use
+// sets the bit again), the first unreferenced unpinned page goes (a dirty one is written back
+// by Evict). At most kClockScan bits are cleared a fault: past them the first page whose bit it
+// cleared goes (the oldest it looked at). Each cleared bit costs its page one access through the
+// slow path, and when a phase uses nearly every cached page (two threads' halves of a small
+// budget) an unbounded hand cleared most of them on every fault: Lucy-size's decimation at
+// 8 MB took 1.015 times as long as with the shares, with 12% fewer misses; bounded, 0.958
+// (docs/benchmarks.md). -1 when every page is pinned.
+std::int32_t DML::Impl::ClockVictim()
+{
+  auto& F = this->cache.frames;
+  const std::size_t n = F.size();
+  std::int32_t firstCleared = -1;
+  std::size_t cleared = 0;
+  for (std::size_t s = 0; s < 2 * n + 1; ++s)
+  {
+    const std::size_t fi = this->cache.clockHand < n ? this->cache.clockHand : 0;
+    this->cache.clockHand = fi + 1 < n ? fi + 1 : 0;
+    Frame& f = F[fi];
+    if (f.block < 0 || f.pins > 0)
+    {
+      continue;
+    }
+    if (f.ref)
+    {
+      if (cleared == kClockScan)
+      {
+        return firstCleared;
+      }
+      f.ref = false;
+      this->FastRemove(static_cast<std::int32_t>(fi));
+      if (firstCleared < 0)
+      {
+        firstCleared = static_cast<std::int32_t>(fi);
+      }
+      ++cleared;
+      continue;
+    }
+    return static_cast<std::int32_t>(fi);
+  }
+  return -1;
+}
+
 std::int32_t DML::Impl::FindVictim(BlockId requester)
 {
+  if (this->profile.pagePolicy == PagePolicy::Clock && this->replacement != Replacement::Lru)
+  {
+    return this->ClockVictim();
+  }
   if (this->cache.quotasDirty)
   {
     this->RecomputeQuotas();

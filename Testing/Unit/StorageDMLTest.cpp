@@ -303,6 +303,52 @@ TEST(StorageDML, CachedPagesAreServedInlineUntilEvicted)
   }
 }
 
+// PagePolicy::Clock (the default) keeps the pages a block keeps using, whatever the other blocks
+// do: a small block read over and over keeps its pages while a large one streams past them, so
+// that each page misses exactly once. The static shares (by file size) give the small block one
+// page, and its pages miss on every round.
+TEST(StorageDML, TheClockKeepsTheHotPagesWhileAnotherBlockStreams)
+{
+  TempDir dir;
+  constexpr std::uint64_t kHot = 4, kStream = 400;
+  for (const PagePolicy pages : { PagePolicy::Clock, PagePolicy::StaticWeight })
+  {
+    SCOPED_TRACE(pages == PagePolicy::Clock ? "clock" : "static shares");
+    DML dml;
+    ASSERT_EQ(dml.Config(MakeProfile(dir.Path(), 256 << 10, ModePolicy::OutOfCore, pages)),
+      Mode::OutOfCore);
+    const std::uint64_t per = dml.PageBytes() / sizeof(std::uint64_t);
+    ASSERT_GT(per, 1u);
+    ASSERT_GE(dml.PinnablePages(), kHot + 4) << "the cache must hold the hot pages and more";
+    Array<std::uint64_t> hot(dml, kHot * per);
+    Array<std::uint64_t> stream(dml, kStream * per);
+    const std::uint64_t before = dml.GetStats().misses;
+    std::uint64_t sum = 0;
+    std::uint64_t x = 0;
+    for (std::uint64_t i = 0; i < kStream; ++i)
+    {
+      dml.Read(stream.Id(), sizeof(x), i * per + i % per, &x);
+      sum += x;
+      for (std::uint64_t h = 0; h < kHot; ++h)
+      {
+        dml.Read(hot.Id(), sizeof(x), h * per + i % per, &x);
+        sum += x;
+      }
+    }
+    EXPECT_EQ(sum, 0u);
+    const std::uint64_t misses = dml.GetStats().misses - before;
+    if (pages == PagePolicy::Clock)
+    {
+      EXPECT_EQ(misses, kHot + kStream);
+    }
+    else
+    {
+      EXPECT_GT(misses, kStream * kHot);
+    }
+  }
+  EXPECT_TRUE(ListDir(dir.Path()).empty());
+}
+
 TEST(StorageDML, APageWrittenBackIsMarkedDirtyAgainByItsNextWrite)
 {
   // A page written inline, then written back without being evicted (a fork writes the parent's
@@ -1117,7 +1163,8 @@ INSTANTIATE_TEST_SUITE_P(Budgets, StorageDMLRandom,
     RandomCase{ "OutOfCore64K", 64 * 1024, ModePolicy::Automatic, PagePolicy::StaticWeight },
     RandomCase{ "OutOfCore256K", 256 * 1024, ModePolicy::Automatic, PagePolicy::StaticWeight },
     RandomCase{ "OutOfCore1M", 1024 * 1024, ModePolicy::Automatic, PagePolicy::StaticWeight },
-    RandomCase{ "Adaptive256K", 256 * 1024, ModePolicy::Automatic, PagePolicy::Adaptive }),
+    RandomCase{ "Adaptive256K", 256 * 1024, ModePolicy::Automatic, PagePolicy::Adaptive },
+    RandomCase{ "Clock256K", 256 * 1024, ModePolicy::Automatic, PagePolicy::Clock }),
   [](const ::testing::TestParamInfo<RandomCase>& i) { return std::string(i.param.name); });
 
 TEST(StorageDML, RandomizedWithReconfiguration)

@@ -48,7 +48,8 @@ const char* ToString(Mode m);
 enum class PagePolicy : std::uint8_t
 {
   StaticWeight, // the paper: a block's share of pages follows its weight (size / mean size)
-  Adaptive      // shares follow observed miss rates
+  Adaptive,     // shares follow observed miss rates
+  Clock         // no shares: one clock over every cached page (docs/storage.md)
 };
 
 struct StructureSpec
@@ -65,7 +66,7 @@ struct Profile
   std::vector<std::string> directories;  // empty: $TMPDIR or /tmp
   std::uint64_t memoryBudget = 0;        // B in bytes; 0 = unbounded (always in core)
   ModePolicy policy = ModePolicy::Automatic;
-  PagePolicy pagePolicy = PagePolicy::Adaptive; // measured better than StaticWeight: docs/storage.md
+  PagePolicy pagePolicy = PagePolicy::Clock; // measured better than the shares: docs/storage.md
   std::size_t pageSize = 0; // 0: automatic
   // How memoryBudget was chosen, for messages (e.g. "automatic: half of the 2.0 GiB left under
   // RLIMIT_AS"); empty: given by the caller.
