@@ -4,7 +4,8 @@
 //  * out-of-core sequential throughput (ForEachChunk, ReadRange) against raw pread of the same
 //    file size;
 //  * page replacement on a mesh-like trace: WSClock (static weights, the paper), LRU (static
-//    weights, bench-only) and WSClock with Adaptive shares, at a small budget.
+//    weights, bench-only), WSClock with Adaptive shares and one clock over every page (Clock, the
+//    default), at a small budget.
 #include "sipmss/storage/DML.h"
 #include "sipmss/storage/DMLTesting.h"
 
@@ -309,7 +310,8 @@ enum class PolicyCase
 {
   WSClock,
   Lru,
-  Adaptive
+  Adaptive,
+  Clock
 };
 
 void BM_MeshTrace(benchmark::State& state)
@@ -322,7 +324,9 @@ void BM_MeshTrace(benchmark::State& state)
     state.PauseTiming();
     DML dml;
     Profile p = OocProfile(budget);
-    p.pagePolicy = policy == PolicyCase::Adaptive ? PagePolicy::Adaptive : PagePolicy::StaticWeight;
+    p.pagePolicy = policy == PolicyCase::Adaptive ? PagePolicy::Adaptive
+      : policy == PolicyCase::Clock               ? PagePolicy::Clock
+                                                  : PagePolicy::StaticWeight;
     p.pageSize = 16 * 1024;
     dml.Config(p);
     DMLTestAccess::SetReplacement(dml, policy == PolicyCase::Lru ? Replacement::Lru : Replacement::WSClock);
@@ -386,9 +390,11 @@ BENCHMARK(BM_MeshTrace)
   ->Args({ 0, 4 })
   ->Args({ 1, 4 })
   ->Args({ 2, 4 })
+  ->Args({ 3, 4 })
   ->Args({ 0, 1 })
   ->Args({ 1, 1 })
   ->Args({ 2, 1 })
+  ->Args({ 3, 1 })
   ->Iterations(1)
   ->Unit(benchmark::kMillisecond);
 

@@ -2,7 +2,7 @@
 //
 // An algorithm describes its data structures in a Profile and calls Config(); the DML runs
 // in core when the estimated cost C <= budget B, otherwise out of core (each block a file in a
-// private per-instance directory, memory a WSClock page cache). Reconfigure() re-evaluates the
+// private per-instance directory, memory a clock page cache). Reconfigure() re-evaluates the
 // mode as the data shrinks or grows. Every byte the DML holds is counted against B.
 //
 // Thread safety: one DML instance is used by one thread at a time. Concurrent *reads* through
@@ -155,7 +155,7 @@ enum class Access : std::uint8_t
 // of Access.h) finds a cached page through a direct-mapped table of the cache's pages, published
 // by the DML, at slot (page + FastSalt(block)) mod its size (2 to 4 entries a frame slot). An
 // entry is there only while its frame holds the page with the reference bit set, and it allows
-// writes (kFastWritable) only while the page is dirty, so a hit needs no bookkeeping: the WSClock
+// writes (kFastWritable) only while the page is dirty, so a hit needs no bookkeeping: the clock
 // hand that clears a reference bit and an eviction take the entry out, a write-back clears
 // kFastWritable, and the next access goes through the slow path, which sets the bits and puts
 // the entry back. Two pages on one slot take turns through the slow path.

@@ -10,8 +10,9 @@
 namespace sipmss::storage
 {
 
-// Page replacement inside a block's share of frames. WSClock is the DML's policy; LRU exists
-// only so the benchmark can compare against it.
+// Page replacement inside a block's share of frames (PagePolicy::StaticWeight and Adaptive; with
+// LRU, also under PagePolicy::Clock). WSClock is the DML's policy there; LRU exists only so the
+// benchmark can compare against it.
 enum class Replacement : std::uint8_t
 {
   WSClock,
