@@ -9,21 +9,22 @@
 // its page buffer lazily, charged to the accountant, so a small working set holds little memory;
 // when metadata must grow, ReleaseFrames() gives buffers back (writing dirty pages first).
 //
-// Replacement by PagePolicy::Clock (the default): no shares. One clock hand goes round every frame
-// slot, whatever block holds its page: a referenced page gets its bit cleared, the first
-// unreferenced unpinned page goes (a dirty one is written back first). A block gets as many
-// pages as it keeps using, which the shares below did not give (docs/storage.md: a block's
-// share, fixed while it was at it, froze the split of a phase's pages).
+// Replacement by PagePolicy::Clock (the default): no shares. One clock hand goes round every
+// frame slot, whatever block holds its page: a referenced page gets its bit cleared, the first
+// unreferenced unpinned page goes (a dirty one is written back first; ClockVictim). A block gets
+// as many pages as it keeps using, which the shares below did not give (docs/storage.md: a
+// block's share, fixed while it was at it, froze the split of a phase's pages).
 //
-// Shares (PagePolicy::StaticWeight and Adaptive): each block has a quota of frames. StaticWeight follows the paper: the quota is
-// proportional to the block's weight (its file size relative to the mean, or the weight given at
-// OpenBlock). Adaptive re-weights every epoch by the block's recent re-reference misses (misses on
-// pages it evicted recently, detected with a direct-mapped table of evicted page tags): a block
-// that would profit from more frames gets them, a streaming block does not.
+// Shares (PagePolicy::StaticWeight and Adaptive): each block has a quota of frames.
+// StaticWeight follows the paper: the quota is proportional to the block's weight (its file size
+// relative to the mean, or the weight given at OpenBlock). Adaptive re-weights every epoch by the
+// block's recent re-reference misses (misses on pages it evicted recently, detected with a
+// direct-mapped table of evicted page tags): a block that would profit from more frames gets
+// them, a streaming block does not.
 //
-// Replacement: a block below its quota takes a frame from the block most above its quota;
-// otherwise it replaces one of its own pages. Inside a block the frames form a ring swept by a
-// WSClock hand (Carr & Hennessy 1981): a referenced page gets its bit cleared and its time
+// Replacement with shares: a block below its quota takes a frame from the block most above its
+// quota; otherwise it replaces one of its own pages. Inside a block the frames form a ring swept
+// by a WSClock hand (Carr & Hennessy 1981): a referenced page gets its bit cleared and its time
 // stamped; the first unreferenced clean page older than the working-set window tau is evicted.
 // Clean unreferenced pages are preferred: old dirty pages are only collected, and written back a
 // few together (the write batching of WSClock) when no old clean page turned up first. With no
