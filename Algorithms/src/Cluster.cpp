@@ -1941,6 +1941,7 @@ RunStats ClusterReordered(const MeshSource& source, io::MeshSink& output,
     [&mesh](io::MeshSink& sink, const io::ReadOptions& ro) { return mesh.Replay(sink, ro); },
     output, o, progress);
   stats.phases.insert(stats.phases.begin(), before.phases.begin(), before.phases.end());
+  stats.layoutSteps = before.layoutSteps;
   stats.reordered = true;
   stats.layoutFarFraction = mesh.Layout().FarFraction();
   return stats;

@@ -309,6 +309,7 @@ RunStats DecimateReordered(const MeshSource& input, io::MeshSink& output,
     [&mesh](io::MeshSink& sink, const io::ReadOptions& ro) { return mesh.Replay(sink, ro); },
     output, onLevel);
   stats.phases.insert(stats.phases.begin(), before.phases.begin(), before.phases.end());
+  stats.layoutSteps = before.layoutSteps;
   stats.reordered = true;
   stats.layoutFarFraction = mesh.Layout().FarFraction();
   stats.storage = dml.GetStats();

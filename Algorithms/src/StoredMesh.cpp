@@ -4,6 +4,7 @@
 #include "sipmss/storage/Sort.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -210,6 +211,7 @@ void ReadAndReorder(const MeshSource& input, StoredMesh& mesh, storage::DML& dml
   progress.BeginPhase("layout: reorder", kLayoutReorderWork * (V + F), after);
   PhaseTimer timer(stats, dml, "layout reorder");
   mesh.Reorder(progress, threads);
+  stats.layoutSteps = mesh.Steps();
 }
 
 StoredMesh::StoredMesh(storage::DML& dml)
@@ -454,6 +456,20 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     }
   };
 
+  // Each part's time and I/O (RunStats::layoutSteps).
+  this->steps_.clear();
+  auto partStart = std::chrono::steady_clock::now();
+  storage::Stats partStats = this->dml_.GetStats();
+  auto part = [&](const char* name) {
+    const auto now = std::chrono::steady_clock::now();
+    const storage::Stats s = this->dml_.GetStats();
+    this->steps_.push_back(LayoutStepStat{ name,
+      std::chrono::duration<double>(now - partStart).count(), s.bytesRead - partStats.bytesRead,
+      s.bytesWritten - partStats.bytesWritten, s.fileBytes });
+    partStart = now;
+    partStats = s;
+  };
+
   // 1. Vertices by Morton key (ties by the old index), positions carried.
   Array<OldNew> inverse;
   if (!newOf)
@@ -533,6 +549,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       [](const KeyRec& r) { return r.key; }, 63, storage::SortSink<KeyRec>(sorted),
       step(2.0 * double(V) * sizeof(KeyRec)), threads);
   }
+  part("vertices by key");
   if (path == Renumbering::Slices)
   {
     // The (old, new) pairs go to their slice of the inverse (slice b holds the old indices
@@ -597,6 +614,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       threads);
   }
 
+  part("inverse");
   // 3. Point data, 16 words at a time: (new index, words) in old order, sorted by new index.
   if (this->stride_)
   {
@@ -650,6 +668,10 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     }
   }
 
+  if (this->stride_)
+  {
+    part("point data");
+  }
   // 4. Faces: renumbered in one scan when the inverse is in memory; else corners sorted by old
   //    vertex, joined with the inverse in one sequential scan, sorted back by face.
   //    Out of core the last pass of each hands the renumbered faces (each rotated to start at its
@@ -898,6 +920,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
       emit(tris.data(), first / 3, n / 3);
     }, 3 * (kChunk / 3)); // (whole faces per chunk)
   }
+  part("faces renumbered");
   // 5. Faces (each rotated to start at its lowest vertex, orientation kept) by their vertices:
   //    out of core the sorter's buckets, in core a radix sort in place (storage::SortByKey).
   if (sorter)
@@ -910,6 +933,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
     storage::SortByKey(this->dml_, this->triangles_, faceLess, lowest, BitsFor(V),
       step(2.0 * double(T) * sizeof(Triangle)), threads);
   }
+  part("faces sorted");
   return path;
 }
 

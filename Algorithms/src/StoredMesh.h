@@ -251,6 +251,8 @@ public:
   Renumbering Reorder(Progress& progress, int threads = 0);
   // The number of slices of the last Reorder (0 unless Renumbering::Slices).
   std::uint64_t Slices() const { return this->slices_; }
+  // The last Reorder's parts, timed, with the DML's I/O (RunStats::layoutSteps).
+  const std::vector<LayoutStepStat>& Steps() const { return this->steps_; }
 
   // Random access, for a mesh put together from parts (the distributed decimation's gather):
   // triangles written at a position (the count grows to cover them), and ranges read back
@@ -281,6 +283,7 @@ private:
   storage::BlockId attrs_ = -1;
   std::uint64_t triangleCount_ = 0;
   std::uint64_t slices_ = 0;
+  std::vector<LayoutStepStat> steps_;
   LayoutMeter layout_;
   std::array<double, 6> bounds_;
 };

@@ -333,6 +333,29 @@ TEST(AlgorithmsLayout, ReorderIsTheSameInMemoryInSlicesAndBySorting)
     progress.BeginPhase("test", 1, 0);
     EXPECT_EQ(int(mesh.Reorder(progress)), int(paths[k])) << "budget " << budgets[k];
     mostSlices = std::max(mostSlices, mesh.Slices());
+    // Its parts, in order, with the DML's I/O: none in core; out of core each part moves
+    // data, and the block files at the end hold the points, the scalars and the triangles.
+    const std::vector<std::string> names = { "vertices by key", "inverse", "point data",
+      "faces renumbered", "faces sorted" };
+    ASSERT_EQ(mesh.Steps().size(), names.size()) << k;
+    for (std::size_t i = 0; i < names.size(); ++i)
+    {
+      const LayoutStepStat& st = mesh.Steps()[i];
+      EXPECT_EQ(st.name, names[i]) << k;
+      EXPECT_GE(st.seconds, 0.0) << k;
+      if (budgets[k] == 0)
+      {
+        EXPECT_EQ(st.bytesRead + st.bytesWritten + st.fileBytes, 0u) << k << " " << st.name;
+      }
+      else
+      {
+        EXPECT_GT(st.bytesRead + st.bytesWritten, 0u) << k << " " << st.name;
+      }
+    }
+    if (budgets[k])
+    {
+      EXPECT_GE(mesh.Steps().back().fileBytes, m.xyz.size() * 4 + m.tris.size() * 4) << k;
+    }
     mesh.Replay(outs[k], io::ReadOptions{});
   }
   EXPECT_GE(mostSlices, 4u);

@@ -11,6 +11,7 @@
 #include <set>
 #include <sstream>
 #include <string>
+#include <numeric>
 #include <vector>
 
 #include <sys/stat.h>
@@ -539,6 +540,76 @@ TEST_F(CLI, StatsListTheDecimationPasses)
     this->P("c.json"));
   ASSERT_EQ(c.status, 0) << c.out;
   EXPECT_NE(ReadAll(this->P("c.json")).find("\"passes\": []"), std::string::npos);
+}
+
+// The stats JSON lists the layout step's parts when the input was reordered: a grid whose
+// vertices are numbered by a fixed permutation (neighbours far apart in index order), out of
+// core; none for the grid in scanner order.
+TEST_F(CLI, StatsListTheLayoutStepsParts)
+{
+  const int n = 200; // (40,401 vertices: jumps beyond the layout probe's window of 4,096)
+  const std::uint32_t V = std::uint32_t(n + 1) * std::uint32_t(n + 1);
+  const std::uint32_t stride = 2654435761u % V; // (coprime with V: a permutation)
+  ASSERT_EQ(std::gcd(stride, V), 1u);
+  auto image = [&](std::uint32_t v) { return std::uint32_t((std::uint64_t(v) * stride) % V); };
+  const std::string shuffled = this->P("shuffled.ply");
+  {
+    std::ofstream f(shuffled, std::ios::binary);
+    f << "ply\nformat binary_little_endian 1.0\nelement vertex " << V
+      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
+      << "\nproperty list uchar int vertex_indices\nend_header\n";
+    std::vector<float> xyz(3 * std::size_t(V));
+    for (int j = 0; j <= n; ++j)
+    {
+      for (int i = 0; i <= n; ++i)
+      {
+        float* q = &xyz[3 * std::size_t(image(std::uint32_t(j * (n + 1) + i)))];
+        q[0] = float(i), q[1] = float(j), q[2] = float((i * j) % 7);
+      }
+    }
+    f.write(reinterpret_cast<const char*>(xyz.data()), std::streamsize(xyz.size() * 4));
+    for (int j = 0; j < n; ++j)
+    {
+      for (int i = 0; i < n; ++i)
+      {
+        const std::uint32_t a = std::uint32_t(j * (n + 1) + i), b = a + 1, c = a + n + 2,
+                            d = a + n + 1;
+        const std::uint32_t t[2][3] = { { image(a), image(b), image(c) },
+          { image(a), image(c), image(d) } };
+        for (const auto& tri : t)
+        {
+          f.put(3);
+          f.write(reinterpret_cast<const char*>(tri), 12);
+        }
+      }
+    }
+  }
+  const std::string ordered = this->P("ordered.ply");
+  WriteGrid(ordered, n);
+  for (const bool isShuffled : { true, false })
+  {
+    Result r = RunCli("simplify " + (isShuffled ? shuffled : ordered) + " " + this->P("o.ply") +
+      " --quiet --algorithm decimate --target 500 --memory-mb 1 --stats-json " + this->P("s.json"));
+    ASSERT_EQ(r.status, 0) << r.out;
+    const std::string j = ReadAll(this->P("s.json"));
+    EXPECT_NE(j.find(std::string("\"reordered\": ") + (isShuffled ? "true" : "false")),
+      std::string::npos) << j;
+    const std::size_t at = j.find("\"layout_steps\": [");
+    ASSERT_NE(at, std::string::npos) << j;
+    const std::string steps = j.substr(at, j.find(']', at) - at);
+    const char* names[] = { "vertices by key", "inverse", "faces renumbered", "faces sorted" };
+    std::size_t from = 0;
+    for (const char* name : names)
+    {
+      const std::size_t k = steps.find(std::string("\"name\": \"") + name + "\"", from);
+      EXPECT_EQ(k != std::string::npos, isShuffled) << name << "\n" << j;
+      from = k == std::string::npos ? from : k; // (in this order)
+    }
+    for (const char* key : { "\"seconds\"", "\"bytes_read\"", "\"bytes_written\"", "\"file_bytes\"" })
+    {
+      EXPECT_EQ(steps.find(key) != std::string::npos, isShuffled) << key << "\n" << j;
+    }
+  }
 }
 
 // Two-stage without --grid: with --target T the grid whose clustered mesh has about 16 T

@@ -516,6 +516,15 @@ int RunSimplify(const SimplifyArgs& a)
       j["layout_far_fraction"] = nullptr;
     }
     j["reordered"] = stats.reordered;
+    // The layout step's parts, when it ran: seconds, the DML's I/O, block files at the end.
+    nlohmann::json layoutSteps = nlohmann::json::array();
+    for (const auto& p : stats.layoutSteps)
+    {
+      layoutSteps.push_back({ { "name", p.name }, { "seconds", p.seconds },
+        { "bytes_read", p.bytesRead }, { "bytes_written", p.bytesWritten },
+        { "file_bytes", p.fileBytes } });
+    }
+    j["layout_steps"] = layoutSteps;
     // The error of the run's merges relative to the input's bounding-box diagonal, and that
     // diagonal (docs/architecture.md, "Error bound").
     if (stats.achievedError >= 0)

@@ -246,6 +246,16 @@ struct PassStat
   storage::Mode mode = storage::Mode::InCore; // the DML's at the pass's end
 };
 
+// One part of the layout step (docs/architecture.md, "Input layout"), in the order they ran:
+// "vertices by key", "inverse", "point data" (inputs with point data), "faces renumbered",
+// "faces sorted". The DML's I/O during the part, and its block files' size at the end.
+struct LayoutStepStat
+{
+  std::string name;
+  double seconds = 0;
+  std::uint64_t bytesRead = 0, bytesWritten = 0, fileBytes = 0;
+};
+
 // The layout step for inputs whose vertices and faces are not in a spatially coherent order
 // (docs/architecture.md, "Input layout"). Automatic: the first faces are measured and an
 // incoherent input is copied into the DML and reordered (vertices along a Morton curve, faces by
@@ -265,6 +275,7 @@ struct RunStats
   // -1: not measured, the run fit in memory) and whether the run reordered it.
   double layoutFarFraction = -1;
   bool reordered = false;
+  std::vector<LayoutStepStat> layoutSteps; // the reorder's parts, when it ran
   std::uint64_t inputVertices = 0;
   std::uint64_t inputTriangles = 0;
   std::uint64_t outputVertices = 0;
