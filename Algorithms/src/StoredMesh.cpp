@@ -390,6 +390,7 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
 {
   const std::uint64_t V = this->header_.vertexCount;
   const std::uint64_t T = this->triangleCount_;
+  this->steps_.clear();
   if (V < 2 || T == 0)
   {
     return Renumbering::InMemory;
@@ -457,7 +458,6 @@ StoredMesh::Renumbering StoredMesh::Reorder(Progress& progress, int threads)
   };
 
   // Each part's time and I/O (RunStats::layoutSteps).
-  this->steps_.clear();
   auto partStart = std::chrono::steady_clock::now();
   storage::Stats partStats = this->dml_.GetStats();
   auto part = [&](const char* name) {
