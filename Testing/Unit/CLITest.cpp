@@ -8,10 +8,10 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <numeric>
 #include <set>
 #include <sstream>
 #include <string>
-#include <numeric>
 #include <vector>
 
 #include <sys/stat.h>
@@ -241,30 +241,39 @@ std::string ReadAll(const fs::path& p)
   return std::string(std::istreambuf_iterator<char>(f), {});
 }
 
-// A binary PLY of an n x n grid of quads (2 n^2 triangles) with a bumpy height.
-void WriteGrid(const std::string& path, int n)
+// A binary PLY of an n x n grid of quads (2 n^2 triangles) with a bumpy height, its vertices in
+// scanner order; with a `stride` coprime with the vertex count, vertex v is numbered
+// v * stride mod V instead (a permutation that puts neighbours far apart in index order).
+void WriteGrid(const std::string& path, int n, std::uint32_t stride = 1)
 {
+  const std::uint32_t V = std::uint32_t(n + 1) * std::uint32_t(n + 1);
+  auto image = [V, stride](std::uint32_t v) {
+    return std::uint32_t((std::uint64_t(v) * stride) % V);
+  };
   std::ofstream f(path, std::ios::binary);
-  f << "ply\nformat binary_little_endian 1.0\nelement vertex " << (n + 1) * (n + 1)
+  f << "ply\nformat binary_little_endian 1.0\nelement vertex " << V
     << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
     << "\nproperty list uchar int vertex_indices\nend_header\n";
-  std::vector<float> row(3 * std::size_t(n + 1));
+  std::vector<float> xyz(3 * std::size_t(V));
   for (int j = 0; j <= n; ++j)
   {
     for (int i = 0; i <= n; ++i)
     {
-      row[3 * i] = float(i), row[3 * i + 1] = float(j), row[3 * i + 2] = float((i * j) % 7);
+      float* q = &xyz[3 * std::size_t(image(std::uint32_t(j * (n + 1) + i)))];
+      q[0] = float(i), q[1] = float(j), q[2] = float((i * j) % 7);
     }
-    f.write(reinterpret_cast<const char*>(row.data()), std::streamsize(row.size() * 4));
   }
+  f.write(reinterpret_cast<const char*>(xyz.data()), std::streamsize(xyz.size() * 4));
   std::vector<char> faces(13 * 2 * std::size_t(n));
   for (int j = 0; j < n; ++j)
   {
     char* p = faces.data();
     for (int i = 0; i < n; ++i)
     {
-      const int a = j * (n + 1) + i, b = a + 1, c = a + n + 2, d = a + n + 1;
-      const int t[2][3] = { { a, b, c }, { a, c, d } };
+      const std::uint32_t a = std::uint32_t(j * (n + 1) + i), b = a + 1, c = a + n + 2,
+                          d = a + n + 1;
+      const std::uint32_t t[2][3] = { { image(a), image(b), image(c) },
+        { image(a), image(c), image(d) } };
       for (const auto& tri : t)
       {
         *p++ = 3;
@@ -551,39 +560,8 @@ TEST_F(CLI, StatsListTheLayoutStepsParts)
   const std::uint32_t V = std::uint32_t(n + 1) * std::uint32_t(n + 1);
   const std::uint32_t stride = 2654435761u % V; // (coprime with V: a permutation)
   ASSERT_EQ(std::gcd(stride, V), 1u);
-  auto image = [&](std::uint32_t v) { return std::uint32_t((std::uint64_t(v) * stride) % V); };
   const std::string shuffled = this->P("shuffled.ply");
-  {
-    std::ofstream f(shuffled, std::ios::binary);
-    f << "ply\nformat binary_little_endian 1.0\nelement vertex " << V
-      << "\nproperty float x\nproperty float y\nproperty float z\nelement face " << 2 * n * n
-      << "\nproperty list uchar int vertex_indices\nend_header\n";
-    std::vector<float> xyz(3 * std::size_t(V));
-    for (int j = 0; j <= n; ++j)
-    {
-      for (int i = 0; i <= n; ++i)
-      {
-        float* q = &xyz[3 * std::size_t(image(std::uint32_t(j * (n + 1) + i)))];
-        q[0] = float(i), q[1] = float(j), q[2] = float((i * j) % 7);
-      }
-    }
-    f.write(reinterpret_cast<const char*>(xyz.data()), std::streamsize(xyz.size() * 4));
-    for (int j = 0; j < n; ++j)
-    {
-      for (int i = 0; i < n; ++i)
-      {
-        const std::uint32_t a = std::uint32_t(j * (n + 1) + i), b = a + 1, c = a + n + 2,
-                            d = a + n + 1;
-        const std::uint32_t t[2][3] = { { image(a), image(b), image(c) },
-          { image(a), image(c), image(d) } };
-        for (const auto& tri : t)
-        {
-          f.put(3);
-          f.write(reinterpret_cast<const char*>(tri), 12);
-        }
-      }
-    }
-  }
+  WriteGrid(shuffled, n, stride);
   const std::string ordered = this->P("ordered.ply");
   WriteGrid(ordered, n);
   for (const bool isShuffled : { true, false })
