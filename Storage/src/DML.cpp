@@ -389,6 +389,7 @@ void DML::Impl::BackendRead(const Block& b, void* dst, std::uint64_t n, std::uin
     this->Rethrow(e, b);
   }
   this->stats.bytesRead += n;
+  b.io.bytesRead += n;
 }
 
 void DML::Impl::BackendWrite(const Block& b, const void* src, std::uint64_t n, std::uint64_t off)
@@ -417,6 +418,7 @@ void DML::Impl::BackendWrite(const Block& b, const void* src, std::uint64_t n, s
     }
   }
   this->stats.bytesWritten += n;
+  b.io.bytesWritten += n;
 }
 
 // Moves b's file to another directory with room for `bytes` (b's data is copied; the holes of
@@ -1074,6 +1076,7 @@ void DML::Impl::Transfer(BlockId id, Block& b, std::uint64_t off, std::uint64_t 
         this->BackendRead(b, buf, stop - off, off);
       }
       this->stats.misses += last - page;
+      b.io.misses += last - page;
       buf += stop - off;
       off = stop;
       continue;
@@ -1401,6 +1404,11 @@ std::uint64_t DML::Count(BlockId id) const
 {
   const Impl& I = *this->impl_;
   return I.Get(id, Kind::Plain).count;
+}
+
+BlockStats DML::GetBlockStats(BlockId id) const
+{
+  return this->impl_->Get(id, Kind::Plain).io;
 }
 
 std::size_t DML::ElementSize(BlockId id) const
@@ -1824,6 +1832,15 @@ void DML::Join(DML& child)
   I.stats.bytesRead += K.stats.bytesRead;
   I.stats.bytesWritten += K.stats.bytesWritten;
   ++I.stats.forks;
+  for (std::size_t i = 0; i < K.blocks.size() && i < I.blocks.size(); ++i)
+  {
+    // (the child's blocks are the parent's, by the same ids)
+    BlockStats& to = I.blocks[i].io;
+    const BlockStats& from = K.blocks[i].io;
+    to.misses += from.misses;
+    to.bytesRead += from.bytesRead;
+    to.bytesWritten += from.bytesWritten;
+  }
   for (Block& b : K.blocks)
   {
     b = Block{};

@@ -184,6 +184,10 @@ struct Block
   // writes back only those, the parent only the others.
   std::uint64_t forkFirst = 0, forkEnd = 0;
 
+  // This block's I/O since it was opened (DML::GetBlockStats): its page misses and the bytes
+  // read from and written to its file (mutable: counted where a transfer sees a const Block).
+  mutable BlockStats io;
+
   bool InCore() const { return this->mem != nullptr; }
   bool OnFile() const { return this->fd >= 0; }
   std::uint64_t Bytes() const { return this->count * this->elementSize; }

@@ -367,6 +367,7 @@ unsigned char* DML::Impl::PageFor(BlockId id, Block& b, std::uint64_t page, bool
       {
         fi = this->Fault(id, b, page, fetch);
         ++this->stats.misses;
+        ++b.io.misses;
       }
     }
     for (; k > 0; --k)

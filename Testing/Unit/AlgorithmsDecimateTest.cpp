@@ -474,6 +474,16 @@ TEST(AlgorithmsDecimate, ClosedSphereStaysClosedAndManifold)
     2);
 }
 
+// s decimated to 300 triangles on `threads` threads within `budget` (0: unbounded).
+Outcome ToThreeHundred(const Mesh& s, int threads, std::uint64_t budget)
+{
+  alg::DecimateOptions o;
+  o.targetTriangles = 300;
+  o.threads = threads;
+  o.storage.memoryBudget = budget;
+  return Simplify(MemorySource(s), o);
+}
+
 // RunStats::passes: each pass's sizes chain from the input's to the output's, the first pass
 // places every edge of a closed surface once, and the counts do not depend on the threads or
 // the mode (only the times and the I/O do).
@@ -481,13 +491,7 @@ TEST(AlgorithmsDecimate, PassesAreReported)
 {
   Mesh s = BumpySphere(5); // 20480 triangles, closed
   const std::uint64_t F = s.Triangles();
-  auto run = [&](int threads, std::uint64_t budget) {
-    alg::DecimateOptions o;
-    o.targetTriangles = 300;
-    o.threads = threads;
-    o.storage.memoryBudget = budget;
-    return Simplify(MemorySource(s), o);
-  };
+  auto run = [&](int threads, std::uint64_t budget) { return ToThreeHundred(s, threads, budget); };
   const Outcome one = run(1, 0), two = run(2, 0), paged = run(1, 64 * 1024);
   for (const Outcome* r : { &one, &two, &paged })
   {
@@ -546,6 +550,68 @@ TEST(AlgorithmsDecimate, PassesAreReported)
         p.compact.bytesWritten > 0);
   }
   EXPECT_TRUE(outOfCore) << "the 64 KiB run read no pass from its files";
+}
+
+// PassStat::Step::arrays: out of core, each step's I/O by array, in the documented order, adding
+// up to the step's totals (on one thread and through a forked helper); in core, none.
+TEST(AlgorithmsDecimate, PassesReportTheirIoByArray)
+{
+  Mesh s = BumpySphere(5); // 20480 triangles
+  auto run = [&](int threads, std::uint64_t budget) { return ToThreeHundred(s, threads, budget); };
+  const std::vector<std::string> names = { "positions", "quadrics", "faces", "ring offsets",
+    "ring faces", "states", "candidates", "order", "remap", "attributes", "attribute terms",
+    "fit samples", "face selection", "fitted positions", "other" };
+  const Outcome inCore = run(2, 0);
+  for (const alg::PassStat& p : inCore.stats.passes)
+  {
+    for (const auto* st : { &p.sweep, &p.order, &p.step, &p.compact })
+    {
+      EXPECT_TRUE(st->arrays.empty());
+    }
+  }
+  std::map<std::string, std::uint64_t> sweepMisses;
+  for (int threads : { 1, 2 })
+  {
+    const Outcome paged = run(threads, 64 * 1024);
+    ASSERT_EQ(paged.out.Triangles(), inCore.out.Triangles());
+    std::uint64_t listed = 0;
+    for (std::size_t i = 0; i < paged.stats.passes.size(); ++i)
+    {
+      const alg::PassStat& p = paged.stats.passes[i];
+      for (const auto* st : { &p.sweep, &p.order, &p.step, &p.compact })
+      {
+        std::uint64_t misses = 0, read = 0, written = 0;
+        std::size_t at = 0;
+        for (const alg::PassStat::ArrayIo& a : st->arrays)
+        {
+          const auto k = std::find(names.begin(), names.end(), a.name);
+          ASSERT_NE(k, names.end()) << a.name;
+          const std::size_t rank = std::size_t(k - names.begin());
+          EXPECT_GE(rank + 1, at + 1) << a.name << " out of order";
+          EXPECT_GT(a.misses + a.bytesRead + a.bytesWritten, 0u) << a.name;
+          at = rank + 1;
+          misses += a.misses;
+          read += a.bytesRead;
+          written += a.bytesWritten;
+          if (threads == 1 && st == &p.sweep && i == 0)
+          {
+            sweepMisses[a.name] += a.misses;
+          }
+        }
+        EXPECT_EQ(misses, st->misses) << i;
+        EXPECT_EQ(read, st->bytesRead) << i;
+        EXPECT_EQ(written, st->bytesWritten) << i;
+        listed += st->arrays.size();
+      }
+    }
+    EXPECT_GT(listed, 0u) << threads;
+  }
+  // The first sweep reads every vertex's position and quadric and its ring's faces.
+  for (const char* a : { "positions", "quadrics", "faces", "ring faces" })
+  {
+    EXPECT_GT(sweepMisses[a], 0u) << a;
+  }
+  EXPECT_EQ(sweepMisses["other"], 0u);
 }
 
 TEST(AlgorithmsDecimate, FlatSquareCollapsesToTwoTrianglesOnItsCorners)

@@ -508,8 +508,8 @@ TEST_F(CLI, MeaninglessArgumentsAreUsageErrors)
 }
 
 // The stats JSON lists the decimation's passes: each with its sizes, work, steps' seconds and
-// I/O; the last one ends at the output's triangle count; two-stage names its stage-2 passes;
-// a clustering has none.
+// I/O (out of core by array too); the last one ends at the output's triangle count; two-stage
+// names its stage-2 passes; a clustering has none.
 TEST_F(CLI, StatsListTheDecimationPasses)
 {
   const std::string in = this->P("bumps.ply");
@@ -517,7 +517,8 @@ TEST_F(CLI, StatsListTheDecimationPasses)
   const char* keys[] = { "\"vertices\"", "\"triangles\"", "\"goal\"", "\"triangles_after\"",
     "\"active_vertices\"", "\"edges_placed\"", "\"candidates\"", "\"collapses\"",
     "\"illegal\"", "\"steps\"", "\"sweep\"", "\"order\"", "\"step\"", "\"compact\"",
-    "\"seconds\"", "\"bytes_read\"", "\"bytes_written\"", "\"misses\"", "\"mode\"" };
+    "\"seconds\"", "\"bytes_read\"", "\"bytes_written\"", "\"misses\"", "\"mode\"",
+    "\"arrays\"" };
   for (const char* algorithm : { "decimate", "two-stage" })
   {
     Result r = RunCli("simplify " + in + " " + this->P("out.ply") + " --quiet --target 100" +
@@ -544,6 +545,20 @@ TEST_F(CLI, StatsListTheDecimationPasses)
     const std::size_t last = passes.rfind("\"triangles_after\": ");
     ASSERT_NE(last, std::string::npos) << j;
     EXPECT_EQ(passes.substr(last + 19, count.size() + 1), count + ",") << j;
+  }
+  // Out of core, the steps' I/O by array too (in core none: "arrays": []).
+  EXPECT_NE(ReadAll(this->P("s.json")).find("\"arrays\": []"), std::string::npos);
+  const std::string big = this->P("big.ply");
+  WriteGrid(big, 100); // (20,000 triangles: more than 0.25 MB of blocks)
+  Result o = RunCli("simplify " + big + " " + this->P("out.ply") +
+    " --quiet --target 100 --algorithm decimate --memory-mb 0.25 --stats-json " +
+    this->P("o.json"));
+  ASSERT_EQ(o.status, 0) << o.out;
+  const std::string oj = ReadAll(this->P("o.json"));
+  for (const char* a :
+    { "\"name\": \"positions\"", "\"name\": \"quadrics\"", "\"name\": \"faces\"" })
+  {
+    EXPECT_NE(oj.find(a), std::string::npos) << a << "\n" << oj;
   }
   Result c = RunCli("simplify " + in + " " + this->P("c.ply") + " --quiet --grid 8 --stats-json " +
     this->P("c.json"));

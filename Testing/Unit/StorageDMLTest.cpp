@@ -911,6 +911,80 @@ TEST(StorageDML, BulkRangesOfPagesNotCachedGoStraightToTheFile)
   EXPECT_EQ(a.Get(first + page + len), model[first + page + len]);
 }
 
+TEST(StorageDML, EachBlocksIoIsCountedAndTheBlocksAddUpToTheTotals)
+{
+  // GetBlockStats: a block's misses and bytes read and written since it was opened, a forked
+  // child's included once joined; summed over the blocks they are the Stats totals.
+  PagedWords w;
+  DML& dml = w.dml;
+  const std::uint64_t page = w.page, pages = 40, n = pages * page;
+  Array<std::uint32_t> a(dml, n), b(dml, n);
+  auto io = [&](const Array<std::uint32_t>& x) { return dml.GetBlockStats(x.Id()); };
+  EXPECT_EQ(io(a).misses + io(a).bytesRead + io(a).bytesWritten, 0u);
+  auto addsUp = [&](const char* when) {
+    const Stats t = dml.GetStats();
+    EXPECT_EQ(io(a).misses + io(b).misses, t.misses) << when;
+    EXPECT_EQ(io(a).bytesRead + io(b).bytesRead, t.bytesRead) << when;
+    EXPECT_EQ(io(a).bytesWritten + io(b).bytesWritten, t.bytesWritten) << when;
+  };
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    a.Set(i, std::uint32_t(i));
+  }
+  w.Evict(b, n); // most of a's pages go, written back whole
+  const std::uint64_t pageBytes = page * sizeof(std::uint32_t);
+  EXPECT_GT(io(a).bytesWritten, 0u);
+  EXPECT_LE(io(a).bytesWritten, n * sizeof(std::uint32_t));
+  EXPECT_EQ(io(a).bytesWritten % pageBytes, 0u);
+  EXPECT_GE(io(a).misses, pages);
+  addsUp("after the writes");
+  // A sweep over a, which the cache cannot hold: each page it misses is read whole, most of
+  // them are; b is not read.
+  const BlockStats a0 = io(a), b0 = io(b);
+  std::uint64_t sum = 0;
+  for (std::uint64_t i = 0; i < n; ++i)
+  {
+    sum += a.Get(i);
+  }
+  EXPECT_EQ(sum, n * (n - 1) / 2);
+  const std::uint64_t missed = io(a).misses - a0.misses;
+  EXPECT_LE(missed, pages);
+  EXPECT_GE(missed, pages / 2);
+  EXPECT_EQ(io(a).bytesRead - a0.bytesRead, missed * pageBytes);
+  EXPECT_EQ(io(b).misses, b0.misses);
+  EXPECT_EQ(io(b).bytesRead, b0.bytesRead);
+  addsUp("after the sweep");
+  // A forked child sweeps the upper half of b: its misses are b's after the join.
+  const BlockStats b1 = io(b);
+  std::unique_ptr<DML> child = dml.Fork(dml.GetProfile().memoryBudget / 2, {});
+  ASSERT_NE(child, nullptr);
+  for (std::uint64_t i = n / 2; i < n; ++i)
+  {
+    std::uint32_t x = 0;
+    child->Read(b.Id(), sizeof x, i, &x);
+  }
+  EXPECT_EQ(child->GetBlockStats(b.Id()).misses, pages / 2);
+  dml.Join(*child);
+  EXPECT_EQ(io(b).misses - b1.misses, pages / 2);
+  addsUp("after the join");
+  // A block opened in a closed one's slot starts from nothing; in core nothing is counted.
+  const BlockId old = a.Id();
+  a = Array<std::uint32_t>();
+  Array<std::uint32_t> again(dml, n);
+  EXPECT_EQ(again.Id(), old);
+  EXPECT_EQ(dml.GetBlockStats(again.Id()).misses + dml.GetBlockStats(again.Id()).bytesRead, 0u);
+  DML inCore;
+  inCore.Config(Profile{});
+  Array<std::uint32_t> x(inCore, 1000);
+  for (std::uint64_t i = 0; i < 1000; ++i)
+  {
+    x.Set(i, std::uint32_t(i));
+  }
+  EXPECT_EQ(inCore.GetBlockStats(x.Id()).misses + inCore.GetBlockStats(x.Id()).bytesRead +
+      inCore.GetBlockStats(x.Id()).bytesWritten, 0u);
+  EXPECT_THROW(dml.GetBlockStats(BlockId(1000)), std::invalid_argument);
+}
+
 TEST(StorageDML, ReadOnceMovesOnlyItsBytesWhateverTheSize)
 {
   // ReadOnce (a sorter's segments): a range of a few elements of a page not cached is read

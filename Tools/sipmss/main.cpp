@@ -545,7 +545,8 @@ int RunSimplify(const SimplifyArgs& a)
     }
     j["phases"] = phases;
     // The decimation's passes (docs/architecture.md "Algorithm I and the two-stage method in
-    // brief"): sizes, work, and the seconds and the DML's I/O of their four steps.
+    // brief"): sizes, work, and the seconds and the DML's I/O of their four steps, the I/O also
+    // by array (out of core; empty in core).
     nlohmann::json passes = nlohmann::json::array();
     for (const auto& p : stats.passes)
     {
@@ -553,8 +554,14 @@ int RunSimplify(const SimplifyArgs& a)
       for (const auto& [name, st] : { std::pair{ "sweep", &p.sweep }, std::pair{ "order", &p.order },
              std::pair{ "step", &p.step }, std::pair{ "compact", &p.compact } })
       {
+        nlohmann::json arrays = nlohmann::json::array();
+        for (const auto& a : st->arrays)
+        {
+          arrays.push_back({ { "name", a.name }, { "misses", a.misses },
+            { "bytes_read", a.bytesRead }, { "bytes_written", a.bytesWritten } });
+        }
         steps[name] = { { "seconds", st->seconds }, { "bytes_read", st->bytesRead },
-          { "bytes_written", st->bytesWritten }, { "misses", st->misses } };
+          { "bytes_written", st->bytesWritten }, { "misses", st->misses }, { "arrays", arrays } };
       }
       passes.push_back({ { "run", p.run }, { "vertices", p.vertices },
         { "triangles", p.triangles }, { "goal", p.goal }, { "triangles_after", p.trianglesAfter },

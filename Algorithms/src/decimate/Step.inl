@@ -1022,6 +1022,7 @@ public:
     , io_(mesh.dml.GetStats())
     , lap_(std::chrono::steady_clock::now())
   {
+    this->arrays_ = this->ArraysNow();
     this->stat.vertices = mesh.nv;
     this->stat.triangles = mesh.liveFaces;
     this->stat.goal = goal;
@@ -1063,11 +1064,97 @@ public:
     step.bytesRead += io.bytesRead - this->io_.bytesRead;
     step.bytesWritten += io.bytesWritten - this->io_.bytesWritten;
     step.misses += io.misses - this->io_.misses;
+    // By array (out of core): each named block's I/O since the last lap, the rest as "other".
+    std::vector<Snapshot> arrays = this->ArraysNow();
+    if (io.misses != this->io_.misses || io.bytesRead != this->io_.bytesRead ||
+      io.bytesWritten != this->io_.bytesWritten)
+    {
+      PassStat::ArrayIo other{ "other", io.misses - this->io_.misses,
+        io.bytesRead - this->io_.bytesRead, io.bytesWritten - this->io_.bytesWritten };
+      for (const Snapshot& a : arrays)
+      {
+        // (the same block as at the last lap, else one opened since: all of its I/O is new)
+        const Snapshot* before = nullptr;
+        for (const Snapshot& b : this->arrays_)
+        {
+          if (b.id == a.id && std::strcmp(b.name, a.name) == 0 && b.io.misses <= a.io.misses &&
+            b.io.bytesRead <= a.io.bytesRead && b.io.bytesWritten <= a.io.bytesWritten)
+          {
+            before = &b;
+          }
+        }
+        const storage::BlockStats d{ a.io.misses - (before ? before->io.misses : 0),
+          a.io.bytesRead - (before ? before->io.bytesRead : 0),
+          a.io.bytesWritten - (before ? before->io.bytesWritten : 0) };
+        if (d.misses + d.bytesRead + d.bytesWritten == 0)
+        {
+          continue;
+        }
+        Add(step, a.name, d);
+        other.misses -= std::min(other.misses, d.misses);
+        other.bytesRead -= std::min(other.bytesRead, d.bytesRead);
+        other.bytesWritten -= std::min(other.bytesWritten, d.bytesWritten);
+      }
+      if (other.misses + other.bytesRead + other.bytesWritten > 0)
+      {
+        Add(step, other.name, { other.misses, other.bytesRead, other.bytesWritten });
+      }
+    }
+    this->arrays_ = std::move(arrays);
     this->lap_ = now;
     this->io_ = io;
   }
 
 private:
+  struct Snapshot
+  {
+    const char* name;
+    storage::BlockId id;
+    storage::BlockStats io;
+  };
+  // The I/O so far of the pass's named blocks that are open now (PassStat::ArrayIo's order).
+  std::vector<Snapshot> ArraysNow() const
+  {
+    const MeshState& m = this->mesh_;
+    std::vector<Snapshot> out;
+    auto add = [&](const char* name, storage::BlockId id, bool open) {
+      if (open)
+      {
+        out.push_back({ name, id, m.dml.GetBlockStats(id) });
+      }
+    };
+    add("positions", m.pos.Id(), m.pos.IsOpen());
+    add("quadrics", m.quad.Id(), m.quad.IsOpen());
+    add("faces", m.faces.Id(), m.faces.IsOpen());
+    add("ring offsets", m.ringOff.Id(), m.ringOff.IsOpen());
+    add("ring faces", m.ringFace.Id(), m.ringFace.IsOpen());
+    add("states", m.state.Id(), m.state.IsOpen());
+    add("candidates", m.cand.Id(), m.cand.IsOpen());
+    add("order", m.order.Id(), m.order.IsOpen());
+    add("remap", m.remap.Id(), m.remap.IsOpen());
+    add("attributes", m.attr.Id(), m.attr.IsOpen());
+    add("attribute terms", m.extra.Id(), m.extra.IsOpen());
+    add("fit samples", m.samples.Id(), m.samples.IsOpen());
+    add("face selection", m.outside.Id(), m.outside.IsOpen());
+    add("fitted positions", m.fitted.Id(), m.fitted.IsOpen());
+    return out;
+  }
+  // Adds d to step's entry `name` (a step lapped again adds to what it has).
+  static void Add(PassStat::Step& step, const std::string& name, const storage::BlockStats& d)
+  {
+    for (PassStat::ArrayIo& a : step.arrays)
+    {
+      if (a.name == name)
+      {
+        a.misses += d.misses;
+        a.bytesRead += d.bytesRead;
+        a.bytesWritten += d.bytesWritten;
+        return;
+      }
+    }
+    step.arrays.push_back({ name, d.misses, d.bytesRead, d.bytesWritten });
+  }
+  std::vector<Snapshot> arrays_;
   RunContext& ctx_;
   MeshState& mesh_;
   PassState& pass_;

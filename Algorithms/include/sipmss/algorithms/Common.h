@@ -237,10 +237,21 @@ struct PassStat
   std::uint64_t collapses = 0;      // collapses made (step 3)
   std::uint64_t illegal = 0;        // candidates found illegal (step 3)
   // Its four steps: the candidate sweep, the cost order, the collapse step, the compaction.
+  // Out of core, the step's I/O by array: "positions", "quadrics", "faces", "ring offsets",
+  // "ring faces", "states", "candidates", "order", "remap", "attributes", "attribute terms",
+  // "fit samples", "face selection", "fitted positions", in that order, then "other" (blocks
+  // the pass does not name, or closed during the step); only those with I/O. They add up to
+  // the step's totals.
+  struct ArrayIo
+  {
+    std::string name;
+    std::uint64_t misses = 0, bytesRead = 0, bytesWritten = 0;
+  };
   struct Step
   {
     double seconds = 0;
     std::uint64_t bytesRead = 0, bytesWritten = 0, misses = 0; // the DML's, during the step
+    std::vector<ArrayIo> arrays;
   };
   Step sweep, order, step, compact;
   storage::Mode mode = storage::Mode::InCore; // the DML's at the pass's end

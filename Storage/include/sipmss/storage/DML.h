@@ -99,6 +99,16 @@ struct Stats
   std::vector<std::string> notes;
 };
 
+// One block's I/O since it was opened (DML::GetBlockStats): the page misses of its elements and
+// the bytes read from and written to its file; a forked DML's are added when it is joined. The
+// Stats totals are their sums over every block the DML has had. In core: zeros.
+struct BlockStats
+{
+  std::uint64_t misses = 0;
+  std::uint64_t bytesRead = 0;
+  std::uint64_t bytesWritten = 0;
+};
+
 // Typed error for every storage failure: the path involved and the OS error (errno) if any.
 class StorageError : public std::runtime_error
 {
@@ -222,6 +232,7 @@ public:
   Mode Reconfigure(); // re-evaluate C against B (C = bytes of the blocks open now)
   Mode GetMode() const;
   Stats GetStats() const;
+  BlockStats GetBlockStats(BlockId id) const; // (an open block)
   const Profile& GetProfile() const;
 
   // --- allocation primitives
