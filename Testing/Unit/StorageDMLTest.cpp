@@ -938,8 +938,8 @@ TEST(StorageDML, EachBlocksIoIsCountedAndTheBlocksAddUpToTheTotals)
   EXPECT_EQ(io(a).bytesWritten % pageBytes, 0u);
   EXPECT_GE(io(a).misses, pages);
   addsUp("after the writes");
-  // A sweep over a, which the cache cannot hold: each page it misses is read whole, most of
-  // them are; b is not read.
+  // A sweep over a, which the cache cannot hold: most of its pages miss, each miss reads its
+  // page whole; b is not read.
   const BlockStats a0 = io(a), b0 = io(b);
   std::uint64_t sum = 0;
   for (std::uint64_t i = 0; i < n; ++i)
