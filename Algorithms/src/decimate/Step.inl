@@ -1065,39 +1065,37 @@ public:
     step.bytesWritten += io.bytesWritten - this->io_.bytesWritten;
     step.misses += io.misses - this->io_.misses;
     // By array (out of core): each named block's I/O since the last lap, the rest as "other".
-    std::vector<Snapshot> arrays = this->ArraysNow();
+    const Snapshots arrays = this->ArraysNow();
     if (io.misses != this->io_.misses || io.bytesRead != this->io_.bytesRead ||
       io.bytesWritten != this->io_.bytesWritten)
     {
-      PassStat::ArrayIo other{ "other", io.misses - this->io_.misses,
-        io.bytesRead - this->io_.bytesRead, io.bytesWritten - this->io_.bytesWritten };
-      for (const Snapshot& a : arrays)
+      storage::BlockStats other{ io.misses - this->io_.misses, io.bytesRead - this->io_.bytesRead,
+        io.bytesWritten - this->io_.bytesWritten };
+      for (std::size_t i = 0; i < arrays.size(); ++i)
       {
-        // (the same block as at the last lap, else one opened since: all of its I/O is new)
-        const Snapshot* before = nullptr;
-        for (const Snapshot& b : this->arrays_)
+        const Snapshot &a = arrays[i], &b = this->arrays_[i];
+        if (a.id < 0)
         {
-          if (b.id == a.id && std::strcmp(b.name, a.name) == 0 && b.io.misses <= a.io.misses &&
-            b.io.bytesRead <= a.io.bytesRead && b.io.bytesWritten <= a.io.bytesWritten)
-          {
-            before = &b;
-          }
+          continue;
         }
-        const storage::BlockStats d{ a.io.misses - (before ? before->io.misses : 0),
-          a.io.bytesRead - (before ? before->io.bytesRead : 0),
-          a.io.bytesWritten - (before ? before->io.bytesWritten : 0) };
+        // (the same block as at the last lap, else one opened since: all of its I/O is new)
+        const bool same = b.id == a.id && b.io.misses <= a.io.misses &&
+          b.io.bytesRead <= a.io.bytesRead && b.io.bytesWritten <= a.io.bytesWritten;
+        const storage::BlockStats d{ a.io.misses - (same ? b.io.misses : 0),
+          a.io.bytesRead - (same ? b.io.bytesRead : 0),
+          a.io.bytesWritten - (same ? b.io.bytesWritten : 0) };
         if (d.misses + d.bytesRead + d.bytesWritten == 0)
         {
           continue;
         }
-        Add(step, a.name, d);
+        Add(step, kArrayNames[i], d);
         other.misses -= std::min(other.misses, d.misses);
         other.bytesRead -= std::min(other.bytesRead, d.bytesRead);
         other.bytesWritten -= std::min(other.bytesWritten, d.bytesWritten);
       }
       if (other.misses + other.bytesRead + other.bytesWritten > 0)
       {
-        Add(step, other.name, { other.misses, other.bytesRead, other.bytesWritten });
+        Add(step, "other", other);
       }
     }
     this->arrays_ = std::move(arrays);
@@ -1106,37 +1104,37 @@ public:
   }
 
 private:
+  // The pass's named blocks (PassStat::ArrayIo's names, in order) and the I/O so far of those
+  // open now (id -1: not open).
+  static constexpr const char* kArrayNames[] = { "positions", "quadrics", "faces",
+    "ring offsets", "ring faces", "states", "candidates", "order", "remap", "attributes",
+    "attribute terms", "fit samples", "face selection", "fitted positions" };
   struct Snapshot
   {
-    const char* name;
-    storage::BlockId id;
+    storage::BlockId id = -1;
     storage::BlockStats io;
   };
-  // The I/O so far of the pass's named blocks that are open now (PassStat::ArrayIo's order).
-  std::vector<Snapshot> ArraysNow() const
+  using Snapshots = std::array<Snapshot, std::size(kArrayNames)>;
+  Snapshots ArraysNow() const
   {
     const MeshState& m = this->mesh_;
-    std::vector<Snapshot> out;
-    auto add = [&](const char* name, storage::BlockId id, bool open) {
-      if (open)
+    const std::pair<storage::BlockId, bool> blocks[] = { { m.pos.Id(), m.pos.IsOpen() },
+      { m.quad.Id(), m.quad.IsOpen() }, { m.faces.Id(), m.faces.IsOpen() },
+      { m.ringOff.Id(), m.ringOff.IsOpen() }, { m.ringFace.Id(), m.ringFace.IsOpen() },
+      { m.state.Id(), m.state.IsOpen() }, { m.cand.Id(), m.cand.IsOpen() },
+      { m.order.Id(), m.order.IsOpen() }, { m.remap.Id(), m.remap.IsOpen() },
+      { m.attr.Id(), m.attr.IsOpen() }, { m.extra.Id(), m.extra.IsOpen() },
+      { m.samples.Id(), m.samples.IsOpen() }, { m.outside.Id(), m.outside.IsOpen() },
+      { m.fitted.Id(), m.fitted.IsOpen() } };
+    static_assert(std::size(blocks) == std::size(kArrayNames), "one name per block");
+    Snapshots out;
+    for (std::size_t i = 0; i < out.size(); ++i)
+    {
+      if (blocks[i].second)
       {
-        out.push_back({ name, id, m.dml.GetBlockStats(id) });
+        out[i] = { blocks[i].first, m.dml.GetBlockStats(blocks[i].first) };
       }
-    };
-    add("positions", m.pos.Id(), m.pos.IsOpen());
-    add("quadrics", m.quad.Id(), m.quad.IsOpen());
-    add("faces", m.faces.Id(), m.faces.IsOpen());
-    add("ring offsets", m.ringOff.Id(), m.ringOff.IsOpen());
-    add("ring faces", m.ringFace.Id(), m.ringFace.IsOpen());
-    add("states", m.state.Id(), m.state.IsOpen());
-    add("candidates", m.cand.Id(), m.cand.IsOpen());
-    add("order", m.order.Id(), m.order.IsOpen());
-    add("remap", m.remap.Id(), m.remap.IsOpen());
-    add("attributes", m.attr.Id(), m.attr.IsOpen());
-    add("attribute terms", m.extra.Id(), m.extra.IsOpen());
-    add("fit samples", m.samples.Id(), m.samples.IsOpen());
-    add("face selection", m.outside.Id(), m.outside.IsOpen());
-    add("fitted positions", m.fitted.Id(), m.fitted.IsOpen());
+    }
     return out;
   }
   // Adds d to step's entry `name` (a step lapped again adds to what it has).
@@ -1154,7 +1152,7 @@ private:
     }
     step.arrays.push_back({ name, d.misses, d.bytesRead, d.bytesWritten });
   }
-  std::vector<Snapshot> arrays_;
+  Snapshots arrays_;
   RunContext& ctx_;
   MeshState& mesh_;
   PassState& pass_;
