@@ -55,6 +55,13 @@ std::vector<std::uint64_t> Levels(const RunContext& ctx, std::uint64_t F0)
   return levels;
 }
 
+// Whether a mesh of T faces is far from the next level (farRatio): larger passes, their groups
+// of candidates in turn on each part of a chunk (StepChunks).
+bool FarFromLevel(const RunContext& ctx, std::uint64_t T, std::uint64_t level)
+{
+  return double(T) > ctx.opt.farRatio * double(std::max<std::uint64_t>(level, 1));
+}
+
 // Run's pass loop, on counts only: each pass removes its planned share (a pass that removes
 // fewer makes the next estimates larger: the progress then moves more slowly, never back).
 std::uint64_t PassGoal(const RunContext& ctx, std::uint64_t T, std::uint64_t level)
@@ -63,7 +70,7 @@ std::uint64_t PassGoal(const RunContext& ctx, std::uint64_t T, std::uint64_t lev
   const double farFraction = std::min(0.9, std::max(fraction, ctx.opt.farPassFraction));
   // Far from the level, the cheapest collapses cost orders of magnitude less than the level's
   // error and their exact order matters less: larger passes (fewer sweeps).
-  const bool far = double(T) > ctx.opt.farRatio * double(std::max<std::uint64_t>(level, 1));
+  const bool far = FarFromLevel(ctx, T, level);
   const std::uint64_t step =
     std::max<std::uint64_t>(1, std::uint64_t(double(T) * (far ? farFraction : fraction)));
   return std::max(level, T > step ? T - step : 0);
@@ -214,6 +221,7 @@ void Run(RunContext& ctx, MeshState& mesh, PassState& pass, const MeshSource& in
       }
       const std::uint64_t goal = PassGoal(ctx, mesh.liveFaces, levels[level]);
       if (!Pass(ctx, mesh, pass, goal, goal == levels[level],
+            FarFromLevel(ctx, mesh.liveFaces, levels[level]),
             PassesWork(ctx, mesh, goal, std::size_t(level), levels)))
       {
         // No legal collapse under the bound remains: the level is reached (the last one when

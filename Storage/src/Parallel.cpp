@@ -116,7 +116,8 @@ Workers::Workers(DML& dml, const Phase& phase)
     return;
   }
   const std::uint64_t budget = dml.GetProfile().memoryBudget;
-  if (!phase.helper || phase.threads < 2 || phase.elements < kHelperMin || budget == 0)
+  if (!phase.helper || phase.threads < 2 || phase.elements < kHelperMin || budget == 0 ||
+    budget / 2 < phase.minBytes)
   {
     return;
   }

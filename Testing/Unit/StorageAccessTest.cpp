@@ -394,6 +394,43 @@ TEST(StorageAccess, WorkersHelperRangesAndTasks)
 // A repeated phase whose helper thrashes (each half of the budget too small for the pages it
 // reads) runs on one thread from then on, until the blocks' files shrink to half their size;
 // one whose reads fit leaves its record alone.
+TEST(StorageAccess, WorkersForkOnlyWithTheBytesAPhaseNeeds)
+{
+  // Phase::minBytes: a helper only when half the budget holds that many bytes of pages.
+  TempDir dir;
+  DML dml;
+  ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 1 << 20)), Mode::OutOfCore);
+  Array<std::uint32_t> big(dml, std::uint64_t(1) << 20);
+  const std::uint64_t half = dml.GetProfile().memoryBudget / 2;
+  Phase phase;
+  phase.elements = big.Size();
+  phase.threads = 2;
+  phase.writes = { big.Id() };
+  for (const std::uint64_t need : { std::uint64_t(0), half, half + 1 })
+  {
+    SCOPED_TRACE(need);
+    phase.minBytes = need;
+    Workers workers(dml, phase);
+    EXPECT_EQ(workers.Forked(), need <= half);
+    EXPECT_EQ(workers.Count(), need <= half ? 2 : 1);
+    // Either way the range is covered once.
+    std::vector<std::uint64_t> counts(2, 0);
+    workers.Run([&](int t, std::uint64_t begin, std::uint64_t end, const std::atomic<bool>&) {
+      View<std::uint32_t> v = workers.Bind(t, big);
+      for (std::uint64_t i = begin; i < end; i += 4096)
+      {
+        v.Set(i, v.Get(i) + 1);
+      }
+      counts[std::size_t(t)] += end - begin;
+    });
+    EXPECT_EQ(counts[0] + counts[1], big.Size());
+  }
+  for (std::uint64_t i = 0; i < big.Size(); i += 4096)
+  {
+    ASSERT_EQ(big.Get(i), 3u) << i;
+  }
+}
+
 TEST(StorageAccess, WorkersDeclineAHelperThatThrashed)
 {
   TempDir dir;

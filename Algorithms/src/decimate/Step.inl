@@ -793,40 +793,69 @@ void ChunkBounds(
   w.C.Restrict(vertices); // (a removed vertex's candidate names its survivor: Collapse)
 }
 
-// Step 3 for the candidates at positions [groupBegin, groupEnd) of the order, which are in
-// vertex order. The vertices are cut into fixed chunks (their size depends on nv only). In
-// rounds: every chunk runs its candidates up to a quota (a share of the faces still to remove
-// this pass, by its candidates left), keeping only collapses inside the chunk (the chunks in
-// parallel when in core, else one after the other: the same result); then the deferred ones run
-// in order, one at a time, up to the pass's goal. Near the goal, the rest runs one at a time.
-// Neither the thread count nor the storage mode changes the result.
-void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t groupBegin,
-  std::uint64_t groupEnd, std::uint64_t nv, std::uint64_t goal, StepRun& total)
+// Step 3 for the candidates at positions [groups.front(), groups.back()) of the order, in
+// groups: group g at [groups[g], groups[g + 1]), each in vertex order. The vertices are cut
+// into fixed chunks (their size depends on nv only) and the chunks into parts of kStepPart
+// vertices. In rounds: every chunk runs its candidates part by part, in each part group by
+// group, up to a quota (a share of the faces still to remove this pass, by its candidates
+// left), keeping only collapses inside the chunk (the chunks in parallel when in core, else
+// one after the other: the same result); then the deferred ones run in order, one at a time,
+// up to the pass's goal. Near the goal, the rest runs one at a time. Neither the thread count
+// nor the storage mode changes the result. With several groups, a part's records are read
+// once for all of them (out of core they stay in the cache from one group to the next).
+void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass,
+  const std::vector<std::uint64_t>& groups, std::uint64_t nv, std::uint64_t goal, StepRun& total)
 {
   const std::uint64_t size = StepChunkSize(ctx, nv);
   const std::size_t n = std::size_t((nv + size - 1) / size);
-  // The chunk boundaries in the group (it is in vertex order).
-  std::vector<std::uint64_t> cursor(n + 1);
-  for (std::size_t c = 0; c <= n; ++c)
+  const std::size_t G = groups.size() - 1;
+  const std::uint64_t part = std::min<std::uint64_t>(size, kStepPart);
+  const std::size_t partsPerChunk = std::size_t((size + part - 1) / part);
+  // The parts: part k of chunk c starts at vertex c * size + k * part.
+  std::vector<std::uint32_t> partLo;
+  std::vector<std::size_t> chunkPart(n + 1);
+  for (std::size_t c = 0; c < n; ++c)
   {
-    const std::uint64_t vb = std::min<std::uint64_t>(nv, c * size);
-    std::uint64_t l = groupBegin, h = groupEnd;
-    while (l < h)
+    chunkPart[c] = partLo.size();
+    const std::uint64_t hi = std::min<std::uint64_t>(nv, (c + 1) * size);
+    for (std::size_t k = 0; k < partsPerChunk && c * size + k * part < hi; ++k)
     {
-      const std::uint64_t m = l + (h - l) / 2;
-      if (mesh.views.O.Get(m) < vb)
+      partLo.push_back(std::uint32_t(c * size + k * part));
+    }
+  }
+  chunkPart[n] = partLo.size();
+  const std::size_t P = partLo.size();
+  // The parts' boundaries in each group (they are in vertex order): cursor[g * P + k] to
+  // end[g * P + k].
+  std::vector<std::uint64_t> cursor(G * P), end(G * P);
+  for (std::size_t g = 0; g < G; ++g)
+  {
+    for (std::size_t k = 0; k <= P; ++k)
+    {
+      const std::uint64_t vb = k < P ? partLo[k] : nv;
+      std::uint64_t l = groups[g], h = groups[g + 1];
+      while (l < h)
       {
-        l = m + 1;
+        const std::uint64_t m = l + (h - l) / 2;
+        if (mesh.views.O.Get(m) < vb)
+        {
+          l = m + 1;
+        }
+        else
+        {
+          h = m;
+        }
       }
-      else
+      if (k < P)
       {
-        h = m;
+        cursor[g * P + k] = l;
+      }
+      if (k > 0)
+      {
+        end[g * P + k - 1] = l;
       }
     }
-    cursor[c] = l;
   }
-  std::vector<std::uint64_t> end(cursor.begin() + 1, cursor.end());
-  cursor.pop_back();
   // In core: the chunks on every thread, taken from a shared counter. Out of core: the two
   // halves of the chunks on two threads (the second through a forked DML) while the faces split
   // with the vertices at the middle chunk boundary (FaceSplit).
@@ -838,6 +867,7 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
   phase.helperFirst = pass.splitMid;
   phase.writes = { mesh.state.Id(), mesh.pos.Id(), mesh.cand.Id() };
   phase.record = &pass.stepFork;
+  phase.minBytes = kStepWindowBytes;
   phase.helperWrites.push_back({ mesh.faces.Id(), pass.splitFace,
     mesh.faces.Size() - std::min(pass.splitFace, mesh.faces.Size()) });
   if (mesh.recSize)
@@ -854,19 +884,37 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
   {
     pass.scratch.resize(std::size_t(std::max(ctx.threads, 2)));
   }
-  std::vector<std::uint64_t> roundStart(n);
+  std::vector<std::uint64_t> roundStart(G * P);
   std::vector<StepRun> runs(n);
   // Progress: the step's position is that of the candidates consumed (those of the earlier
-  // groups, whose rest is dropped when a group ends, then this group's).
-  const std::uint64_t at = groupBegin;
+  // groups, whose rest is dropped when a group ends, then these).
+  const std::uint64_t at = groups.front();
   std::uint64_t done = 0;
   std::vector<std::uint64_t> quota(n);
+  // A chunk's parts, group by group in each, up to its quota; returns the candidates consumed.
+  auto runChunk = [&](std::size_t c, Scratch& s, std::int64_t tickAt) {
+    const std::uint32_t lo = std::uint32_t(c * size);
+    const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+    std::uint64_t consumed = 0;
+    for (std::size_t k = chunkPart[c]; k < chunkPart[c + 1] && runs[c].removed < quota[c]; ++k)
+    {
+      for (std::size_t g = 0; g < G && runs[c].removed < quota[c]; ++g)
+      {
+        const std::size_t i = g * P + k;
+        const std::uint64_t from = cursor[i];
+        cursor[i] = Step(ctx, mesh, pass, cursor[i], end[i], lo, hi, quota[c], s, runs[c],
+          tickAt >= 0 ? tickAt + std::int64_t(consumed) : -1);
+        consumed += cursor[i] - from;
+      }
+    }
+    return consumed;
+  };
   while (mesh.liveFaces > goal)
   {
     std::uint64_t left = 0;
-    for (std::size_t c = 0; c < n; ++c)
+    for (std::size_t i = 0; i < G * P; ++i)
     {
-      left += end[c] - cursor[c];
+      left += end[i] - cursor[i];
     }
     const std::uint64_t R = mesh.liveFaces - goal;
     if (left == 0)
@@ -877,12 +925,12 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
     {
       // The rest one at a time, in order.
       StepRun run;
-      for (std::size_t c = 0; c < n && run.removed < R; ++c)
+      for (std::size_t i = 0; i < G * P && run.removed < R; ++i)
       {
-        const std::uint64_t from = cursor[c];
-        cursor[c] = Step(ctx, mesh, pass, 
-          cursor[c], end[c], 0, kNone, R, pass.scratch[0], run, std::int64_t(at + done));
-        done += cursor[c] - from;
+        const std::uint64_t from = cursor[i];
+        cursor[i] = Step(ctx, mesh, pass, cursor[i], end[i], 0, kNone, R, pass.scratch[0], run,
+          std::int64_t(at + done));
+        done += cursor[i] - from;
       }
       mesh.liveFaces -= run.removed;
       total.done += run.done;
@@ -892,10 +940,18 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
     // A: the chunks, each up to its quota (9/10 of R shared by candidates left).
     for (std::size_t c = 0; c < n; ++c)
     {
-      quota[c] = (end[c] - cursor[c]) * (R - R / 10) / left;
+      std::uint64_t mineLeft = 0;
+      for (std::size_t g = 0; g < G; ++g)
+      {
+        for (std::size_t k = chunkPart[c]; k < chunkPart[c + 1]; ++k)
+        {
+          mineLeft += end[g * P + k] - cursor[g * P + k];
+        }
+      }
+      quota[c] = mineLeft * (R - R / 10) / left;
       runs[c] = StepRun();
-      roundStart[c] = cursor[c];
     }
+    roundStart = cursor;
     // Progress (the calling thread): the candidates of its own chunks as it goes, everyone's
     // at the end of the round.
     std::uint64_t mine = 0;
@@ -919,11 +975,11 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
           ChunkBounds(chunk, lo, hi, mesh.recSize, mesh.xSize);
           ScratchViews use(s, chunk);
           // progress and abort: the calling thread only
-          cursor[c] = Step(ctx, mesh, pass, cursor[c], end[c], lo, hi, quota[c], s, runs[c],
-            t == 0 ? std::int64_t(at + done + mine) : -1);
+          const std::uint64_t consumed =
+            runChunk(c, s, t == 0 ? std::int64_t(at + done + mine) : -1);
           if (t == 0)
           {
-            mine += cursor[c] - roundStart[c];
+            mine += consumed;
           }
         }
       }
@@ -948,13 +1004,11 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
           {
             return;
           }
-          const std::uint32_t lo = std::uint32_t(c * size);
-          const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-          cursor[c] = Step(ctx, mesh, pass, cursor[c], end[c], lo, hi, quota[c], s, runs[c],
-            t == 0 ? std::int64_t(at + done + mine) : -1);
+          const std::uint64_t consumed =
+            runChunk(c, s, t == 0 ? std::int64_t(at + done + mine) : -1);
           if (t == 0)
           {
-            mine += cursor[c] - roundStart[c];
+            mine += consumed;
           }
         }
       });
@@ -969,13 +1023,13 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
       work(0);
     }
     RethrowFirst(errors);
-    // B: the deferred ones, in order, one at a time. Each chunk's are moved to the front of
+    // B: the deferred ones, in order, one at a time. Each part's are moved to the front of
     // the part of the order it ran this round (done with), their flags cleared (all of them,
     // also past the goal), and go through Step (which prefetches ahead).
     StepRun b;
-    for (std::size_t c = 0; c < n; ++c)
+    for (std::size_t i = 0; i < G * P; ++i)
     {
-      done += cursor[c] - roundStart[c];
+      done += cursor[i] - roundStart[i];
     }
     for (std::size_t c = 0; c < n; ++c)
     {
@@ -983,12 +1037,12 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
       total.done += runs[c].done;
       total.illegal += runs[c].illegal;
     }
-    for (std::size_t c = 0; c < n; ++c)
+    for (std::size_t i = 0; i < G * P; ++i)
     {
-      std::uint64_t k = roundStart[c];
-      for (std::uint64_t i = roundStart[c]; i < cursor[c]; ++i)
+      std::uint64_t k = roundStart[i];
+      for (std::uint64_t j = roundStart[i]; j < cursor[i]; ++j)
       {
-        const std::uint32_t u = mesh.views.O.Get(i);
+        const std::uint32_t u = mesh.views.O.Get(j);
         const State su = mesh.views.S.Get(u);
         if (su & kDeferred)
         {
@@ -996,9 +1050,9 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t
           mesh.views.O.Set(k++, u);
         }
       }
-      if (mesh.liveFaces > goal + b.removed)
+      if (k > roundStart[i] && mesh.liveFaces > goal + b.removed)
       {
-        Step(ctx, mesh, pass, roundStart[c], k, 0, kNone, mesh.liveFaces - goal, pass.scratch[0], b,
+        Step(ctx, mesh, pass, roundStart[i], k, 0, kNone, mesh.liveFaces - goal, pass.scratch[0], b,
           std::int64_t(at + done), 0); // (polls only: these candidates were counted)
       }
     }
@@ -1161,7 +1215,7 @@ private:
 };
 
 bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal, bool exact,
-  double workAfter)
+  bool far, double workAfter)
 {
   const std::uint64_t nv = mesh.nv;
   mesh.BindViews();
@@ -1272,7 +1326,9 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   // here, on the current faces and positions (the costs of pairs with no busy endpoint are as in
   // step 1). A vertex whose cheapest collapse is illegal evaluates all its edges with legality
   // in the next passes. A pass that may end on a level goes strictly in order, one collapse at
-  // a time; the others go group by group through StepChunks (in parallel when in core).
+  // a time; the others go through StepChunks (in parallel when in core): far from the level
+  // (`far`: halving passes, whose quotas hardly ever stop a chunk) every group at once, each
+  // chunk part by part with the groups in turn in each part; nearer, group by group.
   record.Lap(record.stat.order);
   record.stat.candidates = taken;
   pass.stepTotal = std::max<std::uint64_t>(taken, 1);
@@ -1283,9 +1339,15 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
   if (groups && nv >= 2 * StepChunkSize(ctx, nv))
   {
     FaceSplit(ctx, mesh, pass, nv);
-    for (std::size_t g = 0; g < keys && mesh.liveFaces > goal; ++g)
+    std::vector<std::uint64_t> bounds(keys + 1, 0);
+    std::copy(start.begin(), start.end(), bounds.begin() + 1);
+    if (far)
     {
-      StepChunks(ctx, mesh, pass, g ? start[g - 1] : 0, start[g], nv, goal, run);
+      StepChunks(ctx, mesh, pass, bounds, nv, goal, run);
+    }
+    for (std::size_t g = 0; !far && g < keys && mesh.liveFaces > goal; ++g)
+    {
+      StepChunks(ctx, mesh, pass, { bounds[g], bounds[g + 1] }, nv, goal, run);
     }
     pass.splitOn = false;
   }

@@ -73,6 +73,9 @@ struct Phase
   std::vector<DML::Range> helperWrites; // out of core: more ranges the helper writes
   std::vector<BlockId> mainWrites; // blocks only worker 0 writes (all of them), never the others
   ForkRecord* record = nullptr;     // out of core: where a repeated phase keeps what it learned
+  // Out of core: the bytes of cached pages a worker needs at once (its window over the blocks
+  // it reads); with less in half the budget the phase runs on one thread, which has it all.
+  std::uint64_t minBytes = 0;
 };
 
 class Workers
