@@ -1295,6 +1295,57 @@ Mesh Scaled(Mesh m, double s)
   return m;
 }
 
+TEST(AlgorithmsDecimate, FarPassesRunTheirGroupsPartByPartAlikeOnAnyThreadsAndMode)
+{
+  // 163,842 vertices along z in chunks of 16,384, each four parts of 4,096 (kStepPart): to
+  // 1,500 triangles the first passes are far from the target (327,680 faces > 50 x 1,500) and
+  // run their cost groups in turn on each part of a chunk. Threads and the storage mode must not change
+  // the result: in core on 1, 2 and 5 threads; out of core at 4 MiB, where the step forks (half
+  // the budget holds its 1 MiB window), and at 1 MiB, where it does not.
+  Mesh s = SortedAlongZ(ColoredSphere(7));
+  alg::DecimateOptions o;
+  o.targetTriangles = 1500;
+  o.stepChunkSize = 16384;
+  o.threads = 1;
+  Outcome a = Simplify(MemorySource(s), o);
+  ExpectValid(a.out);
+  EXPECT_EQ(a.out.Triangles(), 1500u);
+  for (auto& [e, n] : EdgeUse(a.out))
+  {
+    EXPECT_EQ(n, 2); // still closed and manifold
+  }
+  auto same = [&a](const Outcome& b, const char* what) { ExpectSameOutput(a, b, what); };
+  for (int threads : { 2, 5 })
+  {
+    o.threads = threads;
+    same(Simplify(MemorySource(s), o), threads == 2 ? "2 threads" : "5 threads");
+  }
+  o.threads = 2;
+  sipmss::storage::testing::TempDir dir;
+  o.storage.directories = { dir.Path() };
+  o.storage.policy = st::ModePolicy::OutOfCore;
+  std::uint64_t forks[2] = { 0, 0 };
+  for (int i : { 0, 1 })
+  {
+    o.storage.memoryBudget = i ? 1u << 20 : 4u << 20;
+    Outcome c = Simplify(MemorySource(s), o);
+    EXPECT_TRUE(c.stats.storage.usedOutOfCore);
+    same(c, i ? "1 MiB" : "4 MiB");
+    forks[i] = c.stats.storage.forks;
+  }
+  EXPECT_GT(forks[0], forks[1]); // (the step's forks, at 4 MiB only)
+  EXPECT_TRUE(sipmss::storage::testing::ListDir(dir.Path()).empty());
+  // Against one chunk (every group in turn over all the vertices): the same quality.
+  o.storage = {};
+  o.stepChunkSize = s.Vertices();
+  Outcome d = Simplify(MemorySource(s), o);
+  EXPECT_EQ(d.out.Triangles(), 1500u);
+  const double rmsParts = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(a.out)).rms;
+  const double rmsOne = alg::CompareMeshes(AsTriangleMesh(s), AsTriangleMesh(d.out)).rms;
+  std::printf("[ parts    ] rms %.4e in parts, %.4e in one chunk\n", rmsParts, rmsOne);
+  EXPECT_LT(rmsParts, 1.05 * rmsOne);
+}
+
 // The bound is relative to the diagonal, the error reached is reported, and without a target the
 // bound is the only stop.
 TEST(AlgorithmsDecimate, ErrorBoundIsRelativeToTheDiagonalAndReported)
