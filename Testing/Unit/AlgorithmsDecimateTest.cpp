@@ -1153,6 +1153,26 @@ TEST(AlgorithmsDecimate, AHelperThreadThatThrashesGivesWay)
   EXPECT_TRUE(sipmss::storage::testing::ListDir(dir.Path()).empty()); // no file left behind
 }
 
+// Decimates s with o on one thread; checks that the result has o.targetTriangles triangles, is
+// valid, closed and manifold, and that 2 and 5 threads give the same; returns the one-thread run.
+Outcome OneThreadRunThatOthersMatch(const Mesh& s, alg::DecimateOptions o)
+{
+  o.threads = 1;
+  Outcome a = Simplify(MemorySource(s), o);
+  ExpectValid(a.out);
+  EXPECT_EQ(a.out.Triangles(), o.targetTriangles);
+  for (auto& [e, n] : EdgeUse(a.out))
+  {
+    EXPECT_EQ(n, 2); // still closed and manifold
+  }
+  for (int threads : { 2, 5 })
+  {
+    o.threads = threads;
+    ExpectSameOutput(a, Simplify(MemorySource(s), o), threads == 2 ? "2 threads" : "5 threads");
+  }
+  return a;
+}
+
 TEST(AlgorithmsDecimate, StepChunksDoNotDependOnThreadsOrMode)
 {
   // 10,242 vertices along z in chunks of 512: the collapse step of the first passes runs chunk
@@ -1162,20 +1182,8 @@ TEST(AlgorithmsDecimate, StepChunksDoNotDependOnThreadsOrMode)
   alg::DecimateOptions o;
   o.targetTriangles = 1500;
   o.stepChunkSize = 512;
-  o.threads = 1;
-  Outcome a = Simplify(MemorySource(s), o);
-  ExpectValid(a.out);
-  EXPECT_EQ(a.out.Triangles(), 1500u);
-  for (auto& [e, n] : EdgeUse(a.out))
-  {
-    EXPECT_EQ(n, 2); // still closed and manifold
-  }
+  Outcome a = OneThreadRunThatOthersMatch(s, o);
   auto same = [&a](const Outcome& b, const char* what) { ExpectSameOutput(a, b, what); };
-  for (int threads : { 2, 5 })
-  {
-    o.threads = threads;
-    same(Simplify(MemorySource(s), o), threads == 2 ? "2 threads" : "5 threads");
-  }
   o.threads = 2;
   o.storage.policy = st::ModePolicy::OutOfCore;
   o.storage.memoryBudget = 64 * 1024;
@@ -1299,27 +1307,15 @@ TEST(AlgorithmsDecimate, FarPassesRunTheirGroupsPartByPartAlikeOnAnyThreadsAndMo
 {
   // 163,842 vertices along z in chunks of 16,384, each four parts of 4,096 (kStepPart): to
   // 1,500 triangles the first passes are far from the target (327,680 faces > 50 x 1,500) and
-  // run their cost groups in turn on each part of a chunk. Threads and the storage mode must not change
-  // the result: in core on 1, 2 and 5 threads; out of core at 4 MiB, where the step forks (half
-  // the budget holds its 1 MiB window), and at 1 MiB, where it does not.
+  // run their cost groups in turn on each part of a chunk. Threads and the storage mode must
+  // not change the result: in core on 1, 2 and 5 threads; out of core at 4 MiB, where the step
+  // forks (half the budget holds its 1 MiB window), and at 1 MiB, where it does not.
   Mesh s = SortedAlongZ(ColoredSphere(7));
   alg::DecimateOptions o;
   o.targetTriangles = 1500;
   o.stepChunkSize = 16384;
-  o.threads = 1;
-  Outcome a = Simplify(MemorySource(s), o);
-  ExpectValid(a.out);
-  EXPECT_EQ(a.out.Triangles(), 1500u);
-  for (auto& [e, n] : EdgeUse(a.out))
-  {
-    EXPECT_EQ(n, 2); // still closed and manifold
-  }
+  Outcome a = OneThreadRunThatOthersMatch(s, o);
   auto same = [&a](const Outcome& b, const char* what) { ExpectSameOutput(a, b, what); };
-  for (int threads : { 2, 5 })
-  {
-    o.threads = threads;
-    same(Simplify(MemorySource(s), o), threads == 2 ? "2 threads" : "5 threads");
-  }
   o.threads = 2;
   sipmss::storage::testing::TempDir dir;
   o.storage.directories = { dir.Path() };
