@@ -891,11 +891,17 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass,
   const std::uint64_t at = groups.front();
   std::uint64_t done = 0;
   std::vector<std::uint64_t> quota(n);
-  // A chunk's parts, group by group in each, up to its quota; returns the candidates consumed.
-  auto runChunk = [&](std::size_t c, Scratch& s, std::int64_t tickAt) {
-    const std::uint32_t lo = std::uint32_t(c * size);
-    const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
-    std::uint64_t consumed = 0;
+  // Progress in a round (the calling thread, t == 0): the candidates of its own chunks as it
+  // goes (mine), everyone's at the end of the round.
+  std::uint64_t mine = 0;
+  // Chunk c's vertices [lo, hi).
+  auto range = [&](std::size_t c) {
+    return std::pair<std::uint32_t, std::uint32_t>(
+      std::uint32_t(c * size), std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size)));
+  };
+  // Chunk c's parts, group by group in each, up to its quota, on thread t.
+  auto runChunk = [&](std::size_t c, Scratch& s, int t) {
+    const auto [lo, hi] = range(c);
     for (std::size_t k = chunkPart[c]; k < chunkPart[c + 1] && runs[c].removed < quota[c]; ++k)
     {
       for (std::size_t g = 0; g < G && runs[c].removed < quota[c]; ++g)
@@ -903,11 +909,13 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass,
         const std::size_t i = g * P + k;
         const std::uint64_t from = cursor[i];
         cursor[i] = Step(ctx, mesh, pass, cursor[i], end[i], lo, hi, quota[c], s, runs[c],
-          tickAt >= 0 ? tickAt + std::int64_t(consumed) : -1);
-        consumed += cursor[i] - from;
+          t == 0 ? std::int64_t(at + done + mine) : -1);
+        if (t == 0)
+        {
+          mine += cursor[i] - from;
+        }
       }
     }
-    return consumed;
   };
   while (mesh.liveFaces > goal)
   {
@@ -952,9 +960,7 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass,
       runs[c] = StepRun();
     }
     roundStart = cursor;
-    // Progress (the calling thread): the candidates of its own chunks as it goes, everyone's
-    // at the end of the round.
-    std::uint64_t mine = 0;
+    mine = 0;
     std::atomic<std::size_t> next{ 0 };
     std::atomic<bool> stop{ false };
     Workers workers(mesh.dml, phase);
@@ -966,21 +972,14 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass,
       {
         for (std::size_t c; !stop.load(std::memory_order_relaxed) && (c = next++) < n;)
         {
-          const std::uint32_t lo = std::uint32_t(c * size);
-          const std::uint32_t hi = std::uint32_t(std::min<std::uint64_t>(nv, (c + 1) * size));
+          const auto [lo, hi] = range(c);
           // The chunk's views: its collapses write only its vertices' records (and faces of its
           // vertices, whose ids are anywhere); checked in builds with SIPMSS_CHECK_WRITES.
           Views chunk;
           mesh.BindViews(chunk, mesh.dml);
           ChunkBounds(chunk, lo, hi, mesh.recSize, mesh.xSize);
           ScratchViews use(s, chunk);
-          // progress and abort: the calling thread only
-          const std::uint64_t consumed =
-            runChunk(c, s, t == 0 ? std::int64_t(at + done + mine) : -1);
-          if (t == 0)
-          {
-            mine += consumed;
-          }
+          runChunk(c, s, t); // (progress and abort: the calling thread only)
         }
       }
       catch (...)
@@ -1004,12 +1003,7 @@ void StepChunks(RunContext& ctx, MeshState& mesh, PassState& pass,
           {
             return;
           }
-          const std::uint64_t consumed =
-            runChunk(c, s, t == 0 ? std::int64_t(at + done + mine) : -1);
-          if (t == 0)
-          {
-            mine += consumed;
-          }
+          runChunk(c, s, t);
         }
       });
     }
@@ -1345,9 +1339,12 @@ bool Pass(RunContext& ctx, MeshState& mesh, PassState& pass, std::uint64_t goal,
     {
       StepChunks(ctx, mesh, pass, bounds, nv, goal, run);
     }
-    for (std::size_t g = 0; !far && g < keys && mesh.liveFaces > goal; ++g)
+    else
     {
-      StepChunks(ctx, mesh, pass, { bounds[g], bounds[g + 1] }, nv, goal, run);
+      for (std::size_t g = 0; g < keys && mesh.liveFaces > goal; ++g)
+      {
+        StepChunks(ctx, mesh, pass, { bounds[g], bounds[g + 1] }, nv, goal, run);
+      }
     }
     pass.splitOn = false;
   }
