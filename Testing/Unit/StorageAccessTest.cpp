@@ -201,6 +201,79 @@ TEST(StorageAccess, ViewsFollowEvictionsAndWriteBacks)
   EXPECT_TRUE(ListDir(dir.Path()).empty());
 }
 
+// Peek and Prefetch, the prefetch hints: in core the block's memory; out of core the elements
+// whose pages are in the DML's inline table, in place, and nothing for the others (nor past the
+// block). A hint never reads or writes a page: the DML's counts do not move.
+TEST(StorageAccess, PeekAndPrefetchUseOnlyThePagesAtHand)
+{
+  TempDir dir;
+  constexpr std::uint64_t n = 50000; // 400 KB of elements, through 64 KiB of pages
+  for (const bool outOfCore : { false, true })
+  {
+    SCOPED_TRACE(outOfCore ? "out of core" : "in core");
+    DML dml;
+    if (outOfCore)
+    {
+      ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 64 << 10)), Mode::OutOfCore);
+    }
+    Array<std::uint64_t> a(dml, n);
+    View<std::uint64_t> v(dml, a);
+    for (std::uint64_t i = 0; i < n; ++i)
+    {
+      v.Set(i, i * 7 + 3);
+    }
+    for (std::uint64_t i = 0; i < n; i += 97)
+    {
+      ASSERT_EQ(v.Get(i), i * 7 + 3); // (the cache now holds some of the pages)
+    }
+    v.Refresh();
+    const Stats before = dml.GetStats();
+    const std::uint64_t atHand = WithAccess(
+      [&](auto w) {
+        std::uint64_t found = 0;
+        for (std::uint64_t i = 0; i < n; ++i)
+        {
+          if (const std::uint64_t* p = w.Peek(i))
+          {
+            EXPECT_EQ(*p, i * 7 + 3) << i;
+            ++found;
+          }
+          v.Prefetch(i);
+        }
+        if constexpr (!decltype(w)::kInCore)
+        {
+          for (const std::uint64_t past : { n, n + 5, std::uint64_t(0xFFFFFFFFu) })
+          {
+            EXPECT_EQ(w.Peek(past), nullptr) << past;
+            w.Prefetch(past);
+            v.Prefetch(past);
+          }
+        }
+        else
+        {
+          EXPECT_EQ(w.Peek(123), v.Base() + 123);
+        }
+        return found;
+      },
+      v);
+    const Stats after = dml.GetStats();
+    EXPECT_EQ(after.misses, before.misses);
+    EXPECT_EQ(after.hits, before.hits);
+    EXPECT_EQ(after.bytesRead, before.bytesRead);
+    EXPECT_EQ(after.bytesWritten, before.bytesWritten);
+    if (outOfCore)
+    {
+      EXPECT_GT(atHand, 0u) << "the cached pages' elements are at hand";
+      EXPECT_LT(atHand, n / 2) << "64 KiB of pages hold less than half of the block";
+    }
+    else
+    {
+      EXPECT_EQ(atHand, n);
+    }
+  }
+  EXPECT_TRUE(ListDir(dir.Path()).empty());
+}
+
 TEST(StorageAccess, WritesOutsideTheDeclaredBoundsThrow)
 {
   DML dml;

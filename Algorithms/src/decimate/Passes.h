@@ -894,9 +894,29 @@ inline std::uint32_t RingLength(const Views& w, std::uint32_t x)
 {
   return w.RO.Get(x + 1) - w.RO.Get(x);
 }
-// In core: the faces of an active vertex kAhead ahead in the sweep (out of core there is
-// nothing to prefetch: a template over the access kind, see WithAccess). Always inlined: GCC
-// takes a function whose only effect is a prefetch for one without effects, and drops the calls.
+// Out of core: the faces of vertex x, those whose ids are on pages at hand (Peek; a prefetch
+// hint never reads a page).
+template <class ROA, class RFA, class FA>
+SIPMSS_ALWAYS_INLINE void PrefetchRingFaces(
+  const ROA& RO, const RFA& RF, const FA& F, std::uint32_t x)
+{
+  const std::uint32_t* b = RO.Peek(x);
+  const std::uint32_t* e = RO.Peek(std::uint64_t(x) + 1);
+  if (b && e)
+  {
+    for (std::uint32_t k = *b, end = *e; k < end; ++k)
+    {
+      if (const std::uint32_t* id = RF.Peek(k))
+      {
+        F.Prefetch(*id);
+      }
+    }
+  }
+}
+// The faces of an active vertex kAhead ahead in the sweep: in core from the blocks' memory, out
+// of core from the pages at hand (a template over the access kind, see WithAccess). Always
+// inlined: GCC takes a function whose only effect is a prefetch for one without effects, and
+// drops the calls.
 template <class SA, class ROA, class RFA, class FA>
 SIPMSS_ALWAYS_INLINE void PrefetchSweep(
   const SA& S, const ROA& RO, const RFA& RF, const FA& F, std::uint64_t u, std::uint64_t end)
@@ -920,7 +940,16 @@ SIPMSS_ALWAYS_INLINE void PrefetchSweep(
   }
   else
   {
-    (void)S, (void)RO, (void)RF, (void)F, (void)u, (void)end;
+    // Out of core the same, from the pages at hand (Peek: no read for a hint).
+    constexpr std::uint64_t kAhead = 8;
+    if (u + kAhead < end)
+    {
+      const State* s = S.Peek(u + kAhead);
+      if (s && Active(*s))
+      {
+        PrefetchRingFaces(RO, RF, F, std::uint32_t(u + kAhead));
+      }
+    }
   }
 }
 // Step 3's vertex chunks: options.stepChunkSize, else at most kStepChunks chunks of at least

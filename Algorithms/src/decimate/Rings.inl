@@ -953,6 +953,24 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
                 }
               }
             }
+            else if (u + 8 < hi)
+            {
+              // Out of core the same, from the pages at hand (Peek: no read for a hint).
+              PrefetchRingFaces(RO, RF, F, std::uint32_t(u + 8));
+              const std::uint32_t* b = RO.Peek(u + 4);
+              const std::uint32_t* e = RO.Peek(u + 5);
+              for (std::uint32_t k = b && e ? *b : 0, end = b && e ? *e : 0; k < end; ++k)
+              {
+                const std::uint32_t* id = RF.Peek(k);
+                if (const Tri* t = id ? F.Peek(*id) : nullptr)
+                {
+                  for (const std::uint32_t y : t->v)
+                  {
+                    P.Prefetch(y); // (nothing for a dead face's corner: past the block)
+                  }
+                }
+              }
+            }
             vertex(w, std::uint32_t(u), tris, next, prev, tally, stop, t == 0, as, planes);
           }
         },

@@ -224,16 +224,26 @@ public:
     this->GetRange(first, n, buffer.data());
     return buffer.data();
   }
-  // A hint that element i is read soon: fetches its cache lines in core (its first and last
-  // byte: a 80-byte record spans two), nothing out of core.
+  // A hint that element i is read soon: fetches its cache lines (its first and last byte: a
+  // 80-byte record spans two). In core from the block's memory; out of core from its page when
+  // the page is in the DML's inline table (a lookup, no read: a page not cached stays so).
   SIPMSS_ALWAYS_INLINE void Prefetch(std::uint64_t i) const
   {
 #if defined(__GNUC__)
+    std::uintptr_t at = 0;
     if (this->base_)
     {
       // (as an integer: i may be past the block, e.g. a dead face's corner; never dereferenced)
-      const std::uintptr_t at =
-        reinterpret_cast<std::uintptr_t>(this->base_) + std::uintptr_t(i) * sizeof(T);
+      at = reinterpret_cast<std::uintptr_t>(this->base_) + std::uintptr_t(i) * sizeof(T);
+    }
+    else if (this->fast_.tagBase != kNoFastTag)
+    {
+      // (FastAt tests i against the block's size: nothing past it)
+      at = reinterpret_cast<std::uintptr_t>(
+        this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1));
+    }
+    if (at)
+    {
       __builtin_prefetch(reinterpret_cast<const char*>(at));
       if constexpr (sizeof(T) > 8)
       {
@@ -288,6 +298,8 @@ public:
   }
   // The elements' memory, for reading in place and for prefetch hints.
   SIPMSS_ALWAYS_INLINE const T* Data() const { return this->base_; }
+  // As PagedAccess::Peek: element i in the block's memory (i within the block).
+  SIPMSS_ALWAYS_INLINE const T* Peek(std::uint64_t i) const { return this->base_ + i; }
   // As View::Run: in place (`buffer` unused).
   const T* Run(std::uint64_t first, std::uint64_t, std::vector<T>&) const
   {
@@ -356,6 +368,31 @@ public:
     {
       this->dml_->WriteRange(this->id_, first, n, src);
     }
+  }
+  // For prefetch hints: element i in place when its page is in the DML's inline table, else
+  // nullptr (never a read: a page not cached stays so; i past the block gives nullptr). The
+  // pointer is valid until the next access through this DML that may miss.
+  SIPMSS_ALWAYS_INLINE const T* Peek(std::uint64_t i) const
+  {
+    return this->fast_.tagBase == kNoFastTag
+      ? nullptr
+      : reinterpret_cast<const T*>(this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1));
+  }
+  // A hint that element i is read soon: its cache lines when its page is cached (Peek).
+  SIPMSS_ALWAYS_INLINE void Prefetch(std::uint64_t i) const
+  {
+#if defined(__GNUC__)
+    if (const T* p = this->Peek(i))
+    {
+      __builtin_prefetch(static_cast<const void*>(p));
+      if constexpr (sizeof(T) > 8)
+      {
+        __builtin_prefetch(reinterpret_cast<const char*>(p) + sizeof(T) - 1);
+      }
+    }
+#else
+    (void)i;
+#endif
   }
   // As View::Run: copied into `buffer` (one table lookup per page, not per element).
   const T* Run(std::uint64_t first, std::uint64_t n, std::vector<T>& buffer) const
