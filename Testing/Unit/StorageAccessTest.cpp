@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <memory>
 #include <numeric>
 #include <random>
 #include <string>
@@ -28,6 +29,17 @@ Profile OutOfCoreProfile(const std::string& dir, std::uint64_t budget)
   p.memoryBudget = budget;
   p.policy = ModePolicy::OutOfCore;
   return p;
+}
+
+// A DML in core, or out of core with `budget` bytes of pages in dir.
+std::unique_ptr<DML> InCoreOrPaged(const TempDir& dir, bool outOfCore, std::uint64_t budget)
+{
+  auto dml = std::make_unique<DML>();
+  if (outOfCore)
+  {
+    EXPECT_EQ(dml->Config(OutOfCoreProfile(dir.Path(), budget)), Mode::OutOfCore);
+  }
+  return dml;
 }
 
 // The sum of a block's elements times their index, through WithAccess; which kind it got.
@@ -58,11 +70,8 @@ TEST(StorageAccess, WithAccessGivesRawMemoryInCoreAndThePageCacheOutOfCore)
   for (const bool outOfCore : { false, true })
   {
     SCOPED_TRACE(outOfCore ? "out of core" : "in core");
-    DML dml;
-    if (outOfCore)
-    {
-      ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 64 << 10)), Mode::OutOfCore);
-    }
+    const std::unique_ptr<DML> owned = InCoreOrPaged(dir, outOfCore, 64 << 10);
+    DML& dml = *owned;
     Array<std::uint32_t> a(dml, n);
     View<std::uint32_t> v(dml, a);
     EXPECT_EQ(v.InCore(), !outOfCore);
@@ -211,11 +220,8 @@ TEST(StorageAccess, PeekAndPrefetchUseOnlyThePagesAtHand)
   for (const bool outOfCore : { false, true })
   {
     SCOPED_TRACE(outOfCore ? "out of core" : "in core");
-    DML dml;
-    if (outOfCore)
-    {
-      ASSERT_EQ(dml.Config(OutOfCoreProfile(dir.Path(), 64 << 10)), Mode::OutOfCore);
-    }
+    const std::unique_ptr<DML> owned = InCoreOrPaged(dir, outOfCore, 64 << 10);
+    DML& dml = *owned;
     Array<std::uint64_t> a(dml, n);
     View<std::uint64_t> v(dml, a);
     for (std::uint64_t i = 0; i < n; ++i)

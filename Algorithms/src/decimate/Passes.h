@@ -337,20 +337,12 @@ inline void SumExtension(const View<double>& X, std::size_t n, std::uint64_t u, 
   }
 }
 
-// Fetches the cache lines of element *p: its first and its last byte (a quadric spans two lines,
-// a position or a face straddles two at some indices).
+// Fetches the cache lines of element *p (storage::PrefetchElement: a quadric spans two lines, a
+// position or a face straddles two at some indices).
 template <class T>
 SIPMSS_ALWAYS_INLINE void Prefetch(const T* p)
 {
-#if defined(__GNUC__)
-  __builtin_prefetch(static_cast<const void*>(p));
-  if constexpr (sizeof(T) > 8)
-  {
-    __builtin_prefetch(reinterpret_cast<const char*>(p) + sizeof(T) - 1);
-  }
-#else
-  (void)p;
-#endif
+  storage::PrefetchElement(p);
 }
 
 // The same for element i of an array that a dead face's corner (kNone) may index: the address

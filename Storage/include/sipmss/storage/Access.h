@@ -85,6 +85,24 @@ public:
   }
 };
 
+// A hint that the element at p is read soon: fetches its cache lines, its first and its last
+// byte (an 80-byte record spans two; a smaller one may straddle two). p is never dereferenced:
+// any address will do. Always inlined: GCC takes a function whose only effect is a prefetch
+// for one without effects, and drops its calls.
+template <class T>
+SIPMSS_ALWAYS_INLINE void PrefetchElement(const T* p)
+{
+#if defined(__GNUC__)
+  __builtin_prefetch(static_cast<const void*>(p));
+  if constexpr (sizeof(T) > 8)
+  {
+    __builtin_prefetch(reinterpret_cast<const char*>(p) + sizeof(T) - 1);
+  }
+#else
+  (void)p;
+#endif
+}
+
 inline namespace SIPMSS_ACCESS_NAMESPACE
 {
 namespace detail
@@ -229,7 +247,6 @@ public:
   // the page is in the DML's inline table (a lookup, no read: a page not cached stays so).
   SIPMSS_ALWAYS_INLINE void Prefetch(std::uint64_t i) const
   {
-#if defined(__GNUC__)
     std::uintptr_t at = 0;
     if (this->base_)
     {
@@ -244,15 +261,8 @@ public:
     }
     if (at)
     {
-      __builtin_prefetch(reinterpret_cast<const char*>(at));
-      if constexpr (sizeof(T) > 8)
-      {
-        __builtin_prefetch(reinterpret_cast<const char*>(at + sizeof(T) - 1));
-      }
+      PrefetchElement(reinterpret_cast<const T*>(at));
     }
-#else
-    (void)i;
-#endif
   }
 
 private:
@@ -381,18 +391,10 @@ public:
   // A hint that element i is read soon: its cache lines when its page is cached (Peek).
   SIPMSS_ALWAYS_INLINE void Prefetch(std::uint64_t i) const
   {
-#if defined(__GNUC__)
     if (const T* p = this->Peek(i))
     {
-      __builtin_prefetch(static_cast<const void*>(p));
-      if constexpr (sizeof(T) > 8)
-      {
-        __builtin_prefetch(reinterpret_cast<const char*>(p) + sizeof(T) - 1);
-      }
+      PrefetchElement(p);
     }
-#else
-    (void)i;
-#endif
   }
   // As View::Run: copied into `buffer` (one table lookup per page, not per element).
   const T* Run(std::uint64_t first, std::uint64_t n, std::vector<T>& buffer) const
