@@ -886,22 +886,26 @@ inline std::uint32_t RingLength(const Views& w, std::uint32_t x)
 {
   return w.RO.Get(x + 1) - w.RO.Get(x);
 }
-// Out of core: the faces of vertex x, those whose ids are on pages at hand (Peek; a prefetch
-// hint never reads a page).
+// Out of core, for prefetch hints: vertex x's range of ring entries [first, second) when both
+// its offsets are on pages at hand (Peek; a hint never reads a page), else an empty one.
+template <class ROA>
+SIPMSS_ALWAYS_INLINE std::pair<std::uint32_t, std::uint32_t> RingAtHand(
+  const ROA& RO, std::uint32_t x)
+{
+  const std::uint32_t* b = RO.Peek(x);
+  const std::uint32_t* e = RO.Peek(std::uint64_t(x) + 1);
+  return b && e ? std::make_pair(*b, *e) : std::make_pair(0u, 0u);
+}
+// Out of core: the faces of vertex x, those whose ids are on pages at hand.
 template <class ROA, class RFA, class FA>
 SIPMSS_ALWAYS_INLINE void PrefetchRingFaces(
   const ROA& RO, const RFA& RF, const FA& F, std::uint32_t x)
 {
-  const std::uint32_t* b = RO.Peek(x);
-  const std::uint32_t* e = RO.Peek(std::uint64_t(x) + 1);
-  if (b && e)
+  for (auto [k, end] = RingAtHand(RO, x); k < end; ++k)
   {
-    for (std::uint32_t k = *b, end = *e; k < end; ++k)
+    if (const std::uint32_t* id = RF.Peek(k))
     {
-      if (const std::uint32_t* id = RF.Peek(k))
-      {
-        F.Prefetch(*id);
-      }
+      F.Prefetch(*id);
     }
   }
 }

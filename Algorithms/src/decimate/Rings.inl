@@ -957,9 +957,7 @@ void BuildQuadrics(RunContext& ctx, MeshState& mesh)
             {
               // Out of core the same, from the pages at hand (Peek: no read for a hint).
               PrefetchRingFaces(RO, RF, F, std::uint32_t(u + 8));
-              const std::uint32_t* b = RO.Peek(u + 4);
-              const std::uint32_t* e = RO.Peek(u + 5);
-              for (std::uint32_t k = b && e ? *b : 0, end = b && e ? *e : 0; k < end; ++k)
+              for (auto [k, end] = RingAtHand(RO, std::uint32_t(u + 4)); k < end; ++k)
               {
                 const std::uint32_t* id = RF.Peek(k);
                 if (const Tri* t = id ? F.Peek(*id) : nullptr)

@@ -132,6 +132,15 @@ SIPMSS_ALWAYS_INLINE bool FastRead(
   }
   return false;
 }
+// For hints: element `first` in place on a page in the DML's table, else nullptr (also for a
+// block not served inline, tagBase kNoFastTag, whose accessor may have no DML).
+template <class T>
+SIPMSS_ALWAYS_INLINE const T* FastPeek(const DML* dml, const FastBlock& b, std::uint64_t first)
+{
+  return b.tagBase == kNoFastTag
+    ? nullptr
+    : reinterpret_cast<const T*>(dml->template FastAt<false>(b, sizeof(T), first, 1));
+}
 template <class T>
 SIPMSS_ALWAYS_INLINE bool FastWrite(
   DML& dml, const FastBlock& b, std::uint64_t first, std::uint64_t n, const T* src)
@@ -247,21 +256,15 @@ public:
   // the page is in the DML's inline table (a lookup, no read: a page not cached stays so).
   SIPMSS_ALWAYS_INLINE void Prefetch(std::uint64_t i) const
   {
-    std::uintptr_t at = 0;
     if (this->base_)
     {
       // (as an integer: i may be past the block, e.g. a dead face's corner; never dereferenced)
-      at = reinterpret_cast<std::uintptr_t>(this->base_) + std::uintptr_t(i) * sizeof(T);
+      PrefetchElement(reinterpret_cast<const T*>(
+        reinterpret_cast<std::uintptr_t>(this->base_) + std::uintptr_t(i) * sizeof(T)));
     }
-    else if (this->fast_.tagBase != kNoFastTag)
+    else if (const T* p = detail::FastPeek<T>(this->dml_, this->fast_, i)) // (none past the end)
     {
-      // (FastAt tests i against the block's size: nothing past it)
-      at = reinterpret_cast<std::uintptr_t>(
-        this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1));
-    }
-    if (at)
-    {
-      PrefetchElement(reinterpret_cast<const T*>(at));
+      PrefetchElement(p);
     }
   }
 
@@ -384,9 +387,7 @@ public:
   // pointer is valid until the next access through this DML that may miss.
   SIPMSS_ALWAYS_INLINE const T* Peek(std::uint64_t i) const
   {
-    return this->fast_.tagBase == kNoFastTag
-      ? nullptr
-      : reinterpret_cast<const T*>(this->dml_->template FastAt<false>(this->fast_, sizeof(T), i, 1));
+    return detail::FastPeek<T>(this->dml_, this->fast_, i);
   }
   // A hint that element i is read soon: its cache lines when its page is cached (Peek).
   SIPMSS_ALWAYS_INLINE void Prefetch(std::uint64_t i) const
