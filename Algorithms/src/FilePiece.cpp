@@ -125,8 +125,9 @@ public:
         {
           if (map.Get(this->at_ + i))
           {
-            std::copy_n(&this->xyz_[3 * i], 3, &this->xyz_[3 * picked]);
-            std::copy_n(&this->words_[stride * i], stride, &this->words_[stride * picked]);
+            // (pointers, not elements: without point data words_ is empty and stride 0)
+            std::copy_n(this->xyz_.data() + 3 * i, 3, this->xyz_.data() + 3 * picked);
+            std::copy_n(this->words_.data() + stride * i, stride, this->words_.data() + stride * picked);
             ++picked;
           }
         }
