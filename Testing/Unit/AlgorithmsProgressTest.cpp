@@ -9,6 +9,8 @@
 // a gap that grows with the mesh: DecimateLargeAt8MB (6M triangles) shows it (0.29 s before the
 // fix). The abort latency is wall time (what a user waits); a latency over the bound is measured
 // again (up to three times) before it fails, so that one preemption does not fail the test.
+#include "Sanitizers.h"
+
 #include "sipmss/algorithms/Cluster.h"
 #include "sipmss/algorithms/Decimate.h"
 #include "sipmss/algorithms/TwoStage.h"
@@ -37,17 +39,7 @@ using Clock = std::chrono::steady_clock;
 
 // Built with a sanitizer (scripts/sanitize) everything runs several times slower: the limits in
 // seconds are ten times longer there (the share of the run below is not).
-#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
-#define SIPMSS_SANITIZED 1
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
-#define SIPMSS_SANITIZED 1
-#endif
-#endif
-#ifndef SIPMSS_SANITIZED
-#define SIPMSS_SANITIZED 0
-#endif
-constexpr double kSlowdown = SIPMSS_SANITIZED ? 10.0 : 1.0;
+constexpr double kSlowdown = SIPMSS_ADDRESS_SANITIZER || SIPMSS_THREAD_SANITIZER ? 10.0 : 1.0;
 
 // The requirements.
 constexpr double kMaxEventGapSeconds = 0.2 * kSlowdown;

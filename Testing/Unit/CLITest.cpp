@@ -1,4 +1,6 @@
 // The sipmss command-line tool: exit codes, error messages, no partial output, stats JSON.
+#include "Sanitizers.h"
+
 #include <gtest/gtest.h>
 
 #include <array>
@@ -24,16 +26,6 @@ namespace fs = std::filesystem;
 // Built with AddressSanitizer (scripts/sanitize), the CLI's memory is the sanitizer's: its shadow
 // memory and quarantine make a peak RSS or an address-space limit mean nothing, and those tests
 // skip.
-#if defined(__SANITIZE_ADDRESS__)
-#define SIPMSS_ADDRESS_SANITIZER 1
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer)
-#define SIPMSS_ADDRESS_SANITIZER 1
-#endif
-#endif
-#ifndef SIPMSS_ADDRESS_SANITIZER
-#define SIPMSS_ADDRESS_SANITIZER 0
-#endif
 #define SKIP_UNDER_ADDRESS_SANITIZER()                                                             \
   if (SIPMSS_ADDRESS_SANITIZER)                                                                    \
   {                                                                                                \

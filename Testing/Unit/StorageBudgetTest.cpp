@@ -4,6 +4,7 @@
 // The hook counts malloc_usable_size() of every live chunk, process-wide. Between the baseline
 // and the end of a measurement the test body itself does not allocate (buffers are made before
 // the baseline), so the growth of the live bytes is the DML's.
+#include "Sanitizers.h"
 #include "StorageTestUtil.h"
 
 #include "sipmss/storage/DML.h"
@@ -21,16 +22,7 @@
 // Under AddressSanitizer or ThreadSanitizer the allocator is the sanitizer's, which calls malloc
 // before it can resolve __libc_malloc (ThreadSanitizer crashes in its start-up): the hooks are
 // left out and the tests skip.
-#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
-#define SIPMSS_HEAP_HOOK 0
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
-#define SIPMSS_HEAP_HOOK 0
-#endif
-#endif
-#ifndef SIPMSS_HEAP_HOOK
-#define SIPMSS_HEAP_HOOK 1
-#endif
+#define SIPMSS_HEAP_HOOK (!SIPMSS_ADDRESS_SANITIZER && !SIPMSS_THREAD_SANITIZER)
 
 #if SIPMSS_HEAP_HOOK
 extern "C"
