@@ -444,6 +444,9 @@ struct FilePiece::Impl
   {
     storage::Profile p = profile;
     p.structures.push_back({ "file piece: faces", sizeof(Tri), std::max<std::uint64_t>(count, 1), 0.0 });
+    // (the map and the vertex list, 4 bytes a number each: declared as 8 bytes a corner, the
+    // size of both when every corner has a number of its own; a map over a shuffled file's whole
+    // range of numbers may take more, and the DML then spills it)
     p.structures.push_back(
       { "file piece: vertex numbers", 8, std::max<std::uint64_t>(3 * count, 1), 0.0 });
     this->dml.Config(p);
