@@ -24,7 +24,8 @@ class FilePiece
 public:
   // Collective: every rank of `comm` constructs it with the same path. Binary PLY: reads this
   // rank's faces, then lists the vertex numbers they use (through a dense map over the range of
-  // numbers they use) and renumbers the faces, in a DML of its own configured with `profile`. Binary STL: reads nothing yet.
+  // numbers they use) and renumbers the faces, in a DML of its own configured with `profile`.
+  // Binary STL: reads nothing yet.
   // A file that cannot be read in pieces (ASCII, OBJ, gzip, faces that are not all triangles, or
   // one that a rank other than 0 cannot open) gives Split() false on every rank: rank 0 reads it
   // whole, once, and sends every rank the same piece (Scattered() true): its share of the faces
